@@ -1,1 +1,61 @@
-fn main() {}
+//! Developer tasks: `cargo xtask <task>`.
+//!
+//! * `goldens [--check]`: regenerate (or verify) the torch reference golden files in
+//!   `tests/goldens/`, in a Python venv this task creates with torch from PyPI.
+//! * `bench render`: CPU timings of the renderer, forward and forward+backward, next to the
+//!   dense torch reference on the same scenes. Run in release:
+//!   `cargo run --release -p xtask -- bench render`.
+
+mod bench;
+mod venv;
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+
+#[derive(Debug, Parser)]
+#[command(about = "GauSmoke-rs developer tasks")]
+struct Cli {
+    #[command(subcommand)]
+    task: Task,
+}
+
+#[derive(Debug, Subcommand)]
+enum Task {
+    /// Regenerate the torch golden files (or compare with the committed ones with --check).
+    Goldens {
+        #[arg(long)]
+        check: bool,
+    },
+    /// Benchmarks.
+    Bench {
+        #[command(subcommand)]
+        which: bench::Which,
+    },
+}
+
+/// Root of the workspace (xtask lives one level below it).
+pub fn workspace_root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("xtask is inside the workspace")
+        .to_path_buf()
+}
+
+fn main() -> Result<()> {
+    match Cli::parse().task {
+        Task::Goldens { check } => {
+            let python = venv::reference_python()?;
+            let script = workspace_root().join("xtask/reference/torch_reference.py");
+            let out = workspace_root().join("tests/goldens");
+            let mut cmd = std::process::Command::new(python);
+            cmd.arg(script).arg("goldens").arg(out);
+            if check {
+                cmd.arg("--check");
+            }
+            venv::run(&mut cmd)
+        }
+        Task::Bench { which } => bench::run(which),
+    }
+}

@@ -7,6 +7,9 @@
 //! its saved final transmittance (`backward_tile`) and chains per-Gaussian gradients back to
 //! the world-space parameters (`math::view_vjp`).
 
+// Loops over the RGB channel index touch several arrays at once; an index reads best there.
+#![allow(clippy::needless_range_loop)]
+
 use rayon::prelude::*;
 
 use crate::RasterOptions;

@@ -19,6 +19,7 @@ pub mod backends;
 pub mod cpu;
 pub mod math;
 mod ops;
+pub mod scenes;
 
 pub use gausmoke_core::{Camera, CameraError, Intrinsics};
 pub use ops::VolumeRenderBackend;
@@ -257,7 +258,7 @@ fn validate(gaussians: &GaussianTensors, background: &Tensor<1>) -> Result<(), R
     }
     if n > 0 {
         let min_norm_sq = stats[6];
-        if !(min_norm_sq > 1e-12) {
+        if min_norm_sq.is_nan() || min_norm_sq <= 1e-12 {
             return Err(RenderError::ZeroQuaternion { min_norm_sq });
         }
         let max_abs = stats[7];

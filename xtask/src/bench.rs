@@ -1,0 +1,248 @@
+//! `cargo xtask bench render`: the renderer's CPU timings next to the torch reference.
+//!
+//! Scenes: `scenes::smoke_plume` inside the ScalarReal smoke box, seen from the ScalarReal
+//! held-out camera `train02` (pose and field of view from its info.json) at the paper's
+//! 270x480. Forward = render and read the image back; forward+backward = render under
+//! autodiff, backward of `sum(rgb) + sum(T)`, read a gradient back. Median of `--reps` runs
+//! after one warm-up run.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use burn::tensor::{Device, Tensor, TensorData};
+use clap::{Args, Subcommand};
+use gausmoke_core::glam::{Mat4, Vec3};
+use gausmoke_render::scenes::{HostGaussians, smoke_plume};
+use gausmoke_render::{Camera, Intrinsics, RasterOptions, backends, render_volume};
+use safetensors::{Dtype, tensor::TensorView};
+
+#[derive(Debug, Subcommand)]
+pub enum Which {
+    /// Volumetric Gaussian renderer on the CPU backends, and the torch reference.
+    Render(RenderArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct RenderArgs {
+    /// Gaussian counts to time.
+    #[arg(long, value_delimiter = ',', default_value = "1000,10000,30000")]
+    gaussians: Vec<usize>,
+    #[arg(long, default_value_t = 270)]
+    width: u32,
+    #[arg(long, default_value_t = 480)]
+    height: u32,
+    /// Timed repetitions per case (after one warm-up).
+    #[arg(long, default_value_t = 5)]
+    reps: usize,
+    /// Our backends to time (comma-separated names).
+    #[arg(long, value_delimiter = ',', default_value = "flex,ndarray")]
+    devices: Vec<String>,
+    /// Skip the torch reference.
+    #[arg(long)]
+    no_torch: bool,
+    /// Largest wall time (s) per torch case before it stops repeating.
+    #[arg(long, default_value_t = 120.0)]
+    torch_budget_s: f64,
+    /// Where to write the results as JSON.
+    #[arg(long, default_value = "target/bench/render.json")]
+    json: PathBuf,
+}
+
+pub fn run(which: Which) -> Result<()> {
+    match which {
+        Which::Render(args) => render(args),
+    }
+}
+
+/// The ScalarReal held-out camera `train02` (info.json), at `width x height`.
+pub fn scalar_real_test_camera(width: u32, height: u32) -> Camera {
+    #[rustfmt::skip]
+    let rows = [
+        0.999_511_2, -0.003_040_663, -0.031_113_517, 0.284_436_14,
+        -0.005_995_775, 0.958_136_5, -0.286_249_07, 0.011_681_095,
+        0.030_681_38, 0.286_295_7, 0.957_649_95, 0.985_783,
+        0.0, 0.0, 0.0, 1.0,
+    ];
+    let c2w = Mat4::from_cols_array(&rows).transpose();
+    let intrinsics = Intrinsics::from_fov_x(0.415_056_97, width, height);
+    Camera::new(width, height, intrinsics, c2w).expect("ScalarReal pose is rigid")
+}
+
+/// ScalarReal's smoke box in world space (see its README).
+pub const SCALAR_REAL_BOX: (Vec3, Vec3) =
+    (Vec3::new(0.08, -0.04, -0.50), Vec3::new(0.57, 0.69, 0.00));
+
+fn median_ms(mut samples: Vec<f64>) -> f64 {
+    samples.sort_by(f64::total_cmp);
+    samples[samples.len() / 2] * 1e3
+}
+
+fn time_ours(
+    scene: &HostGaussians,
+    camera: &Camera,
+    device: &Device,
+    reps: usize,
+) -> Result<(f64, f64)> {
+    let options = RasterOptions::default();
+    let forward = || -> Result<f64> {
+        let t0 = Instant::now();
+        let tensors = scene.to_tensors(device)?;
+        let background = Tensor::<1>::from_data(TensorData::new(vec![0.0f32; 3], [3]), device);
+        let out = render_volume(&tensors, camera, &background, &options)?;
+        let _ = out.rgb.into_data();
+        Ok(t0.elapsed().as_secs_f64())
+    };
+    let ad = device.clone().autodiff();
+    let forward_backward = || -> Result<f64> {
+        let t0 = Instant::now();
+        let mut tensors = scene.to_tensors(&ad)?;
+        tensors.means = tensors.means.require_grad();
+        tensors.rotations = tensors.rotations.require_grad();
+        tensors.log_scales = tensors.log_scales.require_grad();
+        tensors.raw_densities = tensors.raw_densities.require_grad();
+        tensors.colors = tensors.colors.require_grad();
+        let background = Tensor::<1>::from_data(TensorData::new(vec![0.0f32; 3], [3]), &ad);
+        let out = render_volume(&tensors, camera, &background, &options)?;
+        let grads = (out.rgb.sum() + out.transmittance.sum()).backward();
+        let _ = tensors
+            .means
+            .grad(&grads)
+            .context("means tracked")?
+            .into_data();
+        Ok(t0.elapsed().as_secs_f64())
+    };
+    forward()?;
+    let f: Vec<f64> = (0..reps).map(|_| forward()).collect::<Result<_>>()?;
+    forward_backward()?;
+    let fb: Vec<f64> = (0..reps)
+        .map(|_| forward_backward())
+        .collect::<Result<_>>()?;
+    Ok((median_ms(f), median_ms(fb)))
+}
+
+fn write_scene(path: &Path, scene: &HostGaussians, camera: &Camera) -> Result<()> {
+    let n = scene.len();
+    let k = camera.intrinsics();
+    let mut cam = vec![
+        camera.width() as f32,
+        camera.height() as f32,
+        k.fx,
+        k.fy,
+        k.cx,
+        k.cy,
+    ];
+    cam.extend(camera.camera_to_world().transpose().to_cols_array());
+    let tensors: Vec<(&str, Vec<f32>, Vec<usize>)> = vec![
+        ("means", scene.means.clone(), vec![n, 3]),
+        ("rotations", scene.rotations.clone(), vec![n, 4]),
+        ("log_scales", scene.log_scales.clone(), vec![n, 3]),
+        ("raw_densities", scene.raw_densities.clone(), vec![n]),
+        ("colors", scene.colors.clone(), vec![n, 3]),
+        ("background", vec![0.0; 3], vec![3]),
+        ("camera", cam, vec![22]),
+    ];
+    let bytes: Vec<(&str, Vec<u8>, Vec<usize>)> = tensors
+        .into_iter()
+        .map(|(name, v, shape)| {
+            (
+                name,
+                v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+                shape,
+            )
+        })
+        .collect();
+    let views = bytes
+        .iter()
+        .map(|(name, b, shape)| Ok((*name, TensorView::new(Dtype::F32, shape.clone(), b)?)))
+        .collect::<Result<Vec<_>>>()?;
+    safetensors::serialize_to_file(views, None, path)?;
+    Ok(())
+}
+
+fn render(args: RenderArgs) -> Result<()> {
+    if cfg!(debug_assertions) {
+        eprintln!(
+            "warning: this is a debug build; run `cargo run --release -p xtask -- bench render`"
+        );
+    }
+    let camera = scalar_real_test_camera(args.width, args.height);
+    let scene_dir = crate::workspace_root().join("target/bench/scenes");
+    std::fs::create_dir_all(&scene_dir)?;
+    let threads = std::thread::available_parallelism()
+        .map(|n| n.get())
+        .unwrap_or(1);
+    let mut rows = Vec::new();
+    let mut scene_files = Vec::new();
+    for &n in &args.gaussians {
+        let scene = smoke_plume(n, SCALAR_REAL_BOX.0, SCALAR_REAL_BOX.1, 7);
+        let path = scene_dir.join(format!("plume_{n}.safetensors"));
+        write_scene(&path, &scene, &camera)?;
+        scene_files.push(path);
+        for name in &args.devices {
+            let device = backends::device_by_name(name).map_err(anyhow::Error::msg)?;
+            let (f, fb) = time_ours(&scene, &camera, &device, args.reps)?;
+            eprintln!("ours/{name}: {n} Gaussians: forward {f:.1} ms, forward+backward {fb:.1} ms");
+            rows.push(serde_json::json!({
+                "impl": format!("gausmoke-rs cpu ({name})"), "gaussians": n,
+                "width": args.width, "height": args.height, "threads": threads,
+                "forward_ms": f, "forward_backward_ms": fb,
+            }));
+        }
+    }
+    if !args.no_torch {
+        let python = crate::venv::reference_python()?;
+        let script = crate::workspace_root().join("xtask/reference/torch_reference.py");
+        let out = Command::new(python)
+            .arg(script)
+            .arg("bench")
+            .args(&scene_files)
+            .args([
+                "--threads",
+                &threads.to_string(),
+                "--reps",
+                &args.reps.to_string(),
+            ])
+            .args(["--budget-s", &args.torch_budget_s.to_string()])
+            .output()
+            .context("running the torch reference benchmark")?;
+        if !out.status.success() {
+            bail!(
+                "torch benchmark failed:\n{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        for line in String::from_utf8_lossy(&out.stdout).lines() {
+            let r: serde_json::Value = serde_json::from_str(line)?;
+            rows.push(serde_json::json!({
+                "impl": "torch reference (dense, f32)", "gaussians": r["gaussians"],
+                "width": r["width"], "height": r["height"], "threads": r["threads"],
+                "forward_ms": r["forward"]["median_ms"],
+                "forward_backward_ms": r["forward_backward"]["median_ms"],
+            }));
+        }
+    }
+    if let Some(dir) = args.json.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    std::fs::write(&args.json, serde_json::to_string_pretty(&rows)?)?;
+    println!(
+        "| implementation | Gaussians | image | threads | forward (ms) | forward+backward (ms) |"
+    );
+    println!("|---|---:|---|---:|---:|---:|");
+    for r in &rows {
+        println!(
+            "| {} | {} | {}x{} | {} | {:.1} | {:.1} |",
+            r["impl"].as_str().unwrap_or("?"),
+            r["gaussians"],
+            r["width"],
+            r["height"],
+            r["threads"],
+            r["forward_ms"].as_f64().unwrap_or(f64::NAN),
+            r["forward_backward_ms"].as_f64().unwrap_or(f64::NAN),
+        );
+    }
+    println!("(results also in {})", args.json.display());
+    Ok(())
+}
