@@ -337,8 +337,8 @@ def bench(args):
         # Chunk pixels so the [P, N] intermediates fit in memory; the loss is a sum over
         # pixels, so per-chunk backward passes accumulate the exact gradient.
         chunk = max(1, int(args.chunk_elements // max(n, 1)))
-        def run(backward):
-            for start in range(0, pixels, chunk):
+        def run(backward, limit=None):
+            for start in range(0, pixels if limit is None else min(pixels, limit), chunk):
                 sl = slice(start, min(start + chunk, pixels))
                 if backward:
                     rgb, ft = render(params, cam, OPTIONS, pixel_slice=sl)
@@ -348,7 +348,7 @@ def bench(args):
                         render(params, cam, OPTIONS, pixel_slice=sl)
         timings = {}
         for mode, backward in (("forward", False), ("forward_backward", True)):
-            run(backward)  # warm-up
+            run(backward, limit=chunk)  # warm-up on one chunk: a full dense run can take minutes
             reps = []
             deadline = time.perf_counter() + args.budget_s
             while len(reps) < args.reps and (not reps or time.perf_counter() < deadline):

@@ -1,5 +1,13 @@
-//! GauSmoke's physics half: Gaussians as burn modules, the Eulerian velocity grid, the U-Net
-//! Phi, the incompressibility projection, interpolation, advection and the physical losses.
+//! GauSmoke's physics half (paper Sec. 4.2-4.4, Appendix A): the Eulerian grid, continuous
+//! velocity interpolation with its closed-form divergence, and advection of Gaussian centres.
 //!
-//! Empty until the physics issue lands; the crate exists so the workspace's dependency arrows
-//! (render -> model -> train) are fixed from the start.
+//! Still to come (issue 4): density splatting to the grid as a custom op, the U-Net Phi, the
+//! Helmholtz projection, and the physical losses.
+
+pub mod advect;
+pub mod grid;
+pub mod interp;
+
+pub use advect::{Advected, Integrator, advect};
+pub use grid::{GridError, GridSpec};
+pub use interp::{Interpolation, VelocitySample, grid_from_fn, sample_velocity};
