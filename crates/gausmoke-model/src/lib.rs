@@ -1,13 +1,18 @@
 //! GauSmoke's physics half (paper Sec. 4.2-4.4, Appendix A): the Eulerian grid, continuous
-//! velocity interpolation with its closed-form divergence, and advection of Gaussian centres.
+//! velocity interpolation with its closed-form divergence, advection of Gaussian centres, and
+//! the exact Helmholtz projection `Pi` (a custom op whose backward is `Pi` itself).
 //!
-//! Still to come (issue 4): density splatting to the grid as a custom op, the U-Net Phi, the
-//! Helmholtz projection, and the physical losses.
+//! Still to come (issue 4): density splatting to the grid as a custom op, the U-Net Phi, and
+//! the physical losses.
 
 pub mod advect;
 pub mod grid;
 pub mod interp;
+pub mod projection;
+mod projection_op;
 
 pub use advect::{Advected, Integrator, advect};
 pub use grid::{GridError, GridSpec};
 pub use interp::{Interpolation, VelocitySample, grid_from_fn, sample_velocity};
+pub use projection::{ProjectionOptions, ProjectionReport};
+pub use projection_op::{ProjectionBackend, ProjectionSpec, project_velocity, project_with_report};

@@ -1,0 +1,143 @@
+//! [`crate::projection`] as a burn backend extension: forward projects the velocity grid, and
+//! the `Autodiff` backward projects the incoming gradient (`Pi` is self-adjoint).
+
+// NdArray is deprecated in burn 0.22; see gausmoke-render's ops.rs. The macro names it too.
+#![allow(deprecated)]
+
+use burn::backend::autodiff::{
+    Autodiff,
+    checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
+    grads::Gradients,
+    ops::{Backward, Ops, OpsKind},
+};
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Backend, TensorMetadata, backend_extension};
+use burn::tensor::{Tensor, TensorData, read_sync};
+
+use crate::grid::GridSpec;
+use crate::projection::{Divergence, ProjectionOptions, ProjectionReport, project};
+
+/// What the op needs to know about the grid (plain data, so it can cross the dispatch).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProjectionSpec {
+    pub resolution: [usize; 3],
+    pub cell: [f64; 3],
+    pub options: ProjectionOptions,
+}
+
+impl ProjectionSpec {
+    pub fn new(grid: &GridSpec, options: ProjectionOptions) -> Self {
+        let c = grid.cell_size();
+        Self {
+            resolution: grid.resolution(),
+            cell: [c.x as f64, c.y as f64, c.z as f64],
+            options,
+        }
+    }
+
+    fn operator(&self) -> Divergence {
+        Divergence {
+            resolution: self.resolution,
+            cell: self.cell,
+        }
+    }
+}
+
+#[backend_extension(
+    NdArray: cfg(feature = "ndarray"),
+    Flex: cfg(feature = "flex"),
+    Autodiff,
+)]
+pub trait ProjectionBackend: Backend {
+    /// `Pi(u)` for `u: [nx, ny, nz, 3]`.
+    fn project_velocity(velocity: FloatTensor<Self>, spec: ProjectionSpec) -> FloatTensor<Self>;
+}
+
+/// Host implementation shared by the CPU backends; logs the solver report.
+fn host_project<B: Backend>(velocity: FloatTensor<B>, spec: ProjectionSpec) -> FloatTensor<B> {
+    let device = velocity.device();
+    let shape = velocity.shape();
+    let mut values = read_sync(B::float_into_data(velocity))
+        .expect("reading a CPU tensor cannot fail")
+        .try_into_vec_as::<f32>()
+        .expect("CPU backends hold float tensors");
+    let report = project(&spec.operator(), &mut values, &spec.options);
+    tracing::debug!(?report, "velocity projection");
+    B::float_from_data(TensorData::new(values, shape), &device)
+}
+
+#[cfg(feature = "ndarray")]
+impl ProjectionBackend for burn::backend::NdArray {
+    fn project_velocity(velocity: FloatTensor<Self>, spec: ProjectionSpec) -> FloatTensor<Self> {
+        host_project::<Self>(velocity, spec)
+    }
+}
+
+#[cfg(feature = "flex")]
+impl ProjectionBackend for burn::backend::Flex {
+    fn project_velocity(velocity: FloatTensor<Self>, spec: ProjectionSpec) -> FloatTensor<Self> {
+        host_project::<Self>(velocity, spec)
+    }
+}
+
+#[derive(Debug)]
+struct ProjectBackward;
+
+impl<B: Backend + ProjectionBackend> Backward<B, 1> for ProjectBackward {
+    type State = ProjectionSpec;
+
+    fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let grad = grads.consume::<B>(&ops.node);
+        if let [Some(parent)] = ops.parents {
+            grads.register::<B>(parent.id, B::project_velocity(grad, ops.state));
+        }
+    }
+}
+
+impl<B: Backend + ProjectionBackend, C: CheckpointStrategy> ProjectionBackend for Autodiff<B, C> {
+    fn project_velocity(velocity: FloatTensor<Self>, spec: ProjectionSpec) -> FloatTensor<Self> {
+        let node = velocity.node();
+        let output = B::project_velocity(velocity.into_primitive(), spec);
+        match ProjectBackward
+            .prepare::<C>([node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish(spec, output),
+            OpsKind::UnTracked(prep) => prep.finish(output),
+        }
+    }
+}
+
+/// `Pi(u)`: the divergence-free, wall-tangent part of the velocity grid `[nx, ny, nz, 3]`.
+/// Differentiable: its gradient is `Pi` of the incoming gradient.
+pub fn project_velocity(
+    grid: &GridSpec,
+    velocity: Tensor<4>,
+    options: ProjectionOptions,
+) -> Tensor<4> {
+    use burn::backend::Dispatch;
+    let [nx, ny, nz, c] = velocity.dims();
+    assert_eq!(
+        ([nx, ny, nz], c),
+        (grid.resolution(), 3),
+        "velocity must be [nx, ny, nz, 3] on the grid"
+    );
+    Tensor::from_dispatch(<Dispatch as ProjectionBackend>::project_velocity(
+        velocity.into_dispatch(),
+        ProjectionSpec::new(grid, options),
+    ))
+}
+
+/// Projects on the host and returns the solver report (for diagnostics and the CLI).
+pub fn project_with_report(
+    grid: &GridSpec,
+    velocity: &mut [f32],
+    options: &ProjectionOptions,
+) -> ProjectionReport {
+    project(
+        &ProjectionSpec::new(grid, *options).operator(),
+        velocity,
+        options,
+    )
+}
