@@ -2,16 +2,21 @@
 //! velocity interpolation with its closed-form divergence, advection of Gaussian centres, and
 //! the exact Helmholtz projection `Pi` (a custom op whose backward is `Pi` itself).
 //!
-//! Still to come (issue 4): density splatting to the grid as a custom op, the U-Net Phi, and
+//! Density splatting to the grid is a custom op with a hand-written backward.
+//!
+//! Still to come (issue 4): the analytic spatial gradient of the density, the U-Net Phi, and
 //! the physical losses.
 
 pub mod advect;
+pub mod density;
+mod density_op;
 pub mod grid;
 pub mod interp;
 pub mod projection;
 mod projection_op;
 
 pub use advect::{Advected, Integrator, advect};
+pub use density_op::{DensityBackend, density_grid};
 pub use grid::{GridError, GridSpec};
 pub use interp::{Interpolation, VelocitySample, grid_from_fn, sample_velocity};
 pub use projection::{ProjectionOptions, ProjectionReport};

@@ -1,0 +1,202 @@
+//! Density of the Gaussians sampled at the grid's cell centres (paper Sec. 4.2):
+//! `sigma_grid(x) = sum_i sigma_i k_i(x)`, `k_i(x) = exp(-|S^-1 R^T (x - mu_i)|^2 / 2)`,
+//! evaluated only inside each Gaussian's `cutoff` support (`|.|^2 <= 9`: 3 sigma).
+//!
+//! Host implementation over flat slices (shared by the CPU backends), with the backward
+//! pass to means, quaternions, log-scales and raw densities. It reuses the renderer's
+//! whitening (`L = S^-1 R^T`, computed with an identity "camera" at the origin) and its chain
+//! rule [`gausmoke_render::math::view_vjp`], so both ops differentiate the same
+//! parameterisation.
+
+use gausmoke_render::math::{ViewSplat, WorldGaussian, dot3, view_vjp};
+use rayon::prelude::*;
+
+const IDENTITY: [[f32; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+
+/// Grid geometry for the op: `resolution` cells over a box starting at `lo`, cell `cell`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SplatGrid {
+    pub lo: [f32; 3],
+    pub cell: [f32; 3],
+    pub resolution: [usize; 3],
+    /// Squared Mahalanobis radius of the support (9 = 3 sigma).
+    pub cutoff: f32,
+}
+
+impl SplatGrid {
+    fn cells(&self) -> usize {
+        self.resolution.iter().product()
+    }
+
+    fn centre(&self, i: usize, a: usize) -> f32 {
+        self.lo[a] + (i as f32 + 0.5) * self.cell[a]
+    }
+
+    /// Cell index range per axis of the box `mean +- sqrt(cutoff) * max_scale` (the support
+    /// is inside it), or `None` when it misses the grid.
+    fn support(&self, mean: [f32; 3], radius: f32) -> Option<[(usize, usize); 3]> {
+        let mut out = [(0, 0); 3];
+        for a in 0..3 {
+            let lo = ((mean[a] - radius - self.lo[a]) / self.cell[a] - 0.5)
+                .ceil()
+                .max(0.0);
+            let hi = ((mean[a] + radius - self.lo[a]) / self.cell[a] - 0.5)
+                .floor()
+                .min(self.resolution[a] as f32 - 1.0);
+            if lo.is_nan() || hi.is_nan() || lo > hi {
+                return None;
+            }
+            out[a] = (lo as usize, hi as usize + 1);
+        }
+        Some(out)
+    }
+}
+
+/// Flat parameters of `N` Gaussians (as in the renderer's op, colours not needed).
+#[derive(Debug, Clone, Copy)]
+pub struct GaussianSlices<'a> {
+    pub means: &'a [f32],
+    pub quats: &'a [f32],
+    pub log_scales: &'a [f32],
+    pub raw_densities: &'a [f32],
+}
+
+impl GaussianSlices<'_> {
+    fn len(&self) -> usize {
+        self.raw_densities.len()
+    }
+
+    fn gaussian(&self, i: usize) -> WorldGaussian {
+        WorldGaussian {
+            mean: [
+                self.means[3 * i],
+                self.means[3 * i + 1],
+                self.means[3 * i + 2],
+            ],
+            quat: [
+                self.quats[4 * i],
+                self.quats[4 * i + 1],
+                self.quats[4 * i + 2],
+                self.quats[4 * i + 3],
+            ],
+            log_scale: [
+                self.log_scales[3 * i],
+                self.log_scales[3 * i + 1],
+                self.log_scales[3 * i + 2],
+            ],
+            raw_density: self.raw_densities[i],
+            color: [0.0; 3],
+        }
+    }
+}
+
+/// Calls `visit(flat_cell, whitened_offset)` for every cell centre inside the support of the
+/// Gaussian whose whitening (camera at the origin) is `splat`.
+fn for_each_cell(
+    grid: &SplatGrid,
+    g: &WorldGaussian,
+    splat: &ViewSplat,
+    mut visit: impl FnMut(usize, [f32; 3], [f32; 3]),
+) {
+    let radius = grid.cutoff.sqrt() * g.log_scale.iter().fold(f32::MIN, |m, &s| m.max(s)).exp();
+    let Some(range) = grid.support(g.mean, radius) else {
+        return;
+    };
+    let [_, ny, nz] = grid.resolution;
+    let l = &splat.whiten;
+    for i in range[0].0..range[0].1 {
+        let x = grid.centre(i, 0);
+        for j in range[1].0..range[1].1 {
+            let y = grid.centre(j, 1);
+            for k in range[2].0..range[2].1 {
+                let p = [x, y, grid.centre(k, 2)];
+                // m = L x - L mu: the whitened offset of the cell centre.
+                let m = [
+                    dot3(l[0], p) - splat.center[0],
+                    dot3(l[1], p) - splat.center[1],
+                    dot3(l[2], p) - splat.center[2],
+                ];
+                if dot3(m, m) <= grid.cutoff {
+                    visit((i * ny + j) * nz + k, p, m);
+                }
+            }
+        }
+    }
+}
+
+/// `sigma_grid`, `[nx * ny * nz]` in the grid's flat order.
+pub fn splat_forward(gaussians: &GaussianSlices, grid: &SplatGrid) -> Vec<f32> {
+    let cells = grid.cells();
+    (0..gaussians.len())
+        .into_par_iter()
+        .fold(
+            || vec![0.0f32; cells],
+            |mut acc, i| {
+                let g = gaussians.gaussian(i);
+                let (splat, _) = g.view(&IDENTITY, [0.0; 3]);
+                for_each_cell(grid, &g, &splat, |c, _, m| {
+                    acc[c] += splat.sigma * (-0.5 * dot3(m, m)).exp();
+                });
+                acc
+            },
+        )
+        .reduce(
+            || vec![0.0f32; cells],
+            |mut a, b| {
+                a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
+                a
+            },
+        )
+}
+
+/// Gradients `(means, quats, log_scales, raw_densities)` given `dLoss/dsigma_grid`.
+pub fn splat_backward(
+    gaussians: &GaussianSlices,
+    grid: &SplatGrid,
+    grad_grid: &[f32],
+) -> (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>) {
+    assert_eq!(
+        grad_grid.len(),
+        grid.cells(),
+        "gradient must cover the grid"
+    );
+    let grads: Vec<_> = (0..gaussians.len())
+        .into_par_iter()
+        .map(|i| {
+            let g = gaussians.gaussian(i);
+            let (splat, ctx) = g.view(&IDENTITY, [0.0; 3]);
+            let mut grad_whiten = [[0.0f32; 3]; 3];
+            let mut grad_center = [0.0f32; 3];
+            let mut grad_sigma = 0.0f32;
+            for_each_cell(grid, &g, &splat, |c, p, m| {
+                let kernel = (-0.5 * dot3(m, m)).exp();
+                let up = grad_grid[c];
+                grad_sigma += up * kernel;
+                // d(sigma k)/dm = -sigma k m;  m = L p - c  =>  dL += g_m p^T, dc -= g_m.
+                let scale = -up * splat.sigma * kernel;
+                for r in 0..3 {
+                    let g_m = scale * m[r];
+                    for col in 0..3 {
+                        grad_whiten[r][col] += g_m * p[col];
+                    }
+                    grad_center[r] -= g_m;
+                }
+            });
+            view_vjp(
+                &g,
+                &ctx,
+                &IDENTITY,
+                &grad_whiten,
+                grad_center,
+                grad_sigma,
+                [0.0; 3],
+            )
+        })
+        .collect();
+    (
+        grads.iter().flat_map(|g| g.mean).collect(),
+        grads.iter().flat_map(|g| g.quat).collect(),
+        grads.iter().flat_map(|g| g.log_scale).collect(),
+        grads.iter().map(|g| g.raw_density).collect(),
+    )
+}
