@@ -4,8 +4,10 @@
 //!
 //! Density splatting to the grid is a custom op with a hand-written backward.
 //!
-//! Still to come (issue 4): the analytic spatial gradient of the density, the U-Net Phi, and
-//! the physical losses.
+//! The update network Phi is a small 3D U-Net module.
+//!
+//! Still to come (issue 4): the analytic spatial gradient of the density, the physical
+//! losses, torch goldens for these ops, and GPU kernels.
 
 pub mod advect;
 pub mod density;
@@ -14,6 +16,7 @@ pub mod grid;
 pub mod interp;
 pub mod projection;
 mod projection_op;
+pub mod unet;
 
 pub use advect::{Advected, Integrator, advect};
 pub use density_op::{DensityBackend, density_grid};
@@ -21,3 +24,4 @@ pub use grid::{GridError, GridSpec};
 pub use interp::{Interpolation, VelocitySample, grid_from_fn, sample_velocity};
 pub use projection::{ProjectionOptions, ProjectionReport};
 pub use projection_op::{ProjectionBackend, ProjectionSpec, project_velocity, project_with_report};
+pub use unet::{UNetConfig, UNetError, VelocityUNet};
