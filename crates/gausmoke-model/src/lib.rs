@@ -6,14 +6,17 @@
 //!
 //! The update network Phi is a small 3D U-Net module.
 //!
-//! Still to come (issue 4): the analytic spatial gradient of the density, the physical
-//! losses, torch goldens for these ops, and GPU kernels.
+//! Losses: `L_div` and `L_refine`.
+//!
+//! Still to come (issue 4): the analytic spatial gradient of the density and `L_adv`, torch
+//! goldens for these ops, their benchmark, and GPU kernels.
 
 pub mod advect;
 pub mod density;
 mod density_op;
 pub mod grid;
 pub mod interp;
+pub mod losses;
 pub mod projection;
 mod projection_op;
 pub mod unet;
@@ -22,6 +25,7 @@ pub use advect::{Advected, Integrator, advect};
 pub use density_op::{DensityBackend, density_grid};
 pub use grid::{GridError, GridSpec};
 pub use interp::{Interpolation, VelocitySample, grid_from_fn, sample_velocity};
+pub use losses::{divergence_loss, refine_loss};
 pub use projection::{ProjectionOptions, ProjectionReport};
 pub use projection_op::{ProjectionBackend, ProjectionSpec, project_velocity, project_with_report};
 pub use unet::{UNetConfig, UNetError, VelocityUNet};

@@ -14,6 +14,12 @@
 //!
 //! `Pi` is symmetric and idempotent, so its backward pass is `Pi` applied to the incoming
 //! gradient; nothing is differentiated through the solver's iterations.
+//!
+//! Caveat (collocated grid): `D`'s central differences cannot see odd-even (checkerboard)
+//! velocity modes, so `Pi` leaves them. The default Gaussian interpolation smooths them out
+//! (`L_div` of a projected radial field drops 98.7%), but trilinear sampled at cell centres
+//! still sees them (only 66%). A staggered (MAC) velocity, or a `D` defined through the
+//! interpolant's own divergence, would remove the mismatch; see the issue 4 notes.
 
 use rayon::prelude::*;
 
