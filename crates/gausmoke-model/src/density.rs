@@ -200,3 +200,97 @@ pub fn splat_backward(
         grads.iter().map(|g| g.raw_density).collect(),
     )
 }
+
+/// Analytic spatial gradient `grad sigma_grid`, `[nx * ny * nz * 3]`:
+/// `sum_i sigma_i k_i(x) (-Sigma_i^-1 (x - mu_i))`, with `Sigma^-1 (x - mu) = L^T m`.
+pub fn splat_gradient_forward(gaussians: &GaussianSlices, grid: &SplatGrid) -> Vec<f32> {
+    let cells = grid.cells();
+    (0..gaussians.len())
+        .into_par_iter()
+        .fold(
+            || vec![0.0f32; 3 * cells],
+            |mut acc, i| {
+                let g = gaussians.gaussian(i);
+                let (splat, _) = g.view(&IDENTITY, [0.0; 3]);
+                let l = &splat.whiten;
+                for_each_cell(grid, &g, &splat, |c, _, m| {
+                    let weight = -splat.sigma * (-0.5 * dot3(m, m)).exp();
+                    for a in 0..3 {
+                        acc[3 * c + a] +=
+                            weight * (l[0][a] * m[0] + l[1][a] * m[1] + l[2][a] * m[2]);
+                    }
+                });
+                acc
+            },
+        )
+        .reduce(
+            || vec![0.0f32; 3 * cells],
+            |mut a, b| {
+                a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
+                a
+            },
+        )
+}
+
+/// Gradients `(means, quats, log_scales, raw_densities)` of [`splat_gradient_forward`]
+/// given `dLoss/d(grad sigma)` (`[cells * 3]`).
+///
+/// Per cell and Gaussian the output is `f = -sigma k m.(L g)` for upstream `g`; with
+/// `v = L g`, `s = m.v`: `df/dm = sigma k (s m - v)`, `df/dL = -sigma k m g^T` directly plus
+/// `(df/dm) x^T` through `m = L x - L mu`, and `df/dsigma = -k s`.
+pub fn splat_gradient_backward(
+    gaussians: &GaussianSlices,
+    grid: &SplatGrid,
+    grad_field: &[f32],
+) -> (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>) {
+    assert_eq!(
+        grad_field.len(),
+        3 * grid.cells(),
+        "gradient must be [cells, 3]"
+    );
+    let grads: Vec<_> = (0..gaussians.len())
+        .into_par_iter()
+        .map(|i| {
+            let g = gaussians.gaussian(i);
+            let (splat, ctx) = g.view(&IDENTITY, [0.0; 3]);
+            let l = splat.whiten;
+            let mut grad_whiten = [[0.0f32; 3]; 3];
+            let mut grad_center = [0.0f32; 3];
+            let mut grad_sigma = 0.0f32;
+            for_each_cell(grid, &g, &splat, |c, p, m| {
+                let up = [
+                    grad_field[3 * c],
+                    grad_field[3 * c + 1],
+                    grad_field[3 * c + 2],
+                ];
+                let v = [dot3(l[0], up), dot3(l[1], up), dot3(l[2], up)];
+                let s = dot3(m, v);
+                let kernel = (-0.5 * dot3(m, m)).exp();
+                grad_sigma -= kernel * s;
+                let sk = splat.sigma * kernel;
+                for r in 0..3 {
+                    let g_m = sk * (s * m[r] - v[r]);
+                    for col in 0..3 {
+                        grad_whiten[r][col] += g_m * p[col] - sk * m[r] * up[col];
+                    }
+                    grad_center[r] -= g_m;
+                }
+            });
+            view_vjp(
+                &g,
+                &ctx,
+                &IDENTITY,
+                &grad_whiten,
+                grad_center,
+                grad_sigma,
+                [0.0; 3],
+            )
+        })
+        .collect();
+    (
+        grads.iter().flat_map(|g| g.mean).collect(),
+        grads.iter().flat_map(|g| g.quat).collect(),
+        grads.iter().flat_map(|g| g.log_scale).collect(),
+        grads.iter().map(|g| g.raw_density).collect(),
+    )
+}

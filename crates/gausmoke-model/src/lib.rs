@@ -6,10 +6,10 @@
 //!
 //! The update network Phi is a small 3D U-Net module.
 //!
-//! Losses: `L_div` and `L_refine`.
+//! The density's analytic spatial gradient comes from the same op; the losses `L_div`,
+//! `L_adv` and `L_refine` are plain tensor functions.
 //!
-//! Still to come (issue 4): the analytic spatial gradient of the density and `L_adv`, torch
-//! goldens for these ops, their benchmark, and GPU kernels.
+//! Still to come (issue 4): torch goldens for these ops, their benchmark, and GPU kernels.
 
 pub mod advect;
 pub mod density;
@@ -22,10 +22,10 @@ mod projection_op;
 pub mod unet;
 
 pub use advect::{Advected, Integrator, advect};
-pub use density_op::{DensityBackend, density_grid};
+pub use density_op::{DensityBackend, DensityField, density_gradient_grid, density_grid};
 pub use grid::{GridError, GridSpec};
 pub use interp::{Interpolation, VelocitySample, grid_from_fn, sample_velocity};
-pub use losses::{divergence_loss, refine_loss};
+pub use losses::{advection_loss, divergence_loss, refine_loss};
 pub use projection::{ProjectionOptions, ProjectionReport};
 pub use projection_op::{ProjectionBackend, ProjectionSpec, project_velocity, project_with_report};
 pub use unet::{UNetConfig, UNetError, VelocityUNet};
