@@ -316,10 +316,113 @@ def write_goldens(out_dir, check):
             save_file({k: v.contiguous() for k, v in tensors.items()}, str(path), metadata=meta)
         print(f"{path.name}: {c['description']} ({c['params']['raw_densities'].shape[0]} Gaussians, "
               f"{c['camera']['width']}x{c['camera']['height']})")
+    worst = max(worst, model_goldens(out_dir, check))
     if check:
         print(f"largest relative difference to the committed goldens: {worst:.3e}")
         if worst > 1e-5:
             sys.exit(1)
+
+
+# ----------------------------------------------------------------------------- model ops
+
+def splat_density(params, lo, cell, res, cutoff):
+    """sigma_grid [nx, ny, nz] = sum_i sigma_i k_i(x_c), k inside the cutoff support only."""
+    axes = [torch.arange(n, dtype=torch.float64) * cell[a] + lo[a] + 0.5 * cell[a] for a, n in enumerate(res)]
+    centres = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    rot = quat_to_rotation(params["rotations"])
+    inv_var = torch.exp(-2.0 * params["log_scales"])
+    inv_cov = rot @ torch.diag_embed(inv_var) @ rot.transpose(-1, -2)
+    diff = centres[:, None, :] - params["means"][None, :, :]  # [C, N, 3]
+    q = torch.einsum("cni,nij,cnj->cn", diff, inv_cov, diff)
+    kernel = torch.where(q <= cutoff, torch.exp(-0.5 * q), torch.zeros_like(q))
+    sigma = F.softplus(params["raw_densities"])
+    return (kernel * sigma[None, :]).sum(1).reshape(*res)
+
+
+def sample_velocity(velocity, points, lo, cell, res, stencil, std_cells):
+    """Eq. 11 interpolation, Eq. 22 Jacobian: velocity [nx, ny, nz, 3], points [M, 3]."""
+    lo_t = torch.tensor(lo, dtype=torch.float64)
+    cell_t = torch.tensor(cell, dtype=torch.float64)
+    coord = (points - lo_t) / cell_t - 0.5
+    first = stencil // 2 - 1
+    max_base = torch.tensor([n - stencil for n in res], dtype=torch.float64)
+    base = torch.minimum(torch.clamp(torch.floor(coord.detach()) - first, min=0.0), max_base)
+    r = torch.arange(stencil, dtype=torch.float64)
+    offsets = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
+    node = base[:, None, :] + offsets[None, :, :]  # [M, S^3, 3]
+    idx = node.long()
+    node_u = velocity[idx[..., 0], idx[..., 1], idx[..., 2]]  # [M, S^3, 3]
+    delta = node - coord[:, None, :]
+    w = torch.exp(-0.5 * (delta ** 2).sum(-1) / std_cells ** 2)  # [M, S^3]
+    total = w.sum(1, keepdim=True)
+    u = (w[..., None] * node_u).sum(1) / total
+    g = delta / (std_cells ** 2 * cell_t)
+    jac = torch.einsum("ms,msa,msb->mab", w, node_u - u[:, None, :], g) / total[..., None]
+    return u, jac
+
+
+def model_goldens(out_dir, check):
+    rng = np.random.default_rng(7)
+    files = {}
+    # Density splatting: 12 Gaussians in a non-cubic grid, support cut at 3 sigma.
+    n = 12
+    lo, res = (0.1, -0.2, 0.0), (10, 14, 8)
+    cell = (0.06, 0.05, 0.07)
+    params = {
+        "means": rng.uniform([0.2, 0.0, 0.1], [0.6, 0.5, 0.5], size=(n, 3)),
+        "rotations": random_quats(rng, n),
+        "log_scales": rng.uniform(np.log(0.04), np.log(0.12), size=(n, 3)),
+        "raw_densities": rng.uniform(-1.0, 2.0, size=n),
+    }
+    params = {k: torch.tensor(np.asarray(v, dtype=np.float32), dtype=torch.float64, requires_grad=True)
+              for k, v in params.items()}
+    sigma = splat_density(params, lo, cell, res, 9.0)
+    gen = torch.Generator().manual_seed(11)
+    weight = torch.randn(*res, generator=gen, dtype=torch.float64).float()
+    (sigma * weight.double()).sum().backward()
+    t = {k: v.detach().float() for k, v in params.items()}
+    t.update({"grid": torch.tensor(list(lo) + list(cell) + list(res) + [9.0], dtype=torch.float32),
+              "weight": weight, "sigma": sigma.detach().float()})
+    t.update({"grad_" + k: v.grad.float() for k, v in params.items()})
+    files["model_density_splat"] = (t, "density of 12 Gaussians at the cell centres of a 10x14x8 grid, 3-sigma support")
+
+    # Interpolation (Eq. 11) and closed-form divergence (Eq. 12) of a random grid.
+    lo, res, cell = (-0.3, 0.0, 0.1), (7, 9, 6), (0.8 / 7, 0.1, 0.1)
+    velocity = torch.tensor(rng.uniform(-1, 1, size=(*res, 3)).astype(np.float32), dtype=torch.float64, requires_grad=True)
+    # Points away from cell-centre crossings (where the stencil moves) so gradients are defined.
+    pts = []
+    while len(pts) < 40:
+        p = rng.uniform([-0.25, 0.05, 0.15], [0.45, 0.85, 0.65])
+        c = (p - np.array(lo)) / np.array(cell) - 0.5
+        if np.all(np.abs(c - np.round(c)) > 0.05):
+            pts.append(p)
+    points = torch.tensor(np.asarray(pts, dtype=np.float32), dtype=torch.float64, requires_grad=True)
+    u, jac = sample_velocity(velocity, points, lo, cell, res, 4, 0.6)
+    div = jac.diagonal(dim1=1, dim2=2).sum(-1)
+    wu = torch.randn(40, 3, generator=gen, dtype=torch.float64).float()
+    wd = torch.randn(40, generator=gen, dtype=torch.float64).float()
+    ((u * wu.double()).sum() + (div * wd.double()).sum()).backward()
+    t = {"velocity": velocity.detach().float(), "points": points.detach().float(),
+         "grid": torch.tensor(list(lo) + list(cell) + list(res) + [4.0, 0.6], dtype=torch.float32),
+         "weight_velocity": wu, "weight_divergence": wd, "u": u.detach().float(),
+         "jacobian": jac.detach().float(), "divergence": div.detach().float(),
+         "grad_velocity": velocity.grad.float(), "grad_points": points.grad.float()}
+    files["model_interp_gaussian"] = (t, "Eq. 11 interpolation (4x4x4, std 0.6 cells) and Eq. 12 divergence at 40 points")
+
+    worst = 0.0
+    for name, (tensors, description) in files.items():
+        path = out_dir / f"{name}.safetensors"
+        if check:
+            old = load_file(str(path))
+            for k, v in tensors.items():
+                diff = (old[k] - v).abs().max().item()
+                scale = max(v.abs().max().item(), 1.0)
+                worst = max(worst, diff / scale)
+        else:
+            save_file({k: v.contiguous() for k, v in tensors.items()}, str(path),
+                      metadata={"description": description, "torch": torch.__version__})
+        print(f"{path.name}: {description}")
+    return worst
 
 
 # ----------------------------------------------------------------------------- bench
