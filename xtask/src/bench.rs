@@ -22,6 +22,21 @@ use safetensors::{Dtype, tensor::TensorView};
 pub enum Which {
     /// Volumetric Gaussian renderer on the CPU backends, and the torch reference.
     Render(RenderArgs),
+    /// Physics ops: density splatting, projection solve, U-Net forward+backward.
+    Physics(PhysicsArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct PhysicsArgs {
+    #[arg(long, default_value_t = 30_000)]
+    gaussians: usize,
+    /// Grid cells per axis.
+    #[arg(long, default_value_t = 64)]
+    resolution: usize,
+    #[arg(long, default_value_t = 3)]
+    reps: usize,
+    #[arg(long, default_value = "flex")]
+    device: String,
 }
 
 #[derive(Debug, Args)]
@@ -53,6 +68,7 @@ pub struct RenderArgs {
 pub fn run(which: Which) -> Result<()> {
     match which {
         Which::Render(args) => render(args),
+        Which::Physics(args) => physics(args),
     }
 }
 
@@ -244,5 +260,92 @@ fn render(args: RenderArgs) -> Result<()> {
         );
     }
     println!("(results also in {})", args.json.display());
+    Ok(())
+}
+
+fn time_ms(reps: usize, mut f: impl FnMut() -> Result<()>) -> Result<f64> {
+    f()?;
+    let mut samples = Vec::with_capacity(reps);
+    for _ in 0..reps {
+        let t0 = Instant::now();
+        f()?;
+        samples.push(t0.elapsed().as_secs_f64());
+    }
+    Ok(median_ms(samples))
+}
+
+fn physics(args: PhysicsArgs) -> Result<()> {
+    use gausmoke_model::{
+        GridSpec, ProjectionOptions, UNetConfig, VelocityUNet, density_grid, project_with_report,
+    };
+    if cfg!(debug_assertions) {
+        eprintln!(
+            "warning: this is a debug build; run `cargo run --release -p xtask -- bench physics`"
+        );
+    }
+    let device = backends::device_by_name(&args.device).map_err(anyhow::Error::msg)?;
+    let (lo, hi) = SCALAR_REAL_BOX;
+    let n = args.resolution;
+    let grid = GridSpec::new(lo, hi, [n, n, n], 4)?;
+    let scene = smoke_plume(args.gaussians, lo, hi, 7);
+
+    let ad = device.clone().autodiff();
+    let splat = time_ms(args.reps, || {
+        let mut g = scene.to_tensors(&ad)?;
+        g.means = g.means.require_grad();
+        let sigma = density_grid(&g, &grid, 9.0);
+        let grads = sigma.sum().backward();
+        let _ = g.means.grad(&grads).context("tracked")?.into_data();
+        Ok(())
+    })?;
+    let splat_forward = time_ms(args.reps, || {
+        let g = scene.to_tensors(&device)?;
+        let _ = density_grid(&g, &grid, 9.0).into_data();
+        Ok(())
+    })?;
+
+    // Projection of a random (divergent) field to the default tolerance.
+    let mut rng = gausmoke_render::scenes::SplitMix64::new(3);
+    let field: Vec<f32> = (0..3 * n * n * n).map(|_| rng.range(-1.0, 1.0)).collect();
+    let options = ProjectionOptions::default();
+    let mut report = None;
+    let projection = time_ms(args.reps, || {
+        let mut u = field.clone();
+        report = Some(project_with_report(&grid, &mut u, &options));
+        Ok(())
+    })?;
+
+    let unet = VelocityUNet::new(&UNetConfig::default(), &ad);
+    let velocity = Tensor::<4>::from_data(TensorData::new(field.clone(), [n, n, n, 3]), &ad);
+    let density = Tensor::<3>::zeros([n, n, n], &ad);
+    let unet_ms = time_ms(args.reps, || {
+        let delta = unet.forward(velocity.clone(), density.clone(), 0.5)?;
+        let grads = delta.powi_scalar(2).sum().backward();
+        drop(grads);
+        Ok(())
+    })?;
+
+    let threads = std::thread::available_parallelism()
+        .map(|n| n.get())
+        .unwrap_or(1);
+    println!(
+        "| op ({} backend, {threads} threads) | size | median (ms) |",
+        args.device
+    );
+    println!("|---|---|---:|");
+    println!(
+        "| density splatting, forward | {} Gaussians -> {n}^3 | {splat_forward:.1} |",
+        args.gaussians
+    );
+    println!(
+        "| density splatting, forward+backward | {} Gaussians -> {n}^3 | {splat:.1} |",
+        args.gaussians
+    );
+    let r = report.expect("ran");
+    println!(
+        "| projection (Jacobi-PCG, rel. residual {:.1e}, {} iterations, RMS div {:.2e} -> {:.2e}) | {n}^3 | {projection:.1} |",
+        r.relative_residual, r.iterations, r.divergence_rms_before, r.divergence_rms_after
+    );
+    println!("| U-Net Phi forward+backward (16 base channels) | {n}^3 | {unet_ms:.1} |");
     Ok(())
 }
