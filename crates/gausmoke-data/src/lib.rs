@@ -1,4 +1,33 @@
 //! Smoke data sets in their published formats and the synthetic scene generator.
 //!
-//! Empty until the data issue lands; it depends only on `gausmoke-core` (cameras), never on
-//! the renderer or on training.
+//! Depends only on `gausmoke-core` (cameras), never on the renderer or on training.
+//!
+//! * [`Dataset`]: views (one per camera, or one per split for monocular formats), each a list
+//!   of [`Frame`]s (time, camera, RGB image), plus background colour and smoke box.
+//! * [`load_pinf`]: PINF / HyFluid `info.json` with per-camera `.mp4` videos (decoded
+//!   in-process, see [`video`]) or folders of PNG frames.
+//! * [`load_dnerf`]: D-NeRF / 4D-GS `transforms_{train,val,test}.json` with RGBA PNGs.
+//! * [`synth`]: a synthetic smoke scene generator with ground-truth density and velocity,
+//!   written in the PINF format.
+//!
+//! Images follow the workspace conventions: f32 in `[0, 1]`, `[height, width, 3]` row-major,
+//! no sRGB conversion. Resizing ([`LoadOptions::resolution`]) uses an area filter and scales
+//! the intrinsics by the size ratio.
+
+mod dataset;
+mod dnerf;
+mod error;
+mod image;
+pub mod inspect;
+mod json;
+mod pinf;
+pub mod synth;
+pub mod video;
+
+pub use dataset::{Aabb, Dataset, Format, Frame, LoadOptions, Split, View};
+pub use dnerf::load_dnerf;
+pub use error::{DataError, Result};
+pub use image::{Image, read_png_over, resize_area};
+pub use pinf::load_pinf;
+
+pub use gausmoke_core::{Camera, Intrinsics, glam};

@@ -1,0 +1,724 @@
+//! Synthetic smoke scenes with ground truth (issue 7, item 2).
+//!
+//! A small 3D smoke solver (buoyant plume from a source disc near the floor, semi-Lagrangian
+//! advection with trilinear sampling, vorticity confinement, pressure projection by Jacobi
+//! iterations, seeded inflow noise) is rendered from cameras on an arc by an independent Beer-Lambert ray
+//! marcher (not the Gaussian renderer), and written as a PINF / HyFluid data set:
+//! `info.json`, one folder of PNG frames per camera (`view00/000.png`, ...), and the ground
+//! truth per frame in `gt/frame_000.safetensors` (`density` `[n, n, n]` and `velocity`
+//! `[n, n, n, 3]`, index order `[z][y][x]` with x fastest, cell centres at
+//! `sim = (i + 0.5) / n`; velocity in world units per frame).
+//!
+//! World: the smoke box is `[-0.5, 0.5] x [0, 1] x [-0.5, 0.5]` (y up), written as
+//! `voxel_scale = 1` and a `voxel_matrix` that becomes `[I | (-0.5, 0, -0.5)]` after the
+//! PINF column swap. Cameras look at the box centre from a circle of radius
+//! [`SynthConfig::camera_distance`] in the horizontal plane through it, spread over
+//! [`SynthConfig::arc_degrees`] centred on +Z. The middle camera is the test view.
+//!
+//! Rendering (emission-absorption, grey smoke of albedo 1, black background): along each
+//! pixel-centre ray, `sigma = density_scale * density`, `L = sum T_k (1 - exp(-sigma_k ds))`,
+//! `T_{k+1} = T_k exp(-sigma_k ds)`, step `ds` = half a cell, pixel = `L + T * background`.
+//! PNGs store it in 8 bits, so loaded pixels match the marcher to 0.5/255.
+//!
+//! Nothing is partially written: the scene is built in a sibling `.partial` folder and
+//! renamed into place at the end; an existing non-empty output folder is refused.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use gausmoke_core::Camera;
+use gausmoke_core::glam::{Mat4, Vec3};
+use rayon::prelude::*;
+use serde_json::json;
+
+use crate::error::{DataError, Result, io_err};
+use crate::image::Image;
+
+/// Scene and solver settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SynthConfig {
+    /// Cells per axis of the cubic grid.
+    pub grid: usize,
+    pub views: usize,
+    pub frames: usize,
+    pub width: u32,
+    pub height: u32,
+    pub seed: u64,
+    /// Solver substeps per frame.
+    pub substeps: usize,
+    /// Jacobi iterations per pressure solve.
+    pub jacobi_iterations: usize,
+    /// Upward acceleration per unit density, in cells per frame^2.
+    pub buoyancy: f32,
+    /// Upward inflow speed at the source, in cells per frame.
+    pub inflow_speed: f32,
+    /// Relative amplitude of the seeded inflow noise (density and horizontal velocity).
+    pub noise: f32,
+    /// Vorticity confinement strength (Fedkiw et al. 2001), in cells; 0 disables it.
+    pub vorticity: f32,
+    /// Extinction per unit density per world unit.
+    pub density_scale: f32,
+    pub camera_distance: f32,
+    pub arc_degrees: f32,
+    /// Horizontal field of view, radians.
+    pub fov_x: f32,
+}
+
+impl SynthConfig {
+    /// 24^3, 3 views, 8 frames at 64x96: for tests.
+    pub fn tiny() -> Self {
+        Self {
+            grid: 24,
+            views: 3,
+            frames: 8,
+            width: 64,
+            height: 96,
+            seed: 7,
+            substeps: 2,
+            jacobi_iterations: 40,
+            buoyancy: 0.15,
+            inflow_speed: 0.6,
+            noise: 0.3,
+            vorticity: 0.3,
+            density_scale: 5.0,
+            camera_distance: 2.0,
+            arc_degrees: 120.0,
+            fov_x: 0.75,
+        }
+    }
+
+    /// ScalarFlow-sized: 64^3, 5 views over 120 degrees, 120 frames at 270x480.
+    pub fn scalarflow() -> Self {
+        Self {
+            grid: 64,
+            views: 5,
+            frames: 120,
+            width: 270,
+            height: 480,
+            substeps: 2,
+            jacobi_iterations: 80,
+            buoyancy: 0.08,
+            inflow_speed: 1.0,
+            ..Self::tiny()
+        }
+    }
+
+    fn validate(&self) -> Result<()> {
+        let bad = |option: &'static str, reason: String| Err(DataError::Options { option, reason });
+        if !(4..=512).contains(&self.grid) {
+            return bad(
+                "grid",
+                format!("{} cells per axis, expected 4..=512", self.grid),
+            );
+        }
+        if self.views == 0 || self.frames == 0 || self.substeps == 0 {
+            return bad("views/frames/substeps", "must be at least 1".into());
+        }
+        if self.width == 0 || self.height == 0 {
+            return bad("width/height", "empty image".into());
+        }
+        let finite = [
+            self.vorticity,
+            self.buoyancy,
+            self.inflow_speed,
+            self.noise,
+            self.density_scale,
+            self.camera_distance,
+            self.arc_degrees,
+            self.fov_x,
+        ];
+        if finite.iter().any(|v| !v.is_finite()) {
+            return bad("config", "non-finite value".into());
+        }
+        if self.camera_distance <= 1.0 {
+            return bad(
+                "camera_distance",
+                "cameras must stay outside the unit box (> 1)".into(),
+            );
+        }
+        Ok(())
+    }
+}
+
+/// The smoke box in world space and the map from the unit simulation cube to it.
+pub fn world_box() -> (Vec3, Vec3) {
+    (Vec3::new(-0.5, 0.0, -0.5), Vec3::new(0.5, 1.0, 0.5))
+}
+
+/// The cameras of a configuration (index order = view order).
+pub fn cameras(cfg: &SynthConfig) -> Result<Vec<Camera>> {
+    let (lo, hi) = world_box();
+    let centre = 0.5 * (lo + hi);
+    (0..cfg.views)
+        .map(|k| {
+            let a = if cfg.views == 1 {
+                0.0
+            } else {
+                (k as f32 / (cfg.views - 1) as f32 - 0.5) * cfg.arc_degrees.to_radians()
+            };
+            let eye = centre + cfg.camera_distance * Vec3::new(a.sin(), 0.0, a.cos());
+            Camera::look_at(eye, centre, Vec3::Y, cfg.width, cfg.height, cfg.fov_x).map_err(|e| {
+                DataError::Options {
+                    option: "cameras",
+                    reason: e.to_string(),
+                }
+            })
+        })
+        .collect()
+}
+
+/// A cubic grid of cell-centred values, `[z][y][x]`, x fastest.
+#[derive(Debug, Clone)]
+pub struct Grid {
+    pub n: usize,
+    pub data: Vec<f32>,
+}
+
+impl Grid {
+    fn zeros(n: usize) -> Self {
+        Self {
+            n,
+            data: vec![0.0; n * n * n],
+        }
+    }
+
+    #[inline]
+    fn idx(&self, x: usize, y: usize, z: usize) -> usize {
+        (z * self.n + y) * self.n + x
+    }
+
+    /// Trilinear sample at grid coordinates (cell centres at integers), clamped to the box.
+    pub fn sample(&self, p: Vec3) -> f32 {
+        let max = (self.n - 1) as f32;
+        let p = p.clamp(Vec3::ZERO, Vec3::splat(max));
+        let (x0, y0, z0) = (
+            p.x.floor() as usize,
+            p.y.floor() as usize,
+            p.z.floor() as usize,
+        );
+        let (x1, y1, z1) = (
+            (x0 + 1).min(self.n - 1),
+            (y0 + 1).min(self.n - 1),
+            (z0 + 1).min(self.n - 1),
+        );
+        let (fx, fy, fz) = (p.x - x0 as f32, p.y - y0 as f32, p.z - z0 as f32);
+        let d = &self.data;
+        let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
+        let c00 = lerp(d[self.idx(x0, y0, z0)], d[self.idx(x1, y0, z0)], fx);
+        let c10 = lerp(d[self.idx(x0, y1, z0)], d[self.idx(x1, y1, z0)], fx);
+        let c01 = lerp(d[self.idx(x0, y0, z1)], d[self.idx(x1, y0, z1)], fx);
+        let c11 = lerp(d[self.idx(x0, y1, z1)], d[self.idx(x1, y1, z1)], fx);
+        lerp(lerp(c00, c10, fy), lerp(c01, c11, fy), fz)
+    }
+}
+
+/// SplitMix64: a tiny seeded generator (no external RNG dependency; reproducible).
+struct Rng(u64);
+
+impl Rng {
+    fn next_f32(&mut self) -> f32 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        (z >> 40) as f32 / (1u64 << 24) as f32
+    }
+
+    /// Uniform in [-1, 1).
+    fn signed(&mut self) -> f32 {
+        2.0 * self.next_f32() - 1.0
+    }
+}
+
+/// State of the smoke solver (grid units: cells, velocities in cells per frame).
+pub struct Solver {
+    cfg: SynthConfig,
+    pub density: Grid,
+    pub velocity: [Grid; 3],
+    rng: Rng,
+}
+
+impl Solver {
+    pub fn new(cfg: &SynthConfig) -> Result<Self> {
+        cfg.validate()?;
+        let n = cfg.grid;
+        Ok(Self {
+            cfg: cfg.clone(),
+            density: Grid::zeros(n),
+            velocity: [Grid::zeros(n), Grid::zeros(n), Grid::zeros(n)],
+            rng: Rng(cfg.seed),
+        })
+    }
+
+    /// Advances one frame.
+    pub fn step_frame(&mut self) {
+        let dt = 1.0 / self.cfg.substeps as f32;
+        for _ in 0..self.cfg.substeps {
+            self.inflow(dt);
+            self.add_buoyancy(dt);
+            self.confine_vorticity(dt);
+            let vel = self.velocity.clone();
+            for c in 0..3 {
+                self.velocity[c] = advect(&vel[c], &vel, dt);
+            }
+            self.project();
+            self.density = advect(&self.density, &self.velocity, dt);
+        }
+    }
+
+    fn inflow(&mut self, dt: f32) {
+        let n = self.cfg.grid;
+        let nf = n as f32;
+        let (cx, cz) = (0.5 * nf, 0.5 * nf);
+        let radius = 0.12 * nf;
+        let y_top = (0.1 * nf).ceil() as usize;
+        for z in 0..n {
+            for y in 1..y_top.max(2) {
+                for x in 0..n {
+                    let (dx, dz) = (x as f32 + 0.5 - cx, z as f32 + 0.5 - cz);
+                    if dx * dx + dz * dz > radius * radius {
+                        continue;
+                    }
+                    let i = self.density.idx(x, y, z);
+                    let amount = 1.0 + self.cfg.noise * self.rng.signed();
+                    self.density.data[i] = self.density.data[i].max(amount);
+                    self.velocity[1].data[i] = self.cfg.inflow_speed;
+                    self.velocity[0].data[i] += self.cfg.noise * dt * self.rng.signed();
+                    self.velocity[2].data[i] += self.cfg.noise * dt * self.rng.signed();
+                }
+            }
+        }
+    }
+
+    fn add_buoyancy(&mut self, dt: f32) {
+        let b = self.cfg.buoyancy * dt;
+        for (v, d) in self.velocity[1].data.iter_mut().zip(&self.density.data) {
+            *v += b * d;
+        }
+    }
+
+    /// Vorticity confinement: `f = eps * (N x omega)` with `omega = curl u` and
+    /// `N = grad |omega| / |grad |omega||` (central differences, interior cells).
+    fn confine_vorticity(&mut self, dt: f32) {
+        let eps = self.cfg.vorticity;
+        if eps == 0.0 {
+            return;
+        }
+        let n = self.cfg.grid;
+        let [u, v, w] = &self.velocity;
+        let g = |f: &Grid, x: usize, y: usize, z: usize| f.data[(z * n + y) * n + x];
+        let mut omega = vec![Vec3::ZERO; n * n * n];
+        for z in 1..n - 1 {
+            for y in 1..n - 1 {
+                for x in 1..n - 1 {
+                    let dwdy = 0.5 * (g(w, x, y + 1, z) - g(w, x, y - 1, z));
+                    let dvdz = 0.5 * (g(v, x, y, z + 1) - g(v, x, y, z - 1));
+                    let dudz = 0.5 * (g(u, x, y, z + 1) - g(u, x, y, z - 1));
+                    let dwdx = 0.5 * (g(w, x + 1, y, z) - g(w, x - 1, y, z));
+                    let dvdx = 0.5 * (g(v, x + 1, y, z) - g(v, x - 1, y, z));
+                    let dudy = 0.5 * (g(u, x, y + 1, z) - g(u, x, y - 1, z));
+                    omega[(z * n + y) * n + x] = Vec3::new(dwdy - dvdz, dudz - dwdx, dvdx - dudy);
+                }
+            }
+        }
+        let mag = |x: usize, y: usize, z: usize| omega[(z * n + y) * n + x].length();
+        for z in 1..n - 1 {
+            for y in 1..n - 1 {
+                for x in 1..n - 1 {
+                    let grad = 0.5
+                        * Vec3::new(
+                            mag(x + 1, y, z) - mag(x - 1, y, z),
+                            mag(x, y + 1, z) - mag(x, y - 1, z),
+                            mag(x, y, z + 1) - mag(x, y, z - 1),
+                        );
+                    let len = grad.length();
+                    if len < 1e-8 {
+                        continue;
+                    }
+                    let i = (z * n + y) * n + x;
+                    let f = eps * dt * (grad / len).cross(omega[i]);
+                    self.velocity[0].data[i] += f.x;
+                    self.velocity[1].data[i] += f.y;
+                    self.velocity[2].data[i] += f.z;
+                }
+            }
+        }
+    }
+
+    /// Projects the velocity towards divergence-free: collocated central differences, the
+    /// matching wide-stencil Poisson equation solved by Jacobi iterations, closed walls on
+    /// the sides and floor (zero normal velocity, zero-gradient pressure), open top
+    /// (pressure 0 above). A fixed number of Jacobi iterations leaves a residual; the
+    /// generator records the mean |div u| per frame.
+    fn project(&mut self) {
+        let n = self.cfg.grid;
+        // Closed walls: zero the normal component in the boundary cells.
+        for z in 0..n {
+            for y in 0..n {
+                for x in 0..n {
+                    let i = self.density.idx(x, y, z);
+                    if x == 0 || x == n - 1 {
+                        self.velocity[0].data[i] = 0.0;
+                    }
+                    if y == 0 {
+                        self.velocity[1].data[i] = 0.0;
+                    }
+                    if z == 0 || z == n - 1 {
+                        self.velocity[2].data[i] = 0.0;
+                    }
+                }
+            }
+        }
+        let [u, v, w] = &self.velocity;
+        let at = |g: &Grid, x: isize, y: isize, z: isize| -> f32 {
+            if x < 0 || y < 0 || z < 0 || x >= n as isize || y >= n as isize || z >= n as isize {
+                0.0
+            } else {
+                g.data[g.idx(x as usize, y as usize, z as usize)]
+            }
+        };
+        let mut div = vec![0.0f32; n * n * n];
+        div.par_chunks_mut(n * n).enumerate().for_each(|(z, slab)| {
+            for y in 0..n {
+                for x in 0..n {
+                    let (xi, yi, zi) = (x as isize, y as isize, z as isize);
+                    slab[y * n + x] = 0.5
+                        * (at(u, xi + 1, yi, zi) - at(u, xi - 1, yi, zi) + at(v, xi, yi + 1, zi)
+                            - at(v, xi, yi - 1, zi)
+                            + at(w, xi, yi, zi + 1)
+                            - at(w, xi, yi, zi - 1));
+                }
+            }
+        });
+        let mut p = vec![0.0f32; n * n * n];
+        let mut next = vec![0.0f32; n * n * n];
+        for _ in 0..self.cfg.jacobi_iterations {
+            let pr = &p;
+            let get = |x: isize, y: isize, z: isize, xc: usize, yc: usize, zc: usize| -> f32 {
+                // Zero-gradient at walls and floor, p = 0 above the open top.
+                if y >= n as isize {
+                    return 0.0;
+                }
+                let cx = if x < 0 || x >= n as isize {
+                    xc
+                } else {
+                    x as usize
+                };
+                let cy = if y < 0 { yc } else { y as usize };
+                let cz = if z < 0 || z >= n as isize {
+                    zc
+                } else {
+                    z as usize
+                };
+                pr[(cz * n + cy) * n + cx]
+            };
+            next.par_chunks_mut(n * n)
+                .enumerate()
+                .for_each(|(z, slab)| {
+                    for y in 0..n {
+                        for x in 0..n {
+                            let (xi, yi, zi) = (x as isize, y as isize, z as isize);
+                            let sum = get(xi + 2, yi, zi, x, y, z)
+                                + get(xi - 2, yi, zi, x, y, z)
+                                + get(xi, yi + 2, zi, x, y, z)
+                                + get(xi, yi - 2, zi, x, y, z)
+                                + get(xi, yi, zi + 2, x, y, z)
+                                + get(xi, yi, zi - 2, x, y, z);
+                            // div(grad p) with the same central differences is the wide
+                            // stencil (sum of p two cells away - 6 p) / 4, so the projected
+                            // field is divergence-free in the sense the metric measures.
+                            slab[y * n + x] = (sum - 4.0 * div[(z * n + y) * n + x]) / 6.0;
+                        }
+                    }
+                });
+            std::mem::swap(&mut p, &mut next);
+        }
+        let pg = |x: isize, y: isize, z: isize, xc: usize, yc: usize, zc: usize| -> f32 {
+            if y >= n as isize {
+                return 0.0;
+            }
+            let cx = if x < 0 || x >= n as isize {
+                xc
+            } else {
+                x as usize
+            };
+            let cy = if y < 0 { yc } else { y as usize };
+            let cz = if z < 0 || z >= n as isize {
+                zc
+            } else {
+                z as usize
+            };
+            p[(cz * n + cy) * n + cx]
+        };
+        for z in 0..n {
+            for y in 0..n {
+                for x in 0..n {
+                    let (xi, yi, zi) = (x as isize, y as isize, z as isize);
+                    let i = (z * n + y) * n + x;
+                    self.velocity[0].data[i] -=
+                        0.5 * (pg(xi + 1, yi, zi, x, y, z) - pg(xi - 1, yi, zi, x, y, z));
+                    self.velocity[1].data[i] -=
+                        0.5 * (pg(xi, yi + 1, zi, x, y, z) - pg(xi, yi - 1, zi, x, y, z));
+                    self.velocity[2].data[i] -=
+                        0.5 * (pg(xi, yi, zi + 1, x, y, z) - pg(xi, yi, zi - 1, x, y, z));
+                }
+            }
+        }
+    }
+
+    /// Mean |div u| over the cells (central differences, cells per frame per cell).
+    pub fn mean_abs_divergence(&self) -> f32 {
+        let n = self.cfg.grid;
+        let [u, v, w] = &self.velocity;
+        let at = |g: &Grid, x: usize, y: usize, z: usize| g.data[g.idx(x, y, z)];
+        let mut sum = 0.0f64;
+        let mut count = 0usize;
+        for z in 1..n - 1 {
+            for y in 1..n - 1 {
+                for x in 1..n - 1 {
+                    let d = 0.5
+                        * (at(u, x + 1, y, z) - at(u, x - 1, y, z) + at(v, x, y + 1, z)
+                            - at(v, x, y - 1, z)
+                            + at(w, x, y, z + 1)
+                            - at(w, x, y, z - 1));
+                    sum += d.abs() as f64;
+                    count += 1;
+                }
+            }
+        }
+        (sum / count.max(1) as f64) as f32
+    }
+}
+
+/// Semi-Lagrangian advection of `field` by `vel` over `dt` frames (grid units).
+fn advect(field: &Grid, vel: &[Grid; 3], dt: f32) -> Grid {
+    let n = field.n;
+    let mut out = Grid::zeros(n);
+    out.data
+        .par_chunks_mut(n * n)
+        .enumerate()
+        .for_each(|(z, slab)| {
+            for y in 0..n {
+                for x in 0..n {
+                    let i = (z * n + y) * n + x;
+                    let v = Vec3::new(vel[0].data[i], vel[1].data[i], vel[2].data[i]);
+                    let back = Vec3::new(x as f32, y as f32, z as f32) - dt * v;
+                    // Above the open top nothing comes back in.
+                    slab[y * n + x] = if back.y > (n - 1) as f32 + 0.5 {
+                        0.0
+                    } else {
+                        field.sample(back)
+                    };
+                }
+            }
+        });
+    out
+}
+
+/// Beer-Lambert emission-absorption ray marcher over a density grid filling the world box.
+pub fn render(
+    density: &Grid,
+    camera: &Camera,
+    density_scale: f32,
+    background: [f32; 3],
+) -> Result<Image> {
+    let (lo, hi) = world_box();
+    let n = density.n as f32;
+    let cell = (hi - lo) / n;
+    let ds = 0.5 * cell.min_element();
+    let (w, h) = (camera.width() as usize, camera.height() as usize);
+    let c2w = camera.camera_to_world();
+    let origin = camera.position();
+    let mut data = vec![0.0f32; w * h * 3];
+    data.par_chunks_mut(w * 3).enumerate().for_each(|(j, row)| {
+        for i in 0..w {
+            let d_cam = camera.ray_direction_camera(i as f32 + 0.5, j as f32 + 0.5);
+            let dir = c2w.transform_vector3(d_cam).normalize();
+            let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
+            for a in 0..3 {
+                let inv = 1.0 / dir[a];
+                let (ta, tb) = ((lo[a] - origin[a]) * inv, (hi[a] - origin[a]) * inv);
+                t0 = t0.max(ta.min(tb));
+                t1 = t1.min(ta.max(tb));
+            }
+            let (mut light, mut trans) = (0.0f32, 1.0f32);
+            if t1 > t0 {
+                let steps = ((t1 - t0) / ds).ceil() as usize;
+                let step = (t1 - t0) / steps.max(1) as f32;
+                for k in 0..steps {
+                    let p = origin + dir * (t0 + (k as f32 + 0.5) * step);
+                    let g = (p - lo) / cell - Vec3::splat(0.5);
+                    let sigma = density_scale * density.sample(g).max(0.0);
+                    let a = 1.0 - (-sigma * step).exp();
+                    light += trans * a;
+                    trans *= 1.0 - a;
+                }
+            }
+            for c in 0..3 {
+                row[i * 3 + c] = light + trans * background[c];
+            }
+        }
+    });
+    Image::from_vec(w as u32, h as u32, data).ok_or_else(|| DataError::Options {
+        option: "camera",
+        reason: "empty image".into(),
+    })
+}
+
+/// What [`generate`] wrote.
+#[derive(Debug, Clone)]
+pub struct SynthScene {
+    pub dir: PathBuf,
+    pub cameras: Vec<Camera>,
+    /// Rendered frames `[view][frame]` as f32 before PNG quantisation.
+    pub frames: Vec<Vec<Image>>,
+    /// Mean |div u| after projection, per frame.
+    pub divergence: Vec<f32>,
+}
+
+/// Simulates, renders and writes a scene into `out` (which must not exist or be empty).
+pub fn generate(cfg: &SynthConfig, out: &Path) -> Result<SynthScene> {
+    cfg.validate()?;
+    if out.exists() {
+        let mut entries = std::fs::read_dir(out).map_err(io_err(out))?;
+        if entries.next().is_some() {
+            return Err(DataError::Layout {
+                path: out.to_path_buf(),
+                reason: "output folder exists and is not empty".into(),
+            });
+        }
+        std::fs::remove_dir(out).map_err(io_err(out))?;
+    }
+    let name = out
+        .file_name()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "scene".into());
+    let partial = out.with_file_name(format!(".{name}.partial"));
+    if partial.exists() {
+        std::fs::remove_dir_all(&partial).map_err(io_err(&partial))?;
+    }
+    let result = write_scene(cfg, &partial);
+    match result {
+        Ok(mut scene) => {
+            std::fs::rename(&partial, out).map_err(io_err(out))?;
+            scene.dir = out.to_path_buf();
+            Ok(scene)
+        }
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&partial);
+            Err(e)
+        }
+    }
+}
+
+fn write_scene(cfg: &SynthConfig, dir: &Path) -> Result<SynthScene> {
+    let cams = cameras(cfg)?;
+    let background = [0.0f32; 3];
+    std::fs::create_dir_all(dir.join("gt")).map_err(io_err(dir))?;
+    let view_names: Vec<String> = (0..cfg.views).map(|k| format!("view{k:02}")).collect();
+    for v in &view_names {
+        std::fs::create_dir_all(dir.join(v)).map_err(io_err(dir.join(v)))?;
+    }
+    let mut solver = Solver::new(cfg)?;
+    let mut frames: Vec<Vec<Image>> = vec![Vec::new(); cfg.views];
+    let mut divergence = Vec::new();
+    let cell = 1.0 / cfg.grid as f32;
+    for t in 0..cfg.frames {
+        solver.step_frame();
+        divergence.push(solver.mean_abs_divergence());
+        for (k, cam) in cams.iter().enumerate() {
+            let img = render(&solver.density, cam, cfg.density_scale, background)?;
+            img.save_png(&dir.join(&view_names[k]).join(format!("{t:03}.png")))?;
+            frames[k].push(img);
+        }
+        // Ground truth: density, and velocity in world units per frame.
+        let n = cfg.grid;
+        let mut vel = Vec::with_capacity(n * n * n * 3);
+        for i in 0..n * n * n {
+            for c in 0..3 {
+                vel.push(solver.velocity[c].data[i] * cell);
+            }
+        }
+        write_gt(
+            &dir.join("gt").join(format!("frame_{t:03}.safetensors")),
+            n,
+            &solver.density.data,
+            &vel,
+        )?;
+    }
+    let middle = cfg.views / 2;
+    let entry = |k: usize| {
+        let m = cams[k].camera_to_world();
+        let rows: Vec<Vec<f32>> = (0..4).map(|r| m.row(r).to_array().to_vec()).collect();
+        json!({
+            "file_name": view_names[k],
+            "frame_rate": 30,
+            "frame_num": cfg.frames,
+            "camera_angle_x": cfg.fov_x,
+            "camera_hw": [cfg.height, cfg.width],
+            "transform_matrix": rows,
+        })
+    };
+    let train: Vec<_> = (0..cfg.views).filter(|&k| k != middle).map(entry).collect();
+    // PINF swaps columns 0 and 2 of voxel_matrix on load; store the swapped form of
+    // [I | (-0.5, 0, -0.5)].
+    let (lo, _) = world_box();
+    let sim_to_world = Mat4::from_translation(lo);
+    let mut stored = sim_to_world;
+    std::mem::swap(&mut stored.x_axis, &mut stored.z_axis);
+    let voxel_rows: Vec<Vec<f32>> = (0..4).map(|r| stored.row(r).to_array().to_vec()).collect();
+    let info = json!({
+        "train_videos": train,
+        "test_videos": [entry(middle)],
+        "frame_bkg_color": background,
+        "voxel_scale": [1.0, 1.0, 1.0],
+        "voxel_matrix": voxel_rows,
+        "synth": {
+            "generator": "gausmoke-data synth",
+            "grid": cfg.grid,
+            "seed": cfg.seed,
+            "substeps": cfg.substeps,
+            "jacobi_iterations": cfg.jacobi_iterations,
+            "vorticity": cfg.vorticity,
+            "buoyancy": cfg.buoyancy,
+            "inflow_speed": cfg.inflow_speed,
+            "noise": cfg.noise,
+            "density_scale": cfg.density_scale,
+            "ground_truth": "gt/frame_TTT.safetensors: density [n,n,n], velocity [n,n,n,3] (world units per frame), [z][y][x] x fastest, cell centres at (i+0.5)/n of the box"
+        }
+    });
+    let info_path = dir.join("info.json");
+    let text = serde_json::to_string_pretty(&info).map_err(|source| DataError::Json {
+        path: info_path.clone(),
+        source,
+    })?;
+    std::fs::write(&info_path, text).map_err(io_err(&info_path))?;
+    Ok(SynthScene {
+        dir: dir.to_path_buf(),
+        cameras: cams,
+        frames,
+        divergence,
+    })
+}
+
+fn write_gt(path: &Path, n: usize, density: &[f32], velocity: &[f32]) -> Result<()> {
+    let err = |e: safetensors::SafeTensorError| DataError::Tensors {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    };
+    let to_bytes = |v: &[f32]| -> Vec<u8> { v.iter().flat_map(|x| x.to_le_bytes()).collect() };
+    let (db, vb) = (to_bytes(density), to_bytes(velocity));
+    let d = safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![n, n, n], &db)
+        .map_err(err)?;
+    let v = safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![n, n, n, 3], &vb)
+        .map_err(err)?;
+    let meta = HashMap::from([
+        ("layout".to_string(), "[z][y][x], x fastest".to_string()),
+        (
+            "velocity_units".to_string(),
+            "world units per frame".to_string(),
+        ),
+    ]);
+    safetensors::serialize_to_file([("density", d), ("velocity", v)], Some(meta), path).map_err(err)
+}
