@@ -124,29 +124,99 @@ fn for_each_cell(
     }
 }
 
-/// `sigma_grid`, `[nx * ny * nz]` in the grid's flat order.
-pub fn splat_forward(gaussians: &GaussianSlices, grid: &SplatGrid) -> Vec<f32> {
-    let cells = grid.cells();
+/// Sums, over all Gaussians in parallel, `cell_value(splat, m, out)` into the `channels`
+/// values of every cell inside each Gaussian's support (`m`: whitened offset of the centre).
+fn accumulate_field(
+    gaussians: &GaussianSlices,
+    grid: &SplatGrid,
+    channels: usize,
+    cell_value: impl Fn(&ViewSplat, [f32; 3], &mut [f32]) + Sync,
+) -> Vec<f32> {
+    let len = channels * grid.cells();
     (0..gaussians.len())
         .into_par_iter()
         .fold(
-            || vec![0.0f32; cells],
+            || vec![0.0f32; len],
             |mut acc, i| {
                 let g = gaussians.gaussian(i);
                 let (splat, _) = g.view(&IDENTITY, [0.0; 3]);
                 for_each_cell(grid, &g, &splat, |c, _, m| {
-                    acc[c] += splat.sigma * (-0.5 * dot3(m, m)).exp();
+                    cell_value(&splat, m, &mut acc[channels * c..channels * (c + 1)]);
                 });
                 acc
             },
         )
         .reduce(
-            || vec![0.0f32; cells],
+            || vec![0.0f32; len],
             |mut a, b| {
                 a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
                 a
             },
         )
+}
+
+/// Gradient of a loss with respect to one Gaussian's whitening `L`, whitened centre `L mu`
+/// and density `sigma`, accumulated cell by cell.
+#[derive(Debug, Default)]
+struct WhitenedGrad {
+    whiten: [[f32; 3]; 3],
+    center: [f32; 3],
+    sigma: f32,
+}
+
+impl WhitenedGrad {
+    /// Adds `dLoss/dm` for the cell at `p` (through `m = L p - L mu`).
+    fn add_offset_grad(&mut self, grad_m: [f32; 3], p: [f32; 3]) {
+        for r in 0..3 {
+            for col in 0..3 {
+                self.whiten[r][col] += grad_m[r] * p[col];
+            }
+            self.center[r] -= grad_m[r];
+        }
+    }
+}
+
+/// Per Gaussian in parallel: `cell_grad(splat, cell, p, m, grad)` accumulates the cell's
+/// contribution, then [`view_vjp`] chains it back to the world-space parameters. Returns the
+/// gradients `(means, quats, log_scales, raw_densities)`.
+fn gaussian_gradients(
+    gaussians: &GaussianSlices,
+    grid: &SplatGrid,
+    cell_grad: impl Fn(&ViewSplat, usize, [f32; 3], [f32; 3], &mut WhitenedGrad) + Sync,
+) -> (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>) {
+    let grads: Vec<_> = (0..gaussians.len())
+        .into_par_iter()
+        .map(|i| {
+            let g = gaussians.gaussian(i);
+            let (splat, ctx) = g.view(&IDENTITY, [0.0; 3]);
+            let mut acc = WhitenedGrad::default();
+            for_each_cell(grid, &g, &splat, |c, p, m| {
+                cell_grad(&splat, c, p, m, &mut acc)
+            });
+            view_vjp(
+                &g,
+                &ctx,
+                &IDENTITY,
+                &acc.whiten,
+                acc.center,
+                acc.sigma,
+                [0.0; 3],
+            )
+        })
+        .collect();
+    (
+        grads.iter().flat_map(|g| g.mean).collect(),
+        grads.iter().flat_map(|g| g.quat).collect(),
+        grads.iter().flat_map(|g| g.log_scale).collect(),
+        grads.iter().map(|g| g.raw_density).collect(),
+    )
+}
+
+/// `sigma_grid`, `[nx * ny * nz]` in the grid's flat order.
+pub fn splat_forward(gaussians: &GaussianSlices, grid: &SplatGrid) -> Vec<f32> {
+    accumulate_field(gaussians, grid, 1, |splat, m, out| {
+        out[0] += splat.sigma * (-0.5 * dot3(m, m)).exp();
+    })
 }
 
 /// Gradients `(means, quats, log_scales, raw_densities)` given `dLoss/dsigma_grid`.
@@ -160,76 +230,26 @@ pub fn splat_backward(
         grid.cells(),
         "gradient must cover the grid"
     );
-    let grads: Vec<_> = (0..gaussians.len())
-        .into_par_iter()
-        .map(|i| {
-            let g = gaussians.gaussian(i);
-            let (splat, ctx) = g.view(&IDENTITY, [0.0; 3]);
-            let mut grad_whiten = [[0.0f32; 3]; 3];
-            let mut grad_center = [0.0f32; 3];
-            let mut grad_sigma = 0.0f32;
-            for_each_cell(grid, &g, &splat, |c, p, m| {
-                let kernel = (-0.5 * dot3(m, m)).exp();
-                let up = grad_grid[c];
-                grad_sigma += up * kernel;
-                // d(sigma k)/dm = -sigma k m;  m = L p - c  =>  dL += g_m p^T, dc -= g_m.
-                let scale = -up * splat.sigma * kernel;
-                for r in 0..3 {
-                    let g_m = scale * m[r];
-                    for col in 0..3 {
-                        grad_whiten[r][col] += g_m * p[col];
-                    }
-                    grad_center[r] -= g_m;
-                }
-            });
-            view_vjp(
-                &g,
-                &ctx,
-                &IDENTITY,
-                &grad_whiten,
-                grad_center,
-                grad_sigma,
-                [0.0; 3],
-            )
-        })
-        .collect();
-    (
-        grads.iter().flat_map(|g| g.mean).collect(),
-        grads.iter().flat_map(|g| g.quat).collect(),
-        grads.iter().flat_map(|g| g.log_scale).collect(),
-        grads.iter().map(|g| g.raw_density).collect(),
-    )
+    gaussian_gradients(gaussians, grid, |splat, c, p, m, acc| {
+        let kernel = (-0.5 * dot3(m, m)).exp();
+        let up = grad_grid[c];
+        acc.sigma += up * kernel;
+        // d(sigma k)/dm = -sigma k m.
+        let scale = -up * splat.sigma * kernel;
+        acc.add_offset_grad([scale * m[0], scale * m[1], scale * m[2]], p);
+    })
 }
 
 /// Analytic spatial gradient `grad sigma_grid`, `[nx * ny * nz * 3]`:
 /// `sum_i sigma_i k_i(x) (-Sigma_i^-1 (x - mu_i))`, with `Sigma^-1 (x - mu) = L^T m`.
 pub fn splat_gradient_forward(gaussians: &GaussianSlices, grid: &SplatGrid) -> Vec<f32> {
-    let cells = grid.cells();
-    (0..gaussians.len())
-        .into_par_iter()
-        .fold(
-            || vec![0.0f32; 3 * cells],
-            |mut acc, i| {
-                let g = gaussians.gaussian(i);
-                let (splat, _) = g.view(&IDENTITY, [0.0; 3]);
-                let l = &splat.whiten;
-                for_each_cell(grid, &g, &splat, |c, _, m| {
-                    let weight = -splat.sigma * (-0.5 * dot3(m, m)).exp();
-                    for a in 0..3 {
-                        acc[3 * c + a] +=
-                            weight * (l[0][a] * m[0] + l[1][a] * m[1] + l[2][a] * m[2]);
-                    }
-                });
-                acc
-            },
-        )
-        .reduce(
-            || vec![0.0f32; 3 * cells],
-            |mut a, b| {
-                a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
-                a
-            },
-        )
+    accumulate_field(gaussians, grid, 3, |splat, m, out| {
+        let l = &splat.whiten;
+        let weight = -splat.sigma * (-0.5 * dot3(m, m)).exp();
+        for a in 0..3 {
+            out[a] += weight * (l[0][a] * m[0] + l[1][a] * m[1] + l[2][a] * m[2]);
+        }
+    })
 }
 
 /// Gradients `(means, quats, log_scales, raw_densities)` of [`splat_gradient_forward`]
@@ -248,49 +268,30 @@ pub fn splat_gradient_backward(
         3 * grid.cells(),
         "gradient must be [cells, 3]"
     );
-    let grads: Vec<_> = (0..gaussians.len())
-        .into_par_iter()
-        .map(|i| {
-            let g = gaussians.gaussian(i);
-            let (splat, ctx) = g.view(&IDENTITY, [0.0; 3]);
-            let l = splat.whiten;
-            let mut grad_whiten = [[0.0f32; 3]; 3];
-            let mut grad_center = [0.0f32; 3];
-            let mut grad_sigma = 0.0f32;
-            for_each_cell(grid, &g, &splat, |c, p, m| {
-                let up = [
-                    grad_field[3 * c],
-                    grad_field[3 * c + 1],
-                    grad_field[3 * c + 2],
-                ];
-                let v = [dot3(l[0], up), dot3(l[1], up), dot3(l[2], up)];
-                let s = dot3(m, v);
-                let kernel = (-0.5 * dot3(m, m)).exp();
-                grad_sigma -= kernel * s;
-                let sk = splat.sigma * kernel;
-                for r in 0..3 {
-                    let g_m = sk * (s * m[r] - v[r]);
-                    for col in 0..3 {
-                        grad_whiten[r][col] += g_m * p[col] - sk * m[r] * up[col];
-                    }
-                    grad_center[r] -= g_m;
-                }
-            });
-            view_vjp(
-                &g,
-                &ctx,
-                &IDENTITY,
-                &grad_whiten,
-                grad_center,
-                grad_sigma,
-                [0.0; 3],
-            )
-        })
-        .collect();
-    (
-        grads.iter().flat_map(|g| g.mean).collect(),
-        grads.iter().flat_map(|g| g.quat).collect(),
-        grads.iter().flat_map(|g| g.log_scale).collect(),
-        grads.iter().map(|g| g.raw_density).collect(),
-    )
+    gaussian_gradients(gaussians, grid, |splat, c, p, m, acc| {
+        let l = &splat.whiten;
+        let up = [
+            grad_field[3 * c],
+            grad_field[3 * c + 1],
+            grad_field[3 * c + 2],
+        ];
+        let v = [dot3(l[0], up), dot3(l[1], up), dot3(l[2], up)];
+        let s = dot3(m, v);
+        let kernel = (-0.5 * dot3(m, m)).exp();
+        acc.sigma -= kernel * s;
+        let sk = splat.sigma * kernel;
+        for r in 0..3 {
+            for col in 0..3 {
+                acc.whiten[r][col] -= sk * m[r] * up[col];
+            }
+        }
+        acc.add_offset_grad(
+            [
+                sk * (s * m[0] - v[0]),
+                sk * (s * m[1] - v[1]),
+                sk * (s * m[2] - v[2]),
+            ],
+            p,
+        );
+    })
 }

@@ -94,32 +94,7 @@ fn backward_matches_central_differences() {
         raw_densities: &params[3],
     };
     let (gm, gq, gs, gd) = splat_backward(&s, &grid, &weights);
-    let h = 2e-3f32;
-    for (which, (name, analytic)) in [
-        ("means", gm),
-        ("quats", gq),
-        ("log_scales", gs),
-        ("raw_densities", gd),
-    ]
-    .into_iter()
-    .enumerate()
-    {
-        let scale = analytic.iter().fold(0.0f32, |m, g| m.max(g.abs())) as f64;
-        assert!(scale > 1e-2, "{name}: vacuous gradient");
-        for (i, &a) in analytic.iter().enumerate() {
-            let original = params[which][i];
-            params[which][i] = original + h;
-            let plus = loss(&params);
-            params[which][i] = original - h;
-            let minus = loss(&params);
-            params[which][i] = original;
-            let fd = (plus - minus) / (2.0 * h as f64);
-            assert!(
-                (fd - a as f64).abs() < 2e-3 * scale + 5e-3 * (a as f64).abs(),
-                "{name}[{i}]: analytic {a} vs numeric {fd} (scale {scale})"
-            );
-        }
-    }
+    assert_matches_central_differences(&mut params, &loss, [gm, gq, gs, gd], 2e-3);
 }
 
 #[test]
@@ -253,28 +228,33 @@ fn gradient_backward_matches_central_differences() {
         raw_densities: &params[3],
     };
     let (gm, gq, gs, gd) = gausmoke_model::density::splat_gradient_backward(&s, &grid, &weights);
+    assert_matches_central_differences(&mut params, &loss, [gm, gq, gs, gd], 3e-3);
+}
+
+/// Central differences (h = 2e-3) of `loss` with respect to every parameter against the
+/// analytic gradients `(means, quats, log_scales, raw_densities)`:
+/// `|fd - analytic| < tolerance * max|analytic| + 5e-3 |analytic|` per element.
+fn assert_matches_central_differences(
+    params: &mut [Vec<f32>; 4],
+    loss: &dyn Fn(&[Vec<f32>; 4]) -> f64,
+    analytic: [Vec<f32>; 4],
+    tolerance: f64,
+) {
     let h = 2e-3f32;
-    for (which, (name, analytic)) in [
-        ("means", gm),
-        ("quats", gq),
-        ("log_scales", gs),
-        ("raw_densities", gd),
-    ]
-    .into_iter()
-    .enumerate()
-    {
+    let names = ["means", "quats", "log_scales", "raw_densities"];
+    for (which, (name, analytic)) in names.into_iter().zip(analytic).enumerate() {
         let scale = analytic.iter().fold(0.0f32, |m, g| m.max(g.abs())) as f64;
         assert!(scale > 1e-2, "{name}: vacuous gradient");
         for (i, &a) in analytic.iter().enumerate() {
             let original = params[which][i];
             params[which][i] = original + h;
-            let plus = loss(&params);
+            let plus = loss(params);
             params[which][i] = original - h;
-            let minus = loss(&params);
+            let minus = loss(params);
             params[which][i] = original;
             let fd = (plus - minus) / (2.0 * h as f64);
             assert!(
-                (fd - a as f64).abs() < 3e-3 * scale + 5e-3 * (a as f64).abs(),
+                (fd - a as f64).abs() < tolerance * scale + 5e-3 * (a as f64).abs(),
                 "{name}[{i}]: analytic {a} vs numeric {fd} (scale {scale})"
             );
         }
