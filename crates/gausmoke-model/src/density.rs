@@ -8,6 +8,9 @@
 //! rule [`gausmoke_render::math::view_vjp`], so both ops differentiate the same
 //! parameterisation.
 
+// Small fixed loops index several 3-vectors and matrices at once; an index reads best.
+#![allow(clippy::needless_range_loop)]
+
 use gausmoke_render::math::{ViewSplat, WorldGaussian, dot3, view_vjp};
 use rayon::prelude::*;
 
