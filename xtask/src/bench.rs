@@ -102,17 +102,15 @@ fn time_ours(
     reps: usize,
 ) -> Result<(f64, f64)> {
     let options = RasterOptions::default();
-    let forward = || -> Result<f64> {
-        let t0 = Instant::now();
+    let forward = || -> Result<()> {
         let tensors = scene.to_tensors(device)?;
         let background = Tensor::<1>::from_data(TensorData::new(vec![0.0f32; 3], [3]), device);
         let out = render_volume(&tensors, camera, &background, &options)?;
         let _ = out.rgb.into_data();
-        Ok(t0.elapsed().as_secs_f64())
+        Ok(())
     };
     let ad = device.clone().autodiff();
-    let forward_backward = || -> Result<f64> {
-        let t0 = Instant::now();
+    let forward_backward = || -> Result<()> {
         let mut tensors = scene.to_tensors(&ad)?;
         tensors.means = tensors.means.require_grad();
         tensors.rotations = tensors.rotations.require_grad();
@@ -127,15 +125,9 @@ fn time_ours(
             .grad(&grads)
             .context("means tracked")?
             .into_data();
-        Ok(t0.elapsed().as_secs_f64())
+        Ok(())
     };
-    forward()?;
-    let f: Vec<f64> = (0..reps).map(|_| forward()).collect::<Result<_>>()?;
-    forward_backward()?;
-    let fb: Vec<f64> = (0..reps)
-        .map(|_| forward_backward())
-        .collect::<Result<_>>()?;
-    Ok((median_ms(f), median_ms(fb)))
+    Ok((time_ms(reps, forward)?, time_ms(reps, forward_backward)?))
 }
 
 fn write_scene(path: &Path, scene: &HostGaussians, camera: &Camera) -> Result<()> {
