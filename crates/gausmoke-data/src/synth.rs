@@ -76,8 +76,10 @@ impl SynthConfig {
             seed: 7,
             substeps: 2,
             jacobi_iterations: 40,
-            buoyancy: 0.15,
-            inflow_speed: 0.6,
+            // Fast enough that the plume crosses most of the box in 8 frames, so a few-frame
+            // training run sees real motion.
+            buoyancy: 0.4,
+            inflow_speed: 2.0,
             noise: 0.3,
             vorticity: 0.3,
             density_scale: 5.0,

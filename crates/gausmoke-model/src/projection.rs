@@ -40,7 +40,7 @@ impl Default for ProjectionOptions {
     }
 }
 
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct ProjectionReport {
     pub iterations: usize,
     /// Final `|r| / |D u|` (0 when `D u = 0`).

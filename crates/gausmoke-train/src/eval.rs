@@ -1,0 +1,263 @@
+//! `gausmoke-train eval --run DIR`: re-renders every saved frame of a run on the held-out
+//! views (PSNR, SSIM), measures the divergence of the recovered velocity, and, for synthetic
+//! scenes with ground truth, the density and velocity errors. Writes `DIR/eval.json`.
+
+use std::path::Path;
+
+use burn::tensor::Device;
+use gausmoke_core::glam::Vec3;
+use gausmoke_model::GridSpec;
+use gausmoke_render::{GaussianTensors, RasterOptions, render_volume};
+use serde::{Deserialize, Serialize};
+
+use crate::checkpoint::{read_arrays, take_array};
+use crate::scene::Scene;
+use crate::{TrainConfig, TrainError, metrics};
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct FrameEval {
+    pub frame: usize,
+    pub test_psnr: Option<f64>,
+    pub test_ssim: Option<f64>,
+    pub mean_abs_divergence: f64,
+    /// Against ground truth (synthetic scenes), over the cells where the true density is
+    /// above 1% of its maximum: RMS of `u - u_true` and that RMS relative to RMS `u_true`.
+    pub velocity_rmse: Option<f64>,
+    pub velocity_relative_error: Option<f64>,
+    /// `|sigma - s rho_true| / |s rho_true|` over all cells (`s` the generator's density
+    /// scale, `rho_true` its density).
+    pub density_relative_error: Option<f64>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct EvalReport {
+    pub frames: Vec<FrameEval>,
+    pub test_psnr_mean: Option<f64>,
+    pub test_ssim_mean: Option<f64>,
+    pub mean_abs_divergence: f64,
+    pub velocity_relative_error_mean: Option<f64>,
+    pub density_relative_error_mean: Option<f64>,
+    /// Why LPIPS is absent.
+    pub lpips: String,
+}
+
+fn mean(values: impl Iterator<Item = Option<f64>>) -> Option<f64> {
+    let values: Vec<f64> = values.flatten().filter(|v| v.is_finite()).collect();
+    (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64)
+}
+
+/// Cell-centred trilinear sample of a `[nx, ny, nz, C]` grid at world point `p` (clamped to
+/// the outermost cell centres).
+fn sample_grid(grid: &GridSpec, values: &[f32], channels: usize, p: Vec3, out: &mut [f64]) {
+    let res = grid.resolution();
+    let cell = grid.cell_size();
+    let local = (p - grid.lo()) / cell - Vec3::splat(0.5);
+    let mut base = [0usize; 3];
+    let mut frac = [0f32; 3];
+    for a in 0..3 {
+        let x = local[a].clamp(0.0, (res[a] - 1) as f32);
+        base[a] = (x.floor() as usize).min(res[a].saturating_sub(2));
+        frac[a] = x - base[a] as f32;
+    }
+    out.iter_mut().for_each(|o| *o = 0.0);
+    for corner in 0..8 {
+        let offset = [(corner >> 2) & 1, (corner >> 1) & 1, corner & 1];
+        let mut weight = 1.0f32;
+        let mut index = [0usize; 3];
+        for a in 0..3 {
+            index[a] = (base[a] + offset[a]).min(res[a] - 1);
+            weight *= if offset[a] == 1 {
+                frac[a]
+            } else {
+                1.0 - frac[a]
+            };
+        }
+        let cell_index = (index[0] * res[1] + index[1]) * res[2] + index[2];
+        for c in 0..channels {
+            out[c] += (weight * values[cell_index * channels + c]) as f64;
+        }
+    }
+}
+
+/// Errors against the generator's ground truth for frame `t`.
+fn ground_truth_errors(
+    scene: &Scene,
+    grid: &GridSpec,
+    t: usize,
+    density: &[f32],
+    velocity: &[f32],
+) -> Result<Option<(f64, f64, f64)>, TrainError> {
+    let (Some(dir), Some(scale)) = (&scene.ground_truth, scene.ground_truth_density_scale) else {
+        return Ok(None);
+    };
+    let path = dir.join(format!("frame_{t:03}.safetensors"));
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let mut arrays = read_arrays(&path)?;
+    let n = arrays
+        .get("density")
+        .map(|(shape, _)| shape[0])
+        .unwrap_or_default();
+    let true_density = take_array(&mut arrays, "density", &[n, n, n], &path)?;
+    let true_velocity = take_array(&mut arrays, "velocity", &[n, n, n, 3], &path)?;
+    let threshold = 0.01 * true_density.iter().cloned().fold(0.0, f32::max);
+    let extent = scene.hi - scene.lo;
+    let (mut error2, mut truth2, mut smoke_cells) = (0.0, 0.0, 0usize);
+    let (mut density_error2, mut density_truth2) = (0.0, 0.0);
+    let mut ours = [0.0f64; 3];
+    let mut ours_density = [0.0f64];
+    // Ground truth layout: [z][y][x], x fastest, cell centres at (i + 0.5) / n of the box.
+    for z in 0..n {
+        for y in 0..n {
+            for x in 0..n {
+                let cell = (z * n + y) * n + x;
+                let p =
+                    scene.lo + extent * (Vec3::new(x as f32, y as f32, z as f32) + 0.5) / n as f32;
+                sample_grid(grid, density, 1, p, &mut ours_density);
+                let truth = (scale * true_density[cell]) as f64;
+                density_error2 += (ours_density[0] - truth).powi(2);
+                density_truth2 += truth * truth;
+                if true_density[cell] > threshold {
+                    sample_grid(grid, velocity, 3, p, &mut ours);
+                    for a in 0..3 {
+                        let truth = true_velocity[3 * cell + a] as f64;
+                        error2 += (ours[a] - truth).powi(2);
+                        truth2 += truth * truth;
+                    }
+                    smoke_cells += 1;
+                }
+            }
+        }
+    }
+    let cells = smoke_cells.max(1) as f64;
+    Ok(Some((
+        (error2 / cells).sqrt(),
+        (error2 / truth2.max(1e-30)).sqrt(),
+        (density_error2 / density_truth2.max(1e-30)).sqrt(),
+    )))
+}
+
+/// Evaluates the run folder `run` (written by [`crate::Trainer`]) on `device`.
+pub fn evaluate(
+    run: &Path,
+    device: &Device,
+    lpips_weights: Option<&Path>,
+) -> Result<EvalReport, TrainError> {
+    if let Some(weights) = lpips_weights {
+        return Err(TrainError::Config {
+            origin: weights.display().to_string(),
+            reason: "LPIPS (AlexNet) is not implemented yet in this version; run eval without \
+                     --lpips-weights"
+                .into(),
+        });
+    }
+    let config = TrainConfig::from_toml_file(&run.join("config.toml"))?;
+    let run_json = run.join("run.json");
+    let text = std::fs::read_to_string(&run_json).map_err(|source| TrainError::Io {
+        path: run_json.clone(),
+        source,
+    })?;
+    let info: serde_json::Value = serde_json::from_str(&text).map_err(|e| TrainError::Config {
+        origin: run_json.display().to_string(),
+        reason: e.to_string(),
+    })?;
+    let data = info["data"].as_str().ok_or_else(|| TrainError::Config {
+        origin: run_json.display().to_string(),
+        reason: "field `data` (the data set path) is missing".into(),
+    })?;
+    let scene = Scene::open(Path::new(data), &config)?;
+    let grid = GridSpec::new(scene.lo, scene.hi, [config.grid_resolution; 3], 4)?;
+    let background = burn::tensor::Tensor::<1>::from_data(
+        burn::tensor::TensorData::new(scene.background.to_vec(), [3]),
+        device,
+    );
+    let [nx, ny, nz] = grid.resolution();
+    let mut frames = Vec::new();
+    for t in 0..scene.frames() {
+        let path = run.join("frames").join(format!("frame_{t:03}.safetensors"));
+        if !path.is_file() {
+            break;
+        }
+        let mut arrays = read_arrays(&path)?;
+        let n = arrays
+            .get("raw_densities")
+            .map(|(shape, _)| shape[0])
+            .unwrap_or_default();
+        let means = take_array(&mut arrays, "means", &[n, 3], &path)?;
+        let rotations = take_array(&mut arrays, "rotations", &[n, 4], &path)?;
+        let log_scales = take_array(&mut arrays, "log_scales", &[n, 3], &path)?;
+        let raw_densities = take_array(&mut arrays, "raw_densities", &[n], &path)?;
+        let colors = take_array(&mut arrays, "colors", &[n, 3], &path)?;
+        let velocity = take_array(&mut arrays, "velocity", &[nx, ny, nz, 3], &path)?;
+        let density = take_array(&mut arrays, "density", &[nx, ny, nz], &path)?;
+        let gaussians = GaussianTensors::from_host(
+            &means,
+            &rotations,
+            &log_scales,
+            &raw_densities,
+            &colors,
+            device,
+        )?;
+        let mut psnr = Vec::new();
+        let mut ssim = Vec::new();
+        for observation in &scene.test[t] {
+            let out = render_volume(
+                &gaussians,
+                &observation.camera,
+                &background,
+                &RasterOptions::default(),
+            )?;
+            let rgb = out
+                .rgb
+                .into_data()
+                .try_into_vec_as::<f32>()
+                .expect("f32 image");
+            let (w, h) = (
+                observation.image.width() as usize,
+                observation.image.height() as usize,
+            );
+            psnr.push(metrics::psnr(&rgb, observation.image.data()));
+            ssim.push(metrics::ssim(&rgb, observation.image.data(), w, h));
+        }
+        let average = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
+        // u^0 is zero by construction (Algorithm 1, line 1): velocity errors from frame 1.
+        let truth = if t > 0 {
+            ground_truth_errors(&scene, &grid, t, &density, &velocity)?
+        } else {
+            None
+        };
+        frames.push(FrameEval {
+            frame: t,
+            test_psnr: average(&psnr),
+            test_ssim: average(&ssim),
+            mean_abs_divergence: metrics::mean_abs_divergence(&grid, &velocity),
+            velocity_rmse: truth.map(|e| e.0),
+            velocity_relative_error: truth.map(|e| e.1),
+            density_relative_error: truth.map(|e| e.2),
+        });
+    }
+    if frames.is_empty() {
+        return Err(TrainError::Scene {
+            path: run.to_path_buf(),
+            reason: "no frames/frame_000.safetensors: the run has not finished a frame".into(),
+        });
+    }
+    let report = EvalReport {
+        test_psnr_mean: mean(frames.iter().map(|f| f.test_psnr)),
+        test_ssim_mean: mean(frames.iter().map(|f| f.test_ssim)),
+        mean_abs_divergence: mean(frames.iter().map(|f| Some(f.mean_abs_divergence)))
+            .unwrap_or(f64::NAN),
+        velocity_relative_error_mean: mean(frames.iter().map(|f| f.velocity_relative_error)),
+        density_relative_error_mean: mean(frames.iter().map(|f| f.density_relative_error)),
+        lpips: "not computed: AlexNet LPIPS is not implemented in this version".into(),
+        frames,
+    };
+    crate::export::write_atomic(
+        &run.join("eval.json"),
+        serde_json::to_string_pretty(&report)
+            .expect("plain JSON")
+            .as_bytes(),
+    )?;
+    Ok(report)
+}

@@ -1,0 +1,272 @@
+//! Files other tools open: Gaussians as a 3DGS `.ply`, grids as VTK `.vti` (ParaView) and
+//! NumPy `.npz`. Grids are `[nx, ny, nz, C]` row-major (z fastest), cell-centred on the
+//! [`GridSpec`] box.
+
+use std::io::Write;
+use std::path::Path;
+
+use gausmoke_model::GridSpec;
+
+use crate::TrainError;
+use crate::gaussians::HostGaussians;
+
+/// Zeroth-order spherical-harmonic constant: 3DGS stores colour as `(rgb - 0.5) / C0`.
+const SH_C0: f32 = 0.282_094_8;
+/// Higher-order SH coefficients 3DGS viewers expect (degree 3: 15 per channel), all zero.
+const SH_REST: usize = 45;
+
+fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
+    move |source| TrainError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// Writes `path` via a temporary file and a rename, so a crash leaves no half file.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TrainError> {
+    let tmp = path.with_extension("partial");
+    std::fs::write(&tmp, bytes).map_err(io_error(&tmp))?;
+    std::fs::rename(&tmp, path).map_err(io_error(path))
+}
+
+/// The Gaussians in the binary little-endian layout of the 3DGS reference implementation,
+/// which common splat viewers read. Volumetric density has no exact 3DGS counterpart: the
+/// `opacity` written is the logit of the alpha of a ray through the centre along a
+/// direction of the geometric-mean scale, `1 - exp(-sigma sqrt(2 pi) s)`.
+pub fn write_ply(path: &Path, gaussians: &HostGaussians) -> Result<(), TrainError> {
+    let n = gaussians.len();
+    let mut header = format!(
+        "ply\nformat binary_little_endian 1.0\nelement vertex {n}\n\
+         property float x\nproperty float y\nproperty float z\n\
+         property float nx\nproperty float ny\nproperty float nz\n"
+    );
+    for i in 0..3 {
+        header += &format!("property float f_dc_{i}\n");
+    }
+    for i in 0..SH_REST {
+        header += &format!("property float f_rest_{i}\n");
+    }
+    header += "property float opacity\n";
+    for i in 0..3 {
+        header += &format!("property float scale_{i}\n");
+    }
+    for i in 0..4 {
+        header += &format!("property float rot_{i}\n");
+    }
+    header += "end_header\n";
+    let floats_per_vertex = 6 + 3 + SH_REST + 1 + 3 + 4;
+    let mut bytes = Vec::with_capacity(header.len() + n * floats_per_vertex * 4);
+    bytes.extend_from_slice(header.as_bytes());
+    let mut push = |v: f32| bytes.extend_from_slice(&v.to_le_bytes());
+    for i in 0..n {
+        for a in 0..3 {
+            push(gaussians.means[3 * i + a]);
+        }
+        for _ in 0..3 {
+            push(0.0);
+        }
+        for a in 0..3 {
+            push((gaussians.colors[3 * i + a] - 0.5) / SH_C0);
+        }
+        for _ in 0..SH_REST {
+            push(0.0);
+        }
+        let raw = gaussians.raw_densities[i];
+        let sigma = if raw > 20.0 { raw } else { raw.exp().ln_1p() };
+        let mean_log_scale = (0..3).map(|a| gaussians.log_scales[3 * i + a]).sum::<f32>() / 3.0;
+        let alpha = (1.0
+            - (-sigma * (2.0 * std::f32::consts::PI).sqrt() * mean_log_scale.exp()).exp())
+        .clamp(1e-6, 1.0 - 1e-6);
+        push((alpha / (1.0 - alpha)).ln());
+        for a in 0..3 {
+            push(gaussians.log_scales[3 * i + a]);
+        }
+        for a in 0..4 {
+            push(gaussians.rotations[4 * i + a]);
+        }
+    }
+    write_atomic(path, &bytes)
+}
+
+/// Reorders a `[nx, ny, nz, C]` (z fastest) grid to VTK's x-fastest point order.
+fn x_fastest(grid: &GridSpec, values: &[f32], channels: usize) -> Vec<f32> {
+    let [nx, ny, nz] = grid.resolution();
+    let mut out = Vec::with_capacity(values.len());
+    for k in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                let cell = (i * ny + j) * nz + k;
+                out.extend_from_slice(&values[cell * channels..(cell + 1) * channels]);
+            }
+        }
+    }
+    out
+}
+
+/// Density `[nx, ny, nz]` and velocity `[nx, ny, nz, 3]` as VTK XML ImageData with raw
+/// appended data: points at the cell centres, spacing = cell size, world units.
+pub fn write_vti(
+    path: &Path,
+    grid: &GridSpec,
+    density: &[f32],
+    velocity: &[f32],
+) -> Result<(), TrainError> {
+    let [nx, ny, nz] = grid.resolution();
+    let cell = grid.cell_size();
+    let origin = grid.lo() + 0.5 * cell;
+    let density = x_fastest(grid, density, 1);
+    let velocity = x_fastest(grid, velocity, 3);
+    let density_bytes = (density.len() * 4) as u64;
+    let velocity_bytes = (velocity.len() * 4) as u64;
+    let header = format!(
+        "<?xml version=\"1.0\"?>\n\
+         <VTKFile type=\"ImageData\" version=\"1.0\" byte_order=\"LittleEndian\" header_type=\"UInt64\">\n\
+         <ImageData WholeExtent=\"0 {} 0 {} 0 {}\" Origin=\"{} {} {}\" Spacing=\"{} {} {}\">\n\
+         <Piece Extent=\"0 {} 0 {} 0 {}\">\n\
+         <PointData Scalars=\"density\" Vectors=\"velocity\">\n\
+         <DataArray type=\"Float32\" Name=\"density\" format=\"appended\" offset=\"0\"/>\n\
+         <DataArray type=\"Float32\" Name=\"velocity\" NumberOfComponents=\"3\" format=\"appended\" offset=\"{}\"/>\n\
+         </PointData>\n</Piece>\n</ImageData>\n<AppendedData encoding=\"raw\">\n_",
+        nx - 1,
+        ny - 1,
+        nz - 1,
+        origin.x,
+        origin.y,
+        origin.z,
+        cell.x,
+        cell.y,
+        cell.z,
+        nx - 1,
+        ny - 1,
+        nz - 1,
+        8 + density_bytes,
+    );
+    let mut bytes = header.into_bytes();
+    bytes.extend_from_slice(&density_bytes.to_le_bytes());
+    density
+        .iter()
+        .for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
+    bytes.extend_from_slice(&velocity_bytes.to_le_bytes());
+    velocity
+        .iter()
+        .for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
+    bytes.extend_from_slice(b"\n</AppendedData>\n</VTKFile>\n");
+    write_atomic(path, &bytes)
+}
+
+/// One `.npy` (format 1.0, little-endian f32, C order).
+fn npy(values: &[f32], shape: &[usize]) -> Vec<u8> {
+    let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
+    let shape_text = if dims.len() == 1 {
+        format!("({},)", dims[0])
+    } else {
+        format!("({})", dims.join(", "))
+    };
+    let mut dict = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape_text}, }}");
+    // Magic (6) + version (2) + length (2) + dict + '\n' is padded to a multiple of 64.
+    let unpadded = 10 + dict.len() + 1;
+    dict += &" ".repeat(unpadded.next_multiple_of(64) - unpadded);
+    dict.push('\n');
+    let mut out = b"\x93NUMPY\x01\x00".to_vec();
+    out.extend_from_slice(&(dict.len() as u16).to_le_bytes());
+    out.extend_from_slice(dict.as_bytes());
+    values
+        .iter()
+        .for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
+    out
+}
+
+/// `density [nx, ny, nz]`, `velocity [nx, ny, nz, 3]`, `lo`, `hi` (world box) in one `.npz`:
+/// `np.load(path)["velocity"][i, j, k]` is the velocity of cell (i, j, k).
+pub fn write_npz(
+    path: &Path,
+    grid: &GridSpec,
+    density: &[f32],
+    velocity: &[f32],
+) -> Result<(), TrainError> {
+    let [nx, ny, nz] = grid.resolution();
+    let mut buffer = std::io::Cursor::new(Vec::new());
+    {
+        let mut zip = zip::ZipWriter::new(&mut buffer);
+        let options =
+            zip::write::FileOptions::default().compression_method(zip::CompressionMethod::Stored);
+        let arrays: [(&str, Vec<u8>); 4] = [
+            ("density.npy", npy(density, &[nx, ny, nz])),
+            ("velocity.npy", npy(velocity, &[nx, ny, nz, 3])),
+            ("lo.npy", npy(&grid.lo().to_array(), &[3])),
+            ("hi.npy", npy(&grid.hi().to_array(), &[3])),
+        ];
+        for (name, data) in arrays {
+            zip.start_file(name, options)
+                .and_then(|_| zip.write_all(&data).map_err(Into::into))
+                .map_err(|e| TrainError::Export {
+                    path: path.to_path_buf(),
+                    reason: e.to_string(),
+                })?;
+        }
+        zip.finish().map_err(|e| TrainError::Export {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })?;
+    }
+    write_atomic(path, &buffer.into_inner())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use gausmoke_core::glam::Vec3;
+
+    #[test]
+    fn npy_header_is_aligned_and_parsable() {
+        let bytes = npy(&[1.0, 2.0, 3.0, 4.0, 5.0, 6.0], &[2, 3]);
+        let header_len = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+        assert_eq!((10 + header_len) % 64, 0);
+        let header = std::str::from_utf8(&bytes[10..10 + header_len]).unwrap();
+        assert!(header.contains("'shape': (2, 3)") && header.ends_with('\n'));
+        assert_eq!(bytes.len(), 10 + header_len + 24);
+    }
+
+    #[test]
+    fn ply_has_the_3dgs_properties_and_one_record_per_gaussian() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("g.ply");
+        let gaussians = HostGaussians {
+            means: vec![0.0, 1.0, 2.0, 3.0, 4.0, 5.0],
+            rotations: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+            log_scales: vec![-3.0; 6],
+            raw_densities: vec![0.0, 5.0],
+            colors: vec![0.5; 6],
+        };
+        write_ply(&path, &gaussians).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        let end = b"end_header\n";
+        let at = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
+        let header = std::str::from_utf8(&bytes[..at]).unwrap();
+        for name in ["f_dc_0", "f_rest_44", "opacity", "scale_2", "rot_3"] {
+            assert!(
+                header.contains(&format!("property float {name}\n")),
+                "{name}"
+            );
+        }
+        assert_eq!(bytes.len() - at, 2 * 62 * 4);
+        // Second vertex starts with its centre (3, 4, 5).
+        let second = &bytes[at + 62 * 4..];
+        let x = f32::from_le_bytes(second[..4].try_into().unwrap());
+        assert_eq!(x, 3.0);
+    }
+
+    #[test]
+    fn vti_reorders_to_x_fastest() {
+        let grid = GridSpec::new(Vec3::ZERO, Vec3::new(2.0, 1.0, 1.0), [2, 1, 2], 1).unwrap();
+        // Our layout: cell (i, j, k) at (i * ny + j) * nz + k; value = 10 i + k.
+        let values = vec![0.0, 1.0, 10.0, 11.0];
+        assert_eq!(x_fastest(&grid, &values, 1), vec![0.0, 10.0, 1.0, 11.0]);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("g.vti");
+        write_vti(&path, &grid, &values, &[0.0; 12]).unwrap();
+        let text = String::from_utf8_lossy(&std::fs::read(&path).unwrap()).into_owned();
+        assert!(text.contains("WholeExtent=\"0 1 0 0 0 1\""));
+        assert!(text.contains("Spacing=\"1 1 0.5\""));
+    }
+}

@@ -1,0 +1,149 @@
+//! A data set arranged for training: per frame, the (camera, image) pairs of the training
+//! views and of the held-out views, the background and the smoke box.
+
+use std::path::{Path, PathBuf};
+
+use gausmoke_core::Camera;
+use gausmoke_core::glam::Vec3;
+use gausmoke_data::{Dataset, Image, LoadOptions, Split, load_dnerf, load_pinf};
+
+use crate::{TrainConfig, TrainError};
+
+/// One observation: a camera and what it saw.
+#[derive(Debug, Clone)]
+pub struct Observation {
+    pub view: String,
+    pub camera: Camera,
+    pub image: Image,
+}
+
+/// The sequence to reconstruct.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    /// The data set's path as given.
+    pub path: PathBuf,
+    /// `train[t]`: training observations at frame `t`.
+    pub train: Vec<Vec<Observation>>,
+    /// `test[t]`: held-out observations at frame `t` (may be empty).
+    pub test: Vec<Vec<Observation>>,
+    pub background: [f32; 3],
+    /// Smoke box, world units.
+    pub lo: Vec3,
+    pub hi: Vec3,
+    /// `<path>/gt`: per-frame ground truth written by the synthetic generator, if present.
+    pub ground_truth: Option<PathBuf>,
+    /// Density scale the synthetic generator rendered with (sigma = scale * density).
+    pub ground_truth_density_scale: Option<f32>,
+}
+
+impl Scene {
+    pub fn frames(&self) -> usize {
+        self.train.len()
+    }
+
+    /// Loads a PINF/HyFluid folder (`info.json`) or a D-NeRF folder (`transforms_train.json`)
+    /// at the configured image size and frame count, and splits views as configured.
+    pub fn open(path: &Path, config: &TrainConfig) -> Result<Self, TrainError> {
+        let options = LoadOptions {
+            resolution: config.image_size.map(|[w, h]| (w, h)),
+            frames: config.frames.map(|n| 0..n),
+            background: None,
+        };
+        let dataset = if path.join("info.json").is_file() {
+            load_pinf(path, &options)?
+        } else if path.join("transforms_train.json").is_file() {
+            load_dnerf(path, &options)?
+        } else {
+            return Err(TrainError::Scene {
+                path: path.to_path_buf(),
+                reason: "neither info.json (PINF/HyFluid) nor transforms_train.json (D-NeRF) \
+                         found"
+                    .into(),
+            });
+        };
+        Self::from_dataset(path, &dataset, config)
+    }
+
+    pub fn from_dataset(
+        path: &Path,
+        dataset: &Dataset,
+        config: &TrainConfig,
+    ) -> Result<Self, TrainError> {
+        let fail = |reason: String| TrainError::Scene {
+            path: path.to_path_buf(),
+            reason,
+        };
+        let pick = |names: &Option<Vec<String>>, split: Split| -> Result<Vec<String>, TrainError> {
+            match names {
+                Some(names) => {
+                    for name in names {
+                        if dataset.view(name).is_none() {
+                            let known: Vec<&str> =
+                                dataset.views.iter().map(|v| v.name.as_str()).collect();
+                            return Err(fail(format!(
+                                "no view `{name}`; the data set has {}",
+                                known.join(", ")
+                            )));
+                        }
+                    }
+                    Ok(names.clone())
+                }
+                None => Ok(dataset.views_in(split).map(|v| v.name.clone()).collect()),
+            }
+        };
+        let train_names = pick(&config.train_views, Split::Train)?;
+        let mut test_names = pick(&config.test_views, Split::Test)?;
+        if config.test_views.is_none() && test_names.is_empty() {
+            test_names = dataset
+                .views_in(Split::Val)
+                .map(|v| v.name.clone())
+                .collect();
+        }
+        if train_names.is_empty() {
+            return Err(fail("no training views".into()));
+        }
+        if let Some(shared) = train_names.iter().find(|n| test_names.contains(n)) {
+            return Err(fail(format!(
+                "view `{shared}` is both a train and a test view"
+            )));
+        }
+        let frames = dataset.times.len();
+        let gather = |names: &[String]| {
+            let mut per_frame: Vec<Vec<Observation>> = vec![Vec::new(); frames];
+            for name in names {
+                let view = dataset.view(name).expect("checked above");
+                for frame in &view.frames {
+                    per_frame[frame.time_index].push(Observation {
+                        view: view.name.clone(),
+                        camera: frame.camera.clone(),
+                        image: frame.image.clone(),
+                    });
+                }
+            }
+            per_frame
+        };
+        let train = gather(&train_names);
+        if let Some(t) = train.iter().position(Vec::is_empty) {
+            return Err(fail(format!("frame {t} has no training image")));
+        }
+        let bbox = dataset.bbox.ok_or_else(|| {
+            fail("the data set gives no smoke box (PINF voxel_matrix/voxel_scale)".into())
+        })?;
+        let ground_truth = path.join("gt");
+        let density_scale = std::fs::read_to_string(path.join("info.json"))
+            .ok()
+            .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
+            .and_then(|info| info["synth"]["density_scale"].as_f64())
+            .map(|s| s as f32);
+        Ok(Self {
+            path: path.to_path_buf(),
+            train,
+            test: gather(&test_names),
+            background: dataset.background,
+            lo: bbox.min,
+            hi: bbox.max,
+            ground_truth: ground_truth.is_dir().then_some(ground_truth),
+            ground_truth_density_scale: density_scale,
+        })
+    }
+}
