@@ -135,27 +135,40 @@ fn accumulate_field(
     channels: usize,
     cell_value: impl Fn(&ViewSplat, [f32; 3], &mut [f32]) + Sync,
 ) -> Vec<f32> {
+    // Fixed chunks of Gaussians, each summed in order into its own buffer, then the buffers
+    // summed in chunk order: the result does not depend on rayon's work stealing, so a run
+    // (and a resumed run) is bit-for-bit reproducible.
+    const CHUNKS: usize = 16;
     let len = channels * grid.cells();
-    (0..gaussians.len())
+    let n = gaussians.len();
+    let chunk = n.div_ceil(CHUNKS).max(1);
+    let partials: Vec<Vec<f32>> = (0..n)
+        .step_by(chunk)
+        .collect::<Vec<_>>()
         .into_par_iter()
-        .fold(
-            || vec![0.0f32; len],
-            |mut acc, i| {
+        .map(|start| {
+            let mut acc = vec![0.0f32; len];
+            for i in start..(start + chunk).min(n) {
                 let g = gaussians.gaussian(i);
                 let (splat, _) = g.view(&IDENTITY, [0.0; 3]);
                 for_each_cell(grid, &g, &splat, |c, _, m| {
                     cell_value(&splat, m, &mut acc[channels * c..channels * (c + 1)]);
                 });
-                acc
-            },
-        )
-        .reduce(
-            || vec![0.0f32; len],
-            |mut a, b| {
-                a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
-                a
-            },
-        )
+            }
+            acc
+        })
+        .collect();
+    let mut out = vec![0.0f32; len];
+    out.par_chunks_mut(4096)
+        .enumerate()
+        .for_each(|(block, values)| {
+            let offset = block * 4096;
+            for partial in &partials {
+                let part = &partial[offset..offset + values.len()];
+                values.iter_mut().zip(part).for_each(|(x, y)| *x += y);
+            }
+        });
+    out
 }
 
 /// Gradient of a loss with respect to one Gaussian's whitening `L`, whitened centre `L mu`

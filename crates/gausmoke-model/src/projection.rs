@@ -141,8 +141,16 @@ impl Divergence {
     }
 }
 
+/// Parallel dot product over fixed blocks summed in block order: reproducible bit for bit
+/// (rayon's own `sum` splits by work stealing, so its rounding varies from run to run).
 fn dot(a: &[f64], b: &[f64]) -> f64 {
-    a.par_iter().zip(b).map(|(x, y)| x * y).sum()
+    const BLOCK: usize = 8192;
+    a.par_chunks(BLOCK)
+        .zip(b.par_chunks(BLOCK))
+        .map(|(x, y)| x.iter().zip(y).map(|(x, y)| x * y).sum::<f64>())
+        .collect::<Vec<f64>>()
+        .iter()
+        .sum()
 }
 
 /// Projects `u` (`[cells * 3]`, f32) in place; returns what the solver reached.

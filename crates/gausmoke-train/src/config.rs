@@ -233,7 +233,7 @@ impl TrainConfig {
         if self.gaussians == 0 {
             return bad("gaussians must be at least 1".into());
         }
-        if self.grid_resolution < 8 || self.grid_resolution % 4 != 0 {
+        if self.grid_resolution < 8 || !self.grid_resolution.is_multiple_of(4) {
             return bad(format!(
                 "grid_resolution must be a multiple of 4 and at least 8, got {}",
                 self.grid_resolution

@@ -115,7 +115,7 @@ impl Scene {
                 for frame in &view.frames {
                     per_frame[frame.time_index].push(Observation {
                         view: view.name.clone(),
-                        camera: frame.camera.clone(),
+                        camera: frame.camera,
                         image: frame.image.clone(),
                     });
                 }

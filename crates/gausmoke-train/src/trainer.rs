@@ -67,7 +67,8 @@ pub struct FrameReport {
     pub frame: usize,
     /// Mean absolute error over the training views after the frame's last step.
     pub train_l1: f64,
-    /// PSNR and SSIM on the held-out views (`None` without held-out views).
+    /// Mean absolute error, PSNR and SSIM on the held-out views (`None` without any).
+    pub test_l1: Option<f64>,
     pub test_psnr: Option<f64>,
     pub test_ssim: Option<f64>,
     /// Mean |div u| over the grid cells after `Pi` (1/frame).
@@ -216,6 +217,9 @@ impl Trainer {
             base_channels: config.unet_channels,
             time_frequencies: config.time_frequencies,
         };
+        // Phi's initial weights come from the backend's generator: seed it, so a run is
+        // reproducible (and a resumed run matches an uninterrupted one).
+        device.seed(config.seed);
         TrainState {
             gaussians: GaussianModel::init_in_box(
                 config.gaussians,
@@ -628,12 +632,13 @@ impl Trainer {
         let test = self.scene.test[t].clone();
         let train = self.scene.train[t].clone();
         let test_renders = self.render_host(&test)?;
-        let (mut psnr, mut ssim) = (0.0, 0.0);
+        let (mut l1, mut psnr, mut ssim) = (0.0, 0.0, 0.0);
         for (observation, render) in test.iter().zip(&test_renders) {
             let (w, h) = (
                 observation.image.width() as usize,
                 observation.image.height() as usize,
             );
+            l1 += metrics::mean_abs_error(render, observation.image.data());
             psnr += metrics::psnr(render, observation.image.data());
             ssim += metrics::ssim(render, observation.image.data(), w, h);
         }
@@ -646,6 +651,7 @@ impl Trainer {
         let report = FrameReport {
             frame: t,
             train_l1,
+            test_l1: (tests > 0.0).then_some(l1 / tests),
             test_psnr: (tests > 0.0).then_some(psnr / tests),
             test_ssim: (tests > 0.0).then_some(ssim / tests),
             mean_abs_divergence: metrics::mean_abs_divergence(&self.grid, &velocity),
@@ -690,7 +696,7 @@ impl Trainer {
         )?;
 
         let last = t + 1 == self.scene.frames();
-        if t % self.config.output_every == 0 || last {
+        if t.is_multiple_of(self.config.output_every) || last {
             let train_renders = self.render_host(&train)?;
             for (observation, render) in train
                 .iter()
@@ -851,6 +857,7 @@ impl Trainer {
             "frames": self.reports.len(),
             "gaussians": self.state.gaussians.len(),
             "grid_resolution": self.grid.resolution(),
+            "test_l1_mean": mean(|r| r.test_l1),
             "test_psnr_mean": mean(|r| r.test_psnr),
             "test_ssim_mean": mean(|r| r.test_ssim),
             "mean_abs_divergence": mean(|r| Some(r.mean_abs_divergence)),
@@ -860,6 +867,7 @@ impl Trainer {
             "per_frame": self.reports.iter().map(|r| serde_json::json!({
                 "frame": r.frame,
                 "train_l1": r.train_l1,
+                "test_l1": r.test_l1,
                 "test_psnr": r.test_psnr,
                 "test_ssim": r.test_ssim,
                 "mean_abs_divergence": r.mean_abs_divergence,

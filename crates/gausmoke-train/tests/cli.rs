@@ -1,4 +1,4 @@
-//! The binary end to end: renders the built-in scene to PNG files of the requested size, and
+//! The binary's `render`, `synth` and `inspect` commands: renders the built-in scene to PNG files of the requested size, and
 //! reports a bad `--device` plainly.
 
 use std::process::Command;
@@ -12,6 +12,7 @@ fn demo_render_writes_images() {
     let out = std::env::temp_dir().join(format!("gausmoke-cli-{}", std::process::id()));
     let result = binary()
         .args([
+            "render",
             "--gaussians",
             "500",
             "--width",
@@ -48,7 +49,7 @@ fn demo_render_writes_images() {
 #[test]
 fn unknown_device_is_reported_plainly() {
     let result = binary()
-        .args(["--device", "tpu"])
+        .args(["render", "--device", "tpu"])
         .output()
         .expect("binary runs");
     assert!(!result.status.success());
@@ -62,4 +63,55 @@ fn unknown_device_is_reported_plainly() {
         "lists the available devices: {stderr}"
     );
     assert!(!stderr.contains("panicked"), "{stderr}");
+}
+
+#[test]
+fn synth_then_inspect_reports_the_scene_and_writes_a_contact_sheet() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("tiny");
+    let out = binary()
+        .arg("synth")
+        .arg("tiny")
+        .arg(&scene)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(scene.join("info.json").is_file() && scene.join("gt").is_dir());
+    let sheet = dir.path().join("sheet.png");
+    let out = binary()
+        .arg("inspect")
+        .arg(&scene)
+        .arg("--out")
+        .arg(&sheet)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("8 frames at 64x96"), "{stdout}");
+    assert!(stdout.contains("smoke box"), "{stdout}");
+    let image = image::open(&sheet).unwrap().to_rgb8();
+    // Three views x (first, middle, last): a 3x3 sheet of 64x96 tiles at least.
+    assert!(
+        image.width() >= 3 * 64 && image.height() >= 3 * 96,
+        "{:?}",
+        image.dimensions()
+    );
+
+    // A second synth into the same folder is refused rather than overwriting it.
+    let out = binary()
+        .arg("synth")
+        .arg("tiny")
+        .arg(&scene)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("not empty"));
 }

@@ -1,0 +1,297 @@
+//! Algorithm 1 end to end on the tiny synthetic scene (CPU, seconds): the held-out view
+//! improves on the initialisation, the recovered velocity is divergence-free and points the
+//! way the true one does, every promised output is written, and a killed run resumes to the
+//! same parameters as an uninterrupted one.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use gausmoke_data::synth::{SynthConfig, generate};
+use gausmoke_render::backends::device_by_name;
+use gausmoke_train::checkpoint::read_arrays;
+use gausmoke_train::metrics::mean_abs_error;
+use gausmoke_train::scene::Scene;
+use gausmoke_train::{TrainConfig, Trainer, eval};
+
+/// Small enough for CI in a debug build, large enough that the plume moves and is fitted.
+fn test_config() -> TrainConfig {
+    TrainConfig {
+        gaussians: 1500,
+        grid_resolution: 16,
+        frames: Some(4),
+        init_iterations: 100,
+        advect_iterations: 15,
+        refine_iterations: 5,
+        lr_velocity: 2e-3,
+        lr_gaussians: 2e-3,
+        unet_channels: 8,
+        time_frequencies: 2,
+        ..TrainConfig::default()
+    }
+}
+
+fn tiny_scene(dir: &Path) -> PathBuf {
+    let data = dir.join("data");
+    generate(&SynthConfig::tiny(), &data).expect("the tiny scene generates");
+    data
+}
+
+#[test]
+fn training_improves_the_held_out_view_and_writes_every_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let config = test_config();
+    let scene = Scene::open(&data, &config).unwrap();
+    assert_eq!(scene.frames(), 4);
+    assert_eq!(
+        scene.test[0].len(),
+        1,
+        "the synthetic scene holds one view out"
+    );
+    let device = device_by_name("flex").unwrap().autodiff();
+    let run = dir.path().join("run");
+    let mut trainer = Trainer::new(scene.clone(), config.clone(), device.clone(), &run, false)
+        .unwrap()
+        .quiet(true);
+
+    // Held-out L1 of the initial Gaussians, per frame.
+    let initial: Vec<f64> = (0..scene.frames())
+        .map(|t| {
+            let observation = &scene.test[t][0];
+            let render = &trainer
+                .render_host(std::slice::from_ref(observation))
+                .unwrap()[0];
+            mean_abs_error(render, observation.image.data())
+        })
+        .collect();
+    let reports = trainer.run().unwrap().to_vec();
+    assert_eq!(reports.len(), 4);
+    let trained: Vec<f64> = reports.iter().map(|r| r.test_l1.unwrap()).collect();
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    let factor = mean(&initial) / mean(&trained);
+    eprintln!("held-out L1 initial {initial:?} trained {trained:?} (x{factor:.1})");
+    // Measured x20 (2026-11-22); the initial translucent Gaussians fill the box, the plume
+    // does not.
+    assert!(factor > 5.0, "held-out L1 improved only x{factor:.2}");
+    for t in 1..4 {
+        assert!(
+            trained[t] < 0.3 * initial[t],
+            "frame {t}: advected frames stay fitted ({} vs {})",
+            trained[t],
+            initial[t]
+        );
+    }
+
+    // The velocity after Pi is discretely divergence-free (the solver's tolerance is 1e-5
+    // relative) and not trivially zero.
+    for report in &reports[1..] {
+        assert!(
+            report.mean_abs_divergence < 1e-5,
+            "frame {}: mean |div u| {}",
+            report.frame,
+            report.mean_abs_divergence
+        );
+        assert!(
+            report.divergence_rms_after <= 1e-5 * report.divergence_rms_before.max(1e-12) + 1e-9
+        );
+        assert!(
+            report.max_speed > 1e-4,
+            "frame {}: the fluid moves",
+            report.frame
+        );
+    }
+
+    // Every output the README promises.
+    let expect = |relative: &str| {
+        let path = run.join(relative);
+        assert!(path.is_file(), "missing {}", path.display());
+        assert!(
+            std::fs::metadata(&path).unwrap().len() > 0,
+            "empty {relative}"
+        );
+    };
+    for file in [
+        "config.toml",
+        "run.json",
+        "metrics.json",
+        "losses.csv",
+        "losses.png",
+        "speed.png",
+        "comparison.gif",
+        "README.txt",
+    ] {
+        expect(file);
+    }
+    for t in 0..4 {
+        for view in ["view00", "view01", "view02"] {
+            expect(&format!("renders/{view}/frame_{t:03}.png"));
+        }
+        for file in [
+            format!("comparison/frame_{t:03}.png"),
+            format!("slices/frame_{t:03}.png"),
+            format!("exports/gaussians_{t:03}.ply"),
+            format!("exports/grid_{t:03}.vti"),
+            format!("exports/grid_{t:03}.npz"),
+            format!("frames/frame_{t:03}.safetensors"),
+        ] {
+            expect(&file);
+        }
+    }
+    expect("checkpoints/frame_003/state.json");
+    assert!(
+        !run.join("checkpoints/frame_001").exists(),
+        "only two checkpoints are kept"
+    );
+    let csv = std::fs::read_to_string(run.join("losses.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 1 + 100 + 3 * (15 + 5));
+    let used: TrainConfig = TrainConfig::from_toml_file(&run.join("config.toml")).unwrap();
+    assert_eq!(used, config);
+
+    // Evaluation re-renders the saved frames and compares with the ground truth.
+    let report = eval::evaluate(&run, &device_by_name("flex").unwrap(), None).unwrap();
+    assert_eq!(report.frames.len(), 4);
+    let psnr = report.test_psnr_mean.unwrap();
+    let expected_psnr = reports.iter().map(|r| r.test_psnr.unwrap()).sum::<f64>() / 4.0;
+    assert!(
+        (psnr - expected_psnr).abs() < 1e-3,
+        "{psnr} vs {expected_psnr}"
+    );
+    let velocity_error = report.velocity_relative_error_mean.unwrap();
+    eprintln!("velocity relative error {velocity_error:.3}");
+    // A zero velocity scores exactly 1.0: below it, the recovered flow points with the truth.
+    assert!(
+        velocity_error < 0.95,
+        "velocity relative error {velocity_error}"
+    );
+    assert!(run.join("eval.json").is_file());
+}
+
+fn binary() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_gausmoke-train"))
+}
+
+fn train_command(data: &Path, out: &Path) -> Command {
+    let mut command = binary();
+    command
+        .args(["train", "--quiet", "--data"])
+        .arg(data)
+        .arg("--out")
+        .arg(out);
+    let config = test_config();
+    for (key, value) in [
+        ("gaussians", config.gaussians.to_string()),
+        ("grid_resolution", config.grid_resolution.to_string()),
+        ("frames", "4".to_string()),
+        ("init_iterations", "60".to_string()),
+        ("advect_iterations", "10".to_string()),
+        ("refine_iterations", "4".to_string()),
+        ("unet_channels", config.unet_channels.to_string()),
+        ("time_frequencies", config.time_frequencies.to_string()),
+        ("output_every", "100".to_string()),
+    ] {
+        command.arg("--set").arg(format!("{key}={value}"));
+    }
+    command
+}
+
+fn final_state(run: &Path) -> std::collections::BTreeMap<String, (Vec<usize>, Vec<f32>)> {
+    read_arrays(&run.join("frames/frame_003.safetensors")).unwrap()
+}
+
+#[test]
+fn a_killed_run_resumes_to_the_uninterrupted_result() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+
+    let straight = dir.path().join("straight");
+    let status = train_command(&data, &straight).status().unwrap();
+    assert!(status.success());
+
+    let interrupted = dir.path().join("interrupted");
+    let mut child = train_command(&data, &interrupted).spawn().unwrap();
+    let marker = interrupted.join("checkpoints/frame_001/state.json");
+    let start = Instant::now();
+    while !marker.exists() {
+        assert!(
+            start.elapsed() < Duration::from_secs(600),
+            "no checkpoint appeared"
+        );
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the run ended before it was killed"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(
+        !interrupted.join("frames/frame_003.safetensors").exists(),
+        "the kill came too late to test anything"
+    );
+
+    // Without --resume the folder is refused (no work is overwritten) ...
+    let refused = train_command(&data, &interrupted).output().unwrap();
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("--resume"));
+    // ... with it, training continues from the last complete frame.
+    let resumed = train_command(&data, &interrupted)
+        .arg("--resume")
+        .output()
+        .unwrap();
+    assert!(
+        resumed.status.success(),
+        "{}",
+        String::from_utf8_lossy(&resumed.stderr)
+    );
+    assert!(String::from_utf8_lossy(&resumed.stderr).contains("resumed"));
+
+    let a = final_state(&straight);
+    let b = final_state(&interrupted);
+    assert_eq!(a.keys().collect::<Vec<_>>(), b.keys().collect::<Vec<_>>());
+    for (name, (shape, values)) in &a {
+        let (other_shape, other) = &b[name];
+        assert_eq!(shape, other_shape, "{name}");
+        let scale = values.iter().fold(1e-6f32, |m, v| m.max(v.abs()));
+        let worst = values
+            .iter()
+            .zip(other)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max);
+        assert!(
+            worst <= 1e-5 * scale,
+            "{name}: resumed differs by {worst} (scale {scale})"
+        );
+    }
+}
+
+#[test]
+fn bad_options_and_data_are_reported_plainly() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = binary()
+        .args(["train", "--data", "/nonexistent/scene", "--out"])
+        .arg(dir.path().join("run"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("/nonexistent/scene"), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+
+    let out = binary()
+        .args(["train", "--set", "lamda_div=0.1", "--out"])
+        .arg(dir.path().join("run2"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("lamda_div"), "{stderr}");
+
+    let out = binary()
+        .args(["train", "--no-volumetric", "--out"])
+        .arg(dir.path().join("run3"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("not implemented"));
+}
