@@ -254,10 +254,12 @@ fn train(args: TrainArgs, base: Option<TrainConfig>) -> Result<()> {
     tracing::info!(device = %args.device, "training on");
     let mut trainer =
         Trainer::new(scene, config, device, &args.out, args.resume)?.quiet(args.quiet);
+    let done_before = trainer.frame.map_or(0, |f| f + 1);
     let reports = trainer.run()?;
     let last = reports.last().context("no frame was trained")?;
     println!(
-        "trained {} frames in {:.1} s; last frame: train L1 {:.4}, held-out PSNR {}, mean |div u| {:.2e}",
+        "trained {} of {} frames in {:.1} s; last frame: train L1 {:.4}, held-out PSNR {}, mean |div u| {:.2e}",
+        reports.len() - done_before,
         reports.len(),
         start.elapsed().as_secs_f64(),
         last.train_l1,
