@@ -5,6 +5,7 @@ use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor, TensorData};
 use gausmoke_core::glam::Vec3;
 use gausmoke_render::GaussianTensors;
+pub use gausmoke_render::scenes::HostGaussians;
 use gausmoke_render::scenes::SplitMix64;
 
 /// Trainable Gaussian parameters, in the renderer's parameterisation (see
@@ -17,26 +18,6 @@ pub struct GaussianModel {
     pub log_scales: Param<Tensor<2>>,
     pub raw_densities: Param<Tensor<1>>,
     pub colors: Param<Tensor<2>>,
-}
-
-/// Host copy of the Gaussians (row-major flat arrays), for exports and checkpoints.
-#[derive(Debug, Clone, PartialEq)]
-pub struct HostGaussians {
-    pub means: Vec<f32>,
-    pub rotations: Vec<f32>,
-    pub log_scales: Vec<f32>,
-    pub raw_densities: Vec<f32>,
-    pub colors: Vec<f32>,
-}
-
-impl HostGaussians {
-    pub fn len(&self) -> usize {
-        self.raw_densities.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.raw_densities.is_empty()
-    }
 }
 
 fn to_vec<const D: usize>(t: Tensor<D>) -> Vec<f32> {

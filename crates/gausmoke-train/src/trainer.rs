@@ -585,29 +585,27 @@ impl Trainer {
         self.finish_frame(t, last_render as f64, Some(report), clamped, start)
     }
 
-    /// Host density grid of the current Gaussians.
-    pub fn density_host(&self) -> Vec<f32> {
+    /// The current Gaussians outside the autodiff graph (for outputs and metrics).
+    fn detached_gaussians(&self) -> GaussianTensors {
         let g = self.state.gaussians.tensors();
-        let detached = GaussianTensors {
+        GaussianTensors {
             means: g.means.detach(),
             rotations: g.rotations.detach(),
             log_scales: g.log_scales.detach(),
             raw_densities: g.raw_densities.detach(),
             colors: g.colors.detach(),
-        };
+        }
+    }
+
+    /// Host density grid of the current Gaussians.
+    pub fn density_host(&self) -> Vec<f32> {
+        let detached = self.detached_gaussians();
         host(density_grid(&detached, &self.grid, SPLAT_CUTOFF))
     }
 
     /// Renders of the current Gaussians for `observations`, as `[H, W, 3]` host images.
     pub fn render_host(&self, observations: &[Observation]) -> Result<Vec<Vec<f32>>, TrainError> {
-        let g = self.state.gaussians.tensors();
-        let detached = GaussianTensors {
-            means: g.means.detach(),
-            rotations: g.rotations.detach(),
-            log_scales: g.log_scales.detach(),
-            raw_densities: g.raw_densities.detach(),
-            colors: g.colors.detach(),
-        };
+        let detached = self.detached_gaussians();
         observations
             .iter()
             .map(|o| {
