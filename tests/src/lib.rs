@@ -4,8 +4,9 @@
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
+use burn::tensor::{Device, Tensor, TensorData};
 use gausmoke_core::glam::Mat4;
-use gausmoke_render::{Camera, Intrinsics, RasterOptions};
+use gausmoke_render::{Camera, GaussianTensors, Intrinsics, RasterOptions, render_volume};
 use safetensors::{Dtype, SafeTensors};
 
 /// Directory of the committed golden files.
@@ -144,6 +145,82 @@ pub fn assert_close(what: &str, actual: &[f32], expected: &[f32], atol: f32, rto
         panic!(
             "{what}: max |diff| = {diff:.3e} > {bound:.3e} (max |expected| = {scale:.3e}); worst at flat index {i}: got {} expected {}",
             actual[i], expected[i]
+        );
+    }
+}
+
+pub fn to_vec<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().try_into_vec_as::<f32>().unwrap()
+}
+
+pub fn tensor<const D: usize>(golden: &Golden, key: &str, device: &Device) -> Tensor<D> {
+    let shape: [usize; D] = golden.shape(key).try_into().expect("rank");
+    Tensor::from_data(TensorData::new(golden.get(key).to_vec(), shape), device)
+}
+
+/// Tolerances of [`check_render_golden`]: forward values absolutely; each gradient against
+/// `grad_rtol * max|g_ref|` of its tensor plus `grad_case_atol * (largest gradient of the case)`.
+#[derive(Debug, Clone, Copy)]
+pub struct RenderTolerance {
+    pub forward_atol: f32,
+    pub grad_case_atol: f32,
+    pub grad_rtol: f32,
+}
+
+/// Renders a golden case on `device` under autodiff and checks the image, the transmittance
+/// and the gradients of every input of the golden's weighted loss.
+pub fn check_render_golden(golden: &Golden, backend: &str, device: &Device, tol: &RenderTolerance) {
+    let device = device.clone().autodiff();
+    let gaussians = GaussianTensors {
+        means: tensor::<2>(golden, "means", &device).require_grad(),
+        rotations: tensor::<2>(golden, "rotations", &device).require_grad(),
+        log_scales: tensor::<2>(golden, "log_scales", &device).require_grad(),
+        raw_densities: tensor::<1>(golden, "raw_densities", &device).require_grad(),
+        colors: tensor::<2>(golden, "colors", &device).require_grad(),
+    };
+    let background = tensor::<1>(golden, "background", &device).require_grad();
+    let out = render_volume(&gaussians, &golden.camera(), &background, &golden.options())
+        .expect("golden inputs are valid");
+    let what = |s: &str| format!("{} on {backend}: {s}", golden.name);
+    assert_close(
+        &what("rgb"),
+        &to_vec(out.rgb.clone()),
+        golden.get("rgb"),
+        tol.forward_atol,
+        0.0,
+    );
+    assert_close(
+        &what("transmittance"),
+        &to_vec(out.transmittance.clone()),
+        golden.get("transmittance"),
+        tol.forward_atol,
+        0.0,
+    );
+
+    let loss = (out.rgb * tensor::<3>(golden, "weight_rgb", &device)).sum()
+        + (out.transmittance * tensor::<2>(golden, "weight_transmittance", &device)).sum();
+    let grads = loss.backward();
+    let grad2 = |t: &Tensor<2>| to_vec(t.grad(&grads).expect("tracked"));
+    let grad1 = |t: &Tensor<1>| to_vec(t.grad(&grads).expect("tracked"));
+    let checks = [
+        ("means", grad2(&gaussians.means)),
+        ("rotations", grad2(&gaussians.rotations)),
+        ("log_scales", grad2(&gaussians.log_scales)),
+        ("raw_densities", grad1(&gaussians.raw_densities)),
+        ("colors", grad2(&gaussians.colors)),
+        ("background", grad1(&background)),
+    ];
+    let case_scale = checks
+        .iter()
+        .flat_map(|(name, _)| golden.get(&format!("grad_{name}")))
+        .fold(0.0f32, |m, g| m.max(g.abs()));
+    for (name, actual) in checks {
+        assert_close(
+            &what(&format!("grad {name}")),
+            &actual,
+            golden.get(&format!("grad_{name}")),
+            tol.grad_case_atol * case_scale,
+            tol.grad_rtol,
         );
     }
 }

@@ -14,78 +14,14 @@
 //!   Dropping any single term of the backward moves some gradient by far more (checked by
 //!   breaking terms on purpose; see the closing note of issue 2).
 
-use burn::tensor::{Device, Tensor, TensorData};
-use gausmoke_render::{GaussianTensors, backends::cpu_devices, render_volume};
-use gausmoke_tests::{Golden, assert_close};
+use gausmoke_render::backends::cpu_devices;
+use gausmoke_tests::{Golden, RenderTolerance, check_render_golden};
 
-const FORWARD_ATOL: f32 = 1e-5;
-const GRAD_CASE_ATOL: f32 = 1e-5;
-const GRAD_RTOL: f32 = 5e-5;
-
-fn to_vec<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data().try_into_vec_as::<f32>().unwrap()
-}
-
-fn tensor<const D: usize>(golden: &Golden, key: &str, device: &Device) -> Tensor<D> {
-    let shape: [usize; D] = golden.shape(key).try_into().expect("rank");
-    Tensor::from_data(TensorData::new(golden.get(key).to_vec(), shape), device)
-}
-
-fn check_golden(golden: &Golden, backend: &str, device: &Device) {
-    let device = device.clone().autodiff();
-    let gaussians = GaussianTensors {
-        means: tensor::<2>(golden, "means", &device).require_grad(),
-        rotations: tensor::<2>(golden, "rotations", &device).require_grad(),
-        log_scales: tensor::<2>(golden, "log_scales", &device).require_grad(),
-        raw_densities: tensor::<1>(golden, "raw_densities", &device).require_grad(),
-        colors: tensor::<2>(golden, "colors", &device).require_grad(),
-    };
-    let background = tensor::<1>(golden, "background", &device).require_grad();
-    let out = render_volume(&gaussians, &golden.camera(), &background, &golden.options())
-        .expect("golden inputs are valid");
-    let what = |s: &str| format!("{} on {backend}: {s}", golden.name);
-    assert_close(
-        &what("rgb"),
-        &to_vec(out.rgb.clone()),
-        golden.get("rgb"),
-        FORWARD_ATOL,
-        0.0,
-    );
-    assert_close(
-        &what("transmittance"),
-        &to_vec(out.transmittance.clone()),
-        golden.get("transmittance"),
-        FORWARD_ATOL,
-        0.0,
-    );
-
-    let loss = (out.rgb * tensor::<3>(golden, "weight_rgb", &device)).sum()
-        + (out.transmittance * tensor::<2>(golden, "weight_transmittance", &device)).sum();
-    let grads = loss.backward();
-    let grad2 = |t: &Tensor<2>| to_vec(t.grad(&grads).expect("tracked"));
-    let grad1 = |t: &Tensor<1>| to_vec(t.grad(&grads).expect("tracked"));
-    let checks = [
-        ("means", grad2(&gaussians.means)),
-        ("rotations", grad2(&gaussians.rotations)),
-        ("log_scales", grad2(&gaussians.log_scales)),
-        ("raw_densities", grad1(&gaussians.raw_densities)),
-        ("colors", grad2(&gaussians.colors)),
-        ("background", grad1(&background)),
-    ];
-    let case_scale = checks
-        .iter()
-        .flat_map(|(name, _)| golden.get(&format!("grad_{name}")))
-        .fold(0.0f32, |m, g| m.max(g.abs()));
-    for (name, actual) in checks {
-        assert_close(
-            &what(&format!("grad {name}")),
-            &actual,
-            golden.get(&format!("grad_{name}")),
-            GRAD_CASE_ATOL * case_scale,
-            GRAD_RTOL,
-        );
-    }
-}
+const CPU_TOLERANCE: RenderTolerance = RenderTolerance {
+    forward_atol: 1e-5,
+    grad_case_atol: 1e-5,
+    grad_rtol: 5e-5,
+};
 
 #[test]
 fn renderer_matches_torch_goldens_on_every_cpu_backend() {
@@ -102,7 +38,7 @@ fn renderer_matches_torch_goldens_on_every_cpu_backend() {
     );
     for (backend, device) in &devices {
         for golden in &goldens {
-            check_golden(golden, backend, device);
+            check_render_golden(golden, backend, device, &CPU_TOLERANCE);
         }
     }
 }

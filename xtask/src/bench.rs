@@ -63,6 +63,10 @@ pub struct RenderArgs {
     /// Where to write the results as JSON.
     #[arg(long, default_value = "target/bench/render.json")]
     json: PathBuf,
+    /// Where to write the benchmark scenes (safetensors, read by the torch and gsplat scripts);
+    /// default `target/bench/scenes` in the workspace.
+    #[arg(long)]
+    scene_dir: Option<PathBuf>,
 }
 
 pub fn run(which: Which) -> Result<()> {
@@ -95,6 +99,10 @@ fn median_ms(mut samples: Vec<f64>) -> f64 {
     samples[samples.len() / 2] * 1e3
 }
 
+/// Median forward and forward+backward times of our renderer. The scene is uploaded once;
+/// each timed call renders (and, for forward+backward, runs the backward of
+/// `sum(rgb) + sum(T)`) and then waits for the device (`Device::sync`), so GPU timings are
+/// whole calls including the tile-list read-back, not kernel times alone.
 fn time_ours(
     scene: &HostGaussians,
     camera: &Camera,
@@ -102,30 +110,29 @@ fn time_ours(
     reps: usize,
 ) -> Result<(f64, f64)> {
     let options = RasterOptions::default();
+    let sync = |device: &Device| device.sync().map_err(|e| anyhow::anyhow!("{e:?}"));
+    let tensors = scene.to_tensors(device)?;
+    let background = Tensor::<1>::from_data(TensorData::new(vec![0.0f32; 3], [3]), device);
     let forward = || -> Result<()> {
-        let tensors = scene.to_tensors(device)?;
-        let background = Tensor::<1>::from_data(TensorData::new(vec![0.0f32; 3], [3]), device);
         let out = render_volume(&tensors, camera, &background, &options)?;
-        let _ = out.rgb.into_data();
-        Ok(())
+        drop(out);
+        sync(device)
     };
     let ad = device.clone().autodiff();
+    let ad_tensors = scene.to_tensors(&ad)?;
+    let ad_background = Tensor::<1>::from_data(TensorData::new(vec![0.0f32; 3], [3]), &ad);
     let forward_backward = || -> Result<()> {
-        let mut tensors = scene.to_tensors(&ad)?;
+        let mut tensors = ad_tensors.clone();
         tensors.means = tensors.means.require_grad();
         tensors.rotations = tensors.rotations.require_grad();
         tensors.log_scales = tensors.log_scales.require_grad();
         tensors.raw_densities = tensors.raw_densities.require_grad();
         tensors.colors = tensors.colors.require_grad();
-        let background = Tensor::<1>::from_data(TensorData::new(vec![0.0f32; 3], [3]), &ad);
-        let out = render_volume(&tensors, camera, &background, &options)?;
+        let out = render_volume(&tensors, camera, &ad_background, &options)?;
         let grads = (out.rgb.sum() + out.transmittance.sum()).backward();
-        let _ = tensors
-            .means
-            .grad(&grads)
-            .context("means tracked")?
-            .into_data();
-        Ok(())
+        let grad = tensors.means.grad(&grads).context("means tracked")?;
+        drop(grad);
+        sync(&ad)
     };
     Ok((time_ms(reps, forward)?, time_ms(reps, forward_backward)?))
 }
@@ -176,7 +183,10 @@ fn render(args: RenderArgs) -> Result<()> {
         );
     }
     let camera = scalar_real_test_camera(args.width, args.height);
-    let scene_dir = crate::workspace_root().join("target/bench/scenes");
+    let scene_dir = args
+        .scene_dir
+        .clone()
+        .unwrap_or_else(|| crate::workspace_root().join("target/bench/scenes"));
     std::fs::create_dir_all(&scene_dir)?;
     let threads = std::thread::available_parallelism()
         .map(|n| n.get())
@@ -185,15 +195,18 @@ fn render(args: RenderArgs) -> Result<()> {
     let mut scene_files = Vec::new();
     for &n in &args.gaussians {
         let scene = smoke_plume(n, SCALAR_REAL_BOX.0, SCALAR_REAL_BOX.1, 7);
-        let path = scene_dir.join(format!("plume_{n}.safetensors"));
+        let path = scene_dir.join(format!(
+            "plume_{n}_{}x{}.safetensors",
+            args.width, args.height
+        ));
         write_scene(&path, &scene, &camera)?;
         scene_files.push(path);
         for name in &args.devices {
             let device = backends::device_by_name(name).map_err(anyhow::Error::msg)?;
             let (f, fb) = time_ours(&scene, &camera, &device, args.reps)?;
-            eprintln!("ours/{name}: {n} Gaussians: forward {f:.1} ms, forward+backward {fb:.1} ms");
+            eprintln!("ours/{name}: {n} Gaussians: forward {f:.2} ms, forward+backward {fb:.2} ms");
             rows.push(serde_json::json!({
-                "impl": format!("gausmoke-rs cpu ({name})"), "gaussians": n,
+                "impl": format!("gausmoke-rs ({name})"), "gaussians": n,
                 "width": args.width, "height": args.height, "threads": threads,
                 "forward_ms": f, "forward_backward_ms": fb,
             }));
@@ -241,7 +254,7 @@ fn render(args: RenderArgs) -> Result<()> {
     println!("|---|---:|---|---:|---:|---:|");
     for r in &rows {
         println!(
-            "| {} | {} | {}x{} | {} | {:.1} | {:.1} |",
+            "| {} | {} | {}x{} | {} | {:.2} | {:.2} |",
             r["impl"].as_str().unwrap_or("?"),
             r["gaussians"],
             r["width"],

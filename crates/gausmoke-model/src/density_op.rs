@@ -40,6 +40,7 @@ pub enum DensityField {
 }
 
 #[backend_extension(
+    Cube: cfg(feature = "cube"),
     NdArray: cfg(feature = "ndarray"),
     Flex: cfg(feature = "flex"),
     Autodiff,
@@ -172,6 +173,10 @@ macro_rules! cpu_density_backend {
 cpu_density_backend!(burn::backend::NdArray);
 #[cfg(feature = "flex")]
 cpu_density_backend!(burn::backend::Flex);
+// GPU backends splat on the host for now (inputs read back, the grid uploaded): a cubecl
+// splatting kernel is future work.
+#[cfg(feature = "cube")]
+cpu_density_backend!(burn_cubecl::CubeBackend);
 
 #[derive(Debug, Clone)]
 struct SplatState<B: Backend> {

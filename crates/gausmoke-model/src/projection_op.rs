@@ -44,6 +44,7 @@ impl ProjectionSpec {
 }
 
 #[backend_extension(
+    Cube: cfg(feature = "cube"),
     NdArray: cfg(feature = "ndarray"),
     Flex: cfg(feature = "flex"),
     Autodiff,
@@ -58,7 +59,7 @@ fn host_project<B: Backend>(velocity: FloatTensor<B>, spec: ProjectionSpec) -> F
     let device = velocity.device();
     let shape = velocity.shape();
     let mut values = read_sync(B::float_into_data(velocity))
-        .expect("reading a CPU tensor cannot fail")
+        .expect("reading the velocity grid back to the host failed")
         .try_into_vec_as::<f32>()
         .expect("CPU backends hold float tensors");
     let report = project(&spec.operator(), &mut values, &spec.options);
@@ -75,6 +76,15 @@ impl ProjectionBackend for burn::backend::NdArray {
 
 #[cfg(feature = "flex")]
 impl ProjectionBackend for burn::backend::Flex {
+    fn project_velocity(velocity: FloatTensor<Self>, spec: ProjectionSpec) -> FloatTensor<Self> {
+        host_project::<Self>(velocity, spec)
+    }
+}
+
+/// On the GPU backends the solve runs on the host for now (one read-back and one upload of the
+/// velocity grid per projection): a cubecl PCG is future work.
+#[cfg(feature = "cube")]
+impl ProjectionBackend for burn_cubecl::CubeBackend {
     fn project_velocity(velocity: FloatTensor<Self>, spec: ProjectionSpec) -> FloatTensor<Self> {
         host_project::<Self>(velocity, spec)
     }

@@ -15,9 +15,39 @@ pub fn cpu_devices() -> Vec<(&'static str, Device)> {
     ])
 }
 
+/// GPU devices compiled into this build (cargo features `wgpu`, `vulkan`, `cuda`), by name.
+/// Creating a device does not touch the hardware; the first tensor on it does, and fails there
+/// when no adapter exists. `wgpu` picks the best adapter (override with
+/// `CUBECL_WGPU_DEFAULT_DEVICE`, e.g. `Cpu` for Mesa's lavapipe); `vulkan` pins the Vulkan API
+/// and its SPIR-V compiler (native float atomics).
+pub fn gpu_devices() -> Vec<(&'static str, Device)> {
+    #[allow(unused_mut)]
+    let mut devices = Vec::new();
+    #[cfg(feature = "wgpu")]
+    devices.push((
+        "wgpu",
+        Device::wgpu(burn::tensor::DeviceKind::DefaultDevice),
+    ));
+    #[cfg(feature = "vulkan")]
+    devices.push((
+        "vulkan",
+        Device::vulkan(burn::tensor::DeviceKind::DefaultDevice),
+    ));
+    #[cfg(feature = "cuda")]
+    devices.push(("cuda", Device::cuda(0)));
+    devices
+}
+
+/// Every device compiled into this build: GPUs first, then CPUs.
+pub fn all_devices() -> Vec<(&'static str, Device)> {
+    let mut devices = gpu_devices();
+    devices.extend(cpu_devices());
+    devices
+}
+
 /// The compiled device called `name`, or the list of names to choose from.
 pub fn device_by_name(name: &str) -> Result<Device, String> {
-    let devices = cpu_devices();
+    let devices = all_devices();
     let names: Vec<&str> = devices.iter().map(|(n, _)| *n).collect();
     devices
         .into_iter()

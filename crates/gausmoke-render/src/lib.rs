@@ -17,6 +17,8 @@
 
 pub mod backends;
 pub mod cpu;
+#[cfg(feature = "cube")]
+pub mod kernels;
 pub mod math;
 mod ops;
 pub mod scenes;

@@ -23,6 +23,7 @@ use crate::RasterOptions;
 
 /// Burn backend extension for the Beer-Lambert volumetric Gaussian rasterizer.
 #[backend_extension(
+    Cube: cfg(feature = "cube"),
     NdArray: cfg(feature = "ndarray"),
     Flex: cfg(feature = "flex"),
     Autodiff,
@@ -272,6 +273,66 @@ macro_rules! cpu_backend {
 cpu_backend!(burn::backend::NdArray);
 #[cfg(feature = "flex")]
 cpu_backend!(burn::backend::Flex);
+
+/// The cube backends (wgpu, Vulkan, CUDA) run the kernels of [`crate::kernels`].
+#[cfg(feature = "cube")]
+impl VolumeRenderBackend for burn_cubecl::CubeBackend {
+    fn volume_render(
+        means: FloatTensor<Self>,
+        rotations: FloatTensor<Self>,
+        log_scales: FloatTensor<Self>,
+        raw_densities: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        background: FloatTensor<Self>,
+        camera: Camera,
+        options: RasterOptions,
+    ) -> FloatTensor<Self> {
+        crate::kernels::forward(
+            means,
+            rotations,
+            log_scales,
+            raw_densities,
+            colors,
+            background,
+            &camera,
+            &options,
+        )
+    }
+
+    fn volume_render_backward(
+        means: FloatTensor<Self>,
+        rotations: FloatTensor<Self>,
+        log_scales: FloatTensor<Self>,
+        raw_densities: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        background: FloatTensor<Self>,
+        camera: Camera,
+        options: RasterOptions,
+        output: FloatTensor<Self>,
+        grad_output: FloatTensor<Self>,
+    ) -> (
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+    ) {
+        crate::kernels::backward(
+            means,
+            rotations,
+            log_scales,
+            raw_densities,
+            colors,
+            background,
+            &camera,
+            &options,
+            output,
+            grad_output,
+            crate::kernels::force_compare_and_swap(),
+        )
+    }
+}
 
 /// What the backward pass needs: the inner-backend inputs and the forward output.
 #[derive(Debug, Clone)]
