@@ -581,7 +581,7 @@ pub fn rasterize_kernel(
 #[cube]
 pub trait GradientAdd: Send + Sync + 'static {
     type Cell: Numeric;
-    fn add(cell: &Atomic<Self::Cell>, value: f32);
+    fn add(cells: &mut [Atomic<Self::Cell>], index: usize, value: f32);
 }
 
 /// Native `f32` atomic add.
@@ -595,21 +595,21 @@ pub struct CasAdd;
 #[cube]
 impl GradientAdd for NativeAdd {
     type Cell = f32;
-    fn add(cell: &Atomic<f32>, value: f32) {
-        cell.fetch_add(value);
+    fn add(cells: &mut [Atomic<f32>], index: usize, value: f32) {
+        cells[index].fetch_add(value);
     }
 }
 
 #[cube]
 impl GradientAdd for CasAdd {
     type Cell = u32;
-    fn add(cell: &Atomic<u32>, value: f32) {
+    fn add(cells: &mut [Atomic<u32>], index: usize, value: f32) {
         if value != 0.0 {
-            let mut current = cell.load();
+            let mut current = cells[index].load();
             loop {
                 let expected = current;
                 let updated = (f32::from_bits(expected) + value).to_bits();
-                current = cell.compare_exchange_weak(expected, updated);
+                current = cells[index].compare_exchange_weak(expected, updated);
                 if current == expected {
                     break;
                 }
@@ -644,11 +644,6 @@ pub fn rasterize_backward_kernel<A: GradientAdd>(
 
     let mut batch = Shared::<[f32]>::new_slice(TILE_THREADS * SPLAT_FLOATS);
     let mut batch_ids = Shared::<[u32]>::new_slice(TILE_THREADS);
-    let longest = Shared::<[Atomic<u32>]>::new_slice(1usize);
-    if UNIT_POS == 0 {
-        longest[0].store(0u32);
-    }
-    sync_cube();
 
     let mut walked = 0u32;
     let mut final_t = 1.0f32;
@@ -664,12 +659,11 @@ pub fn rasterize_backward_kernel<A: GradientAdd>(
         grad_g = grad_output[pixel + 1];
         grad_b = grad_output[pixel + 2];
         grad_final_t = grad_output[pixel + 3];
-        longest[0].fetch_max(walked);
     }
-    sync_cube();
-    let tile_walked = workgroup_uniform_load_atomic(&longest[0]);
 
+    // Every pixel walked at most the whole list; entries past a pixel's own count are skipped.
     let start = offsets[tile];
+    let tile_walked = offsets[tile + 1] - start;
     let num_batches = (tile_walked + TILE_THREADS as u32 - 1) / TILE_THREADS as u32;
     let alpha_max = view[ViewParam::ALPHA_MAX];
 
@@ -711,9 +705,9 @@ pub fn rasterize_backward_kernel<A: GradientAdd>(
                     let cg = batch[base + 14];
                     let cb = batch[base + 15];
                     let weight = transmittance_before * hit.alpha;
-                    A::add(&splat_grads[out + 13], grad_r * weight);
-                    A::add(&splat_grads[out + 14], grad_g * weight);
-                    A::add(&splat_grads[out + 15], grad_b * weight);
+                    A::add(splat_grads, out + 13, grad_r * weight);
+                    A::add(splat_grads, out + 14, grad_g * weight);
+                    A::add(splat_grads, out + 15, grad_b * weight);
                     let grad_alpha = -grad_final_t * final_t / one_minus
                         + grad_r * (transmittance_before * cr - behind_r / one_minus)
                         + grad_g * (transmittance_before * cg - behind_g / one_minus)
@@ -725,24 +719,24 @@ pub fn rasterize_backward_kernel<A: GradientAdd>(
                     if hit.raw_alpha < alpha_max {
                         // d alpha / d(sigma I) = exp(-sigma I) = 1 - raw_alpha.
                         let grad_optical_depth = grad_alpha * (1.0 - hit.raw_alpha);
-                        A::add(&splat_grads[out + 12], grad_optical_depth * hit.integral);
+                        A::add(splat_grads, out + 12, grad_optical_depth * hit.integral);
                         // d lnI/de = -e/a - gamma r, d lnI/dm = r (`math::sample_vjp`).
                         let g_ln = grad_optical_depth * batch[base + 12] * hit.integral;
                         let ge0 = g_ln * (-hit.e0 / hit.dir_norm_sq - hit.peak_depth * hit.r0);
                         let ge1 = g_ln * (-hit.e1 / hit.dir_norm_sq - hit.peak_depth * hit.r1);
                         let ge2 = g_ln * (-hit.e2 / hit.dir_norm_sq - hit.peak_depth * hit.r2);
-                        A::add(&splat_grads[out], ge0 * d0);
-                        A::add(&splat_grads[out + 1], ge0 * d1);
-                        A::add(&splat_grads[out + 2], ge0 * d2);
-                        A::add(&splat_grads[out + 3], ge1 * d0);
-                        A::add(&splat_grads[out + 4], ge1 * d1);
-                        A::add(&splat_grads[out + 5], ge1 * d2);
-                        A::add(&splat_grads[out + 6], ge2 * d0);
-                        A::add(&splat_grads[out + 7], ge2 * d1);
-                        A::add(&splat_grads[out + 8], ge2 * d2);
-                        A::add(&splat_grads[out + 9], g_ln * hit.r0);
-                        A::add(&splat_grads[out + 10], g_ln * hit.r1);
-                        A::add(&splat_grads[out + 11], g_ln * hit.r2);
+                        A::add(splat_grads, out, ge0 * d0);
+                        A::add(splat_grads, out + 1, ge0 * d1);
+                        A::add(splat_grads, out + 2, ge0 * d2);
+                        A::add(splat_grads, out + 3, ge1 * d0);
+                        A::add(splat_grads, out + 4, ge1 * d1);
+                        A::add(splat_grads, out + 5, ge1 * d2);
+                        A::add(splat_grads, out + 6, ge2 * d0);
+                        A::add(splat_grads, out + 7, ge2 * d1);
+                        A::add(splat_grads, out + 8, ge2 * d2);
+                        A::add(splat_grads, out + 9, g_ln * hit.r0);
+                        A::add(splat_grads, out + 10, g_ln * hit.r1);
+                        A::add(splat_grads, out + 11, g_ln * hit.r2);
                     }
                 }
             }
@@ -968,13 +962,18 @@ pub fn background_grad_kernel(
     partial[3 * unit + 1] = green;
     partial[3 * unit + 2] = blue;
     sync_cube();
-    let mut stride = TILE_THREADS / 2;
+    // A runtime stride: a compile-time one here trips cubecl's IR verifier.
+    let mut stride = CUBE_DIM / 2;
     while stride > 0 {
-        if unit < stride {
-            #[unroll]
-            for c in 0..3usize {
-                partial[3 * unit + c] += partial[3 * (unit + stride) + c];
-            }
+        if UNIT_POS < stride {
+            let mine = 3 * unit;
+            let other = 3 * (unit + stride as usize);
+            let red = partial[mine] + partial[other];
+            let green = partial[mine + 1] + partial[other + 1];
+            let blue = partial[mine + 2] + partial[other + 2];
+            partial[mine] = red;
+            partial[mine + 1] = green;
+            partial[mine + 2] = blue;
         }
         sync_cube();
         stride /= 2;
