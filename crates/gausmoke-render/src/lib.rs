@@ -282,7 +282,14 @@ pub fn render_volume(
     options: &RasterOptions,
 ) -> Result<RenderOutput, RenderError> {
     options.validate()?;
+    let started = std::time::Instant::now();
     validate(gaussians, background)?;
+    if std::env::var_os("GAUSMOKE_KERNEL_TIMINGS").is_some() {
+        eprintln!(
+            "gausmoke input validation: {:.3} ms",
+            started.elapsed().as_secs_f64() * 1e3
+        );
+    }
     let packed = render_volume_unchecked(gaussians, camera, background, options);
     let [h, w, _] = packed.dims();
     let rgb = packed.clone().slice([0..h, 0..w, 0..3]);

@@ -35,6 +35,52 @@ use crate::RasterOptions;
 use crate::cpu::OUTPUT_CHANNELS;
 use raster::{SPLAT_FLOATS, TILE_EDGE, TILE_THREADS, VIEW_FLOATS, ViewParam};
 
+/// Per-stage wall times of one render call, for finding what limits the kernels: set
+/// `GAUSMOKE_KERNEL_TIMINGS=1` and every stage waits for the device and its time is printed
+/// to stderr (this serialises the pipeline, so totals are slightly higher than untimed ones).
+struct StageTimer {
+    enabled: bool,
+    last: std::time::Instant,
+    stages: Vec<(&'static str, f64)>,
+}
+
+impl StageTimer {
+    fn new(client: &Client) -> Self {
+        static ENABLED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+        let enabled =
+            *ENABLED.get_or_init(|| std::env::var_os("GAUSMOKE_KERNEL_TIMINGS").is_some());
+        if enabled {
+            let _ = cubecl::future::block_on(client.sync());
+        }
+        Self {
+            enabled,
+            last: std::time::Instant::now(),
+            stages: Vec::new(),
+        }
+    }
+
+    fn stage(&mut self, client: &Client, name: &'static str) {
+        if self.enabled {
+            let _ = cubecl::future::block_on(client.sync());
+            let now = std::time::Instant::now();
+            self.stages
+                .push((name, (now - self.last).as_secs_f64() * 1e3));
+            self.last = now;
+        }
+    }
+
+    fn report(&self, what: &str) {
+        if self.enabled {
+            let parts: Vec<String> = self
+                .stages
+                .iter()
+                .map(|(name, ms)| format!("{name} {ms:.3}"))
+                .collect();
+            eprintln!("gausmoke kernel timings ({what}, ms): {}", parts.join(", "));
+        }
+    }
+}
+
 /// Units per cube of the per-Gaussian kernels.
 const GAUSSIAN_BLOCK: u32 = 256;
 
@@ -166,7 +212,12 @@ fn zeros(scene: &DeviceScene, len: usize, dtype: DType) -> CubeTensor {
     )
 }
 
-fn bin(scene: &DeviceScene, camera: &Camera, options: &RasterOptions) -> Binning {
+fn bin(
+    scene: &DeviceScene,
+    camera: &Camera,
+    options: &RasterOptions,
+    timer: &mut StageTimer,
+) -> Binning {
     let client = scene.client().clone();
     let n = scene.len();
     let width = camera.width();
@@ -200,6 +251,7 @@ fn bin(scene: &DeviceScene, camera: &Camera, options: &RasterOptions) -> Binning
             height,
         );
     }
+    timer.stage(&client, "project");
 
     let offsets = empty(scene, num_tiles + 1, DType::U32);
     raster::tile_offsets_kernel::launch(
@@ -215,6 +267,7 @@ fn bin(scene: &DeviceScene, camera: &Camera, options: &RasterOptions) -> Binning
         .read_one(offsets.handle.clone())
         .expect("reading the tile-list length back from the GPU failed (device lost?)");
     let total = u32::from_bytes(&bytes)[num_tiles] as usize;
+    timer.stage(&client, "scan+readback");
 
     let list = empty(scene, total, DType::U32);
     if n > 0 && total > 0 {
@@ -230,6 +283,7 @@ fn bin(scene: &DeviceScene, camera: &Camera, options: &RasterOptions) -> Binning
             n as u32,
             width,
         );
+        timer.stage(&client, "fill");
         raster::sort_tiles_kernel::launch(
             &client,
             CubeCount::Static(num_tiles as u32, 1, 1),
@@ -238,6 +292,7 @@ fn bin(scene: &DeviceScene, camera: &Camera, options: &RasterOptions) -> Binning
             buffer(&offsets),
             buffer(&list),
         );
+        timer.stage(&client, "sort");
     }
     Binning {
         view,
@@ -264,7 +319,8 @@ pub fn forward(
     options: &RasterOptions,
 ) -> CubeTensor {
     let scene = DeviceScene::new(means, quats, log_scales, raw_densities, colors, background);
-    let binning = bin(&scene, camera, options);
+    let mut timer = StageTimer::new(scene.client());
+    let binning = bin(&scene, camera, options, &mut timer);
     let (width, height) = (camera.width(), camera.height());
     let output = empty_device_contiguous_dtype(
         scene.client().clone(),
@@ -285,6 +341,8 @@ pub fn forward(
         width,
         height,
     );
+    timer.stage(scene.client(), "rasterize");
+    timer.report("forward");
     output
 }
 
@@ -324,7 +382,8 @@ pub fn backward(
     let grad_output = contiguous_f32(grad_output, "render gradient");
     let client = scene.client().clone();
     let n = scene.len();
-    let binning = bin(&scene, camera, options);
+    let mut timer = StageTimer::new(&client);
+    let binning = bin(&scene, camera, options, &mut timer);
     let (width, height) = (camera.width(), camera.height());
 
     let splat_grads = zeros(&scene, n * SPLAT_FLOATS, DType::F32);
@@ -356,6 +415,7 @@ pub fn backward(
             launch_backward!(raster::CasAdd);
         }
     }
+    timer.stage(&client, "rasterize_backward");
 
     let grad_means = empty(&scene, n * 3, DType::F32);
     let grad_quats = empty(&scene, n * 4, DType::F32);
@@ -380,6 +440,7 @@ pub fn backward(
             buffer(&grad_colors),
             n as u32,
         );
+        timer.stage(&client, "view_backward");
     }
     let grad_background = empty(&scene, 3, DType::F32);
     raster::background_grad_kernel::launch(
@@ -391,6 +452,8 @@ pub fn backward(
         buffer(&grad_background),
         width * height,
     );
+    timer.stage(&client, "background");
+    timer.report("backward");
 
     // The buffers hold at least one element (zero-sized allocations are avoided); take the
     // leading `n * columns` of each.
