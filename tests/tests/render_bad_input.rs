@@ -5,7 +5,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use gausmoke_core::glam::{Mat4, Vec3};
 use gausmoke_render::{
     Camera, CameraError, GaussianTensors, Intrinsics, RasterOptions, RenderError,
-    backends::cpu_devices, render_volume, scenes::smoke_plume,
+    backends::all_devices, render_volume, scenes::smoke_plume,
 };
 
 fn camera() -> Camera {
@@ -44,7 +44,7 @@ fn render_err(g: &GaussianTensors, bg: &Tensor<1>, options: &RasterOptions) -> R
 
 #[test]
 fn non_finite_parameters_are_named() {
-    for (backend, device) in cpu_devices() {
+    for (backend, device) in all_devices() {
         for device in [device.clone(), device.autodiff()] {
             let ok = scene(&device);
             let bg = black(&device);
@@ -96,7 +96,7 @@ fn non_finite_parameters_are_named() {
 
 #[test]
 fn zero_quaternion_and_extreme_scales_are_refused() {
-    for (_, device) in cpu_devices() {
+    for (_, device) in all_devices() {
         let ok = scene(&device);
         let bg = black(&device);
         let opts = RasterOptions::default();
@@ -121,7 +121,7 @@ fn zero_quaternion_and_extreme_scales_are_refused() {
 
 #[test]
 fn mismatched_shapes_are_named() {
-    for (_, device) in cpu_devices() {
+    for (_, device) in all_devices() {
         let ok = scene(&device);
         let bg = black(&device);
         let opts = RasterOptions::default();
@@ -170,7 +170,7 @@ fn mismatched_shapes_are_named() {
 
 #[test]
 fn invalid_options_are_named() {
-    let device = cpu_devices()[0].1.clone();
+    let device = all_devices()[0].1.clone();
     let g = scene(&device);
     let bg = black(&device);
     let cases = [
@@ -241,7 +241,7 @@ fn bad_cameras_cannot_be_built() {
 
 #[test]
 fn empty_scene_renders_the_background() {
-    for (_, device) in cpu_devices() {
+    for (_, device) in all_devices() {
         let g = GaussianTensors::from_host(&[], &[], &[], &[], &[], &device).unwrap();
         let bg = Tensor::from_data(TensorData::new(vec![0.2f32, 0.4, 0.6], [3]), &device);
         let out = render_volume(&g, &camera(), &bg, &RasterOptions::default()).unwrap();
@@ -261,7 +261,7 @@ fn empty_scene_renders_the_background() {
 
 #[test]
 fn gaussians_behind_the_camera_contribute_nothing() {
-    for (_, device) in cpu_devices() {
+    for (_, device) in all_devices() {
         // A dense Gaussian 1 unit behind the camera (camera at z = 2 looking down -Z).
         let g = GaussianTensors::from_host(
             &[0.0, 0.3, 3.0],

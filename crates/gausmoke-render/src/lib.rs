@@ -205,8 +205,9 @@ fn check_shape<const D: usize>(
 }
 
 /// Checks shapes on the host, then finiteness, quaternion norms and scale range with one
-/// small device read-back (8 numbers), so a bad parameter is named instead of becoming a NaN
-/// image or a panic inside a backend.
+/// backend op and one small device read-back (8 numbers), so a bad parameter is named instead
+/// of becoming a NaN image or a panic inside a backend. (Composing this from ~20 burn tensor
+/// ops cost 11 ms per render on an H100 through wgpu, four times the render itself.)
 fn validate(gaussians: &GaussianTensors, background: &Tensor<1>) -> Result<(), RenderError> {
     let n = gaussians.raw_densities.dims()[0];
     check_shape("means", &gaussians.means, [n, 3])?;
@@ -215,36 +216,20 @@ fn validate(gaussians: &GaussianTensors, background: &Tensor<1>) -> Result<(), R
     check_shape("colors", &gaussians.colors, [n, 3])?;
     check_shape("background", background, [3])?;
 
-    let finite = |t: Tensor<1>| t.detach().is_finite().all().float();
-    let mut stats = vec![finite(background.clone())];
-    if n > 0 {
-        stats.extend([
-            finite(gaussians.means.clone().flatten(0, 1)),
-            finite(gaussians.rotations.clone().flatten(0, 1)),
-            finite(gaussians.log_scales.clone().flatten(0, 1)),
-            finite(gaussians.raw_densities.clone()),
-            finite(gaussians.colors.clone().flatten(0, 1)),
-            gaussians
-                .rotations
-                .clone()
-                .detach()
-                .powi_scalar(2)
-                .sum_dim(1)
-                .min()
-                .reshape([1]),
-            gaussians
-                .log_scales
-                .clone()
-                .detach()
-                .abs()
-                .max()
-                .reshape([1]),
-        ]);
-    }
-    let stats = Tensor::cat(stats, 0)
-        .into_data()
-        .try_into_vec_as::<f32>()
-        .expect("validation statistics are floats");
+    use burn::backend::Dispatch;
+    let stats = Tensor::<1>::from_dispatch(
+        <Dispatch as VolumeRenderBackend>::volume_render_input_stats(
+            gaussians.means.clone().into_dispatch(),
+            gaussians.rotations.clone().into_dispatch(),
+            gaussians.log_scales.clone().into_dispatch(),
+            gaussians.raw_densities.clone().into_dispatch(),
+            gaussians.colors.clone().into_dispatch(),
+            background.clone().into_dispatch(),
+        ),
+    )
+    .into_data()
+    .try_into_vec_as::<f32>()
+    .expect("validation statistics are floats");
     let names = [
         "background",
         "means",

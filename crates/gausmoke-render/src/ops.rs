@@ -66,6 +66,19 @@ pub trait VolumeRenderBackend: Backend {
         FloatTensor<Self>,
         FloatTensor<Self>,
     );
+
+    /// Statistics for input validation, `[8]`: for `background`, `means`, `rotations`,
+    /// `log_scales`, `raw_densities` and `colors` in turn 1 when every value is finite (else
+    /// 0), then the smallest squared quaternion norm (1 when there are no Gaussians) and the
+    /// largest `|log_scale|` (0 when there are none). One small read-back validates a render.
+    fn volume_render_input_stats(
+        means: FloatTensor<Self>,
+        rotations: FloatTensor<Self>,
+        log_scales: FloatTensor<Self>,
+        raw_densities: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        background: FloatTensor<Self>,
+    ) -> FloatTensor<Self>;
 }
 
 /// CPU backends read their tensors to host slices and run [`crate::cpu`].
@@ -132,6 +145,44 @@ mod host {
                 background: self.background,
             }
         }
+    }
+
+    pub(super) fn input_stats<B: Backend>(
+        means: FloatTensor<B>,
+        rotations: FloatTensor<B>,
+        log_scales: FloatTensor<B>,
+        raw_densities: FloatTensor<B>,
+        colors: FloatTensor<B>,
+        background: FloatTensor<B>,
+    ) -> FloatTensor<B> {
+        let device = means.device();
+        let finite = |t: FloatTensor<B>| -> (f32, Vec<f32>) {
+            let v = to_vec::<B>(t);
+            (f32::from(v.iter().all(|x| x.is_finite())), v)
+        };
+        let (bg_ok, _) = finite(background);
+        let (means_ok, _) = finite(means);
+        let (rot_ok, rot) = finite(rotations);
+        let (ls_ok, ls) = finite(log_scales);
+        let (raw_ok, _) = finite(raw_densities);
+        let (col_ok, _) = finite(colors);
+        let min_norm_sq = rot
+            .chunks_exact(4)
+            .map(|q| q.iter().map(|v| v * v).sum::<f32>())
+            .fold(1.0f32, |m, v| if v < m || v.is_nan() { v } else { m });
+        let min_norm_sq = if rot.is_empty() { 1.0 } else { min_norm_sq };
+        let max_abs = ls.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        let stats = vec![
+            bg_ok,
+            means_ok,
+            rot_ok,
+            ls_ok,
+            raw_ok,
+            col_ok,
+            min_norm_sq,
+            max_abs,
+        ];
+        from_vec::<B>(stats, vec![8], &device)
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -265,6 +316,24 @@ macro_rules! cpu_backend {
                     grad_output,
                 )
             }
+
+            fn volume_render_input_stats(
+                means: FloatTensor<Self>,
+                rotations: FloatTensor<Self>,
+                log_scales: FloatTensor<Self>,
+                raw_densities: FloatTensor<Self>,
+                colors: FloatTensor<Self>,
+                background: FloatTensor<Self>,
+            ) -> FloatTensor<Self> {
+                host::input_stats::<Self>(
+                    means,
+                    rotations,
+                    log_scales,
+                    raw_densities,
+                    colors,
+                    background,
+                )
+            }
         }
     };
 }
@@ -330,6 +399,24 @@ impl VolumeRenderBackend for burn_cubecl::CubeBackend {
             output,
             grad_output,
             crate::kernels::force_compare_and_swap(),
+        )
+    }
+
+    fn volume_render_input_stats(
+        means: FloatTensor<Self>,
+        rotations: FloatTensor<Self>,
+        log_scales: FloatTensor<Self>,
+        raw_densities: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        background: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        crate::kernels::input_stats(
+            means,
+            rotations,
+            log_scales,
+            raw_densities,
+            colors,
+            background,
         )
     }
 }
@@ -483,5 +570,25 @@ impl<B: Backend + VolumeRenderBackend, C: CheckpointStrategy> VolumeRenderBacken
             grad_output.into_primitive(),
         );
         (wrap(a), wrap(b), wrap(c), wrap(d), wrap(e), wrap(f))
+    }
+
+    /// Not differentiable: statistics only.
+    fn volume_render_input_stats(
+        means: FloatTensor<Self>,
+        rotations: FloatTensor<Self>,
+        log_scales: FloatTensor<Self>,
+        raw_densities: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        background: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        use burn::backend::AutodiffBackend;
+        <Self as AutodiffBackend>::from_inner(B::volume_render_input_stats(
+            means.into_primitive(),
+            rotations.into_primitive(),
+            log_scales.into_primitive(),
+            raw_densities.into_primitive(),
+            colors.into_primitive(),
+            background.into_primitive(),
+        ))
     }
 }

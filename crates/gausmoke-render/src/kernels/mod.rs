@@ -490,3 +490,52 @@ pub fn set_force_compare_and_swap(force: bool) {
 pub fn force_compare_and_swap() -> bool {
     FORCE_COMPARE_AND_SWAP.load(std::sync::atomic::Ordering::SeqCst)
 }
+
+/// Validation statistics of the inputs on the device: one kernel and an 8-float result (see
+/// `VolumeRenderBackend::volume_render_input_stats`).
+pub fn input_stats(
+    means: CubeTensor,
+    quats: CubeTensor,
+    log_scales: CubeTensor,
+    raw_densities: CubeTensor,
+    colors: CubeTensor,
+    background: CubeTensor,
+) -> CubeTensor {
+    let parts = [background, means, quats, log_scales, raw_densities, colors];
+    let mut ends = Vec::with_capacity(6);
+    let mut total = 0usize;
+    let flat: Vec<CubeTensor> = parts
+        .into_iter()
+        .map(|t| {
+            let t = contiguous_f32(t, "render input");
+            let len = t.meta.num_elements();
+            total += len;
+            ends.push(total as u32);
+            burn_cubecl::ops::reshape(t, [len].into())
+        })
+        .collect();
+    assert!(
+        total < u32::MAX as usize,
+        "render inputs too large to validate"
+    );
+    use burn::backend::ops::FloatTensorOps;
+    let inputs = CubeBackend::float_cat(flat, 0);
+    let client = inputs.client.clone();
+    let ends = client.create_from_slice(u32::as_bytes(&ends));
+    let stats = empty_device_contiguous_dtype(
+        client.clone(),
+        inputs.device.clone(),
+        [8].into(),
+        DType::F32,
+    );
+    raster::input_stats_kernel::launch(
+        &client,
+        CubeCount::Static(1, 1, 1),
+        CubeDim::new_1d(TILE_THREADS as u32),
+        buffer(&inputs),
+        // SAFETY: the handle holds exactly the 6 offsets written above.
+        unsafe { BufferArg::from_raw_parts(ends, 6) },
+        buffer(&stats),
+    );
+    stats
+}
