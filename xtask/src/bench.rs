@@ -63,6 +63,11 @@ pub struct RenderArgs {
     /// Where to write the results as JSON.
     #[arg(long, default_value = "target/bench/render.json")]
     json: PathBuf,
+    /// Also compare each device's image and gradients with this device's (e.g. `flex`) on
+    /// every scene, and fail above 1e-4 (image) or 2e-3 (gradients, relative to each tensor's
+    /// largest value): a correctness check for GPUs that CI cannot run.
+    #[arg(long)]
+    check_against: Option<String>,
     /// Where to write the benchmark scenes (safetensors, read by the torch and gsplat scripts);
     /// default `target/bench/scenes` in the workspace.
     #[arg(long)]
@@ -137,6 +142,83 @@ fn time_ours(
     Ok((time_ms(reps, forward)?, time_ms(reps, forward_backward)?))
 }
 
+/// Image and every gradient of `sum(rgb * w) + sum(T)` on `device` and on `reference`.
+fn check_against(
+    scene: &HostGaussians,
+    camera: &Camera,
+    device: &Device,
+    reference: &Device,
+    name: &str,
+) -> Result<()> {
+    let run = |device: &Device| -> Result<Vec<Vec<f32>>> {
+        let ad = device.clone().autodiff();
+        let mut t = scene.to_tensors(&ad)?;
+        t.means = t.means.require_grad();
+        t.rotations = t.rotations.require_grad();
+        t.log_scales = t.log_scales.require_grad();
+        t.raw_densities = t.raw_densities.require_grad();
+        t.colors = t.colors.require_grad();
+        let background = Tensor::<1>::from_data(TensorData::new(vec![0.1f32, 0.2, 0.3], [3]), &ad)
+            .require_grad();
+        let out = render_volume(&t, camera, &background, &RasterOptions::default())?;
+        let [h, w, _] = out.rgb.dims();
+        let weights: Vec<f32> = (0..h * w * 3)
+            .map(|i| ((i * 7919) % 101) as f32 / 101.0 - 0.3)
+            .collect();
+        let weights = Tensor::<3>::from_data(TensorData::new(weights, [h, w, 3]), &ad);
+        let image = out.rgb.clone();
+        let grads = ((out.rgb * weights).sum() + out.transmittance.sum()).backward();
+        let v = |t: Tensor<2>| t.into_data().try_into_vec_as::<f32>().unwrap_or_default();
+        let v1 = |t: Tensor<1>| t.into_data().try_into_vec_as::<f32>().unwrap_or_default();
+        Ok(vec![
+            image
+                .into_data()
+                .try_into_vec_as::<f32>()
+                .unwrap_or_default(),
+            v(t.means.grad(&grads).context("means")?),
+            v(t.rotations.grad(&grads).context("rotations")?),
+            v(t.log_scales.grad(&grads).context("log_scales")?),
+            v1(t.raw_densities.grad(&grads).context("raw_densities")?),
+            v(t.colors.grad(&grads).context("colors")?),
+            v1(background.grad(&grads).context("background")?),
+        ])
+    };
+    let ours = run(device)?;
+    let theirs = run(reference)?;
+    let names = [
+        "rgb",
+        "means",
+        "rotations",
+        "log_scales",
+        "raw_densities",
+        "colors",
+        "background",
+    ];
+    let mut report = Vec::new();
+    for ((name_k, a), b) in names.iter().zip(&ours).zip(&theirs) {
+        let diff = a
+            .iter()
+            .zip(b)
+            .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+        let scale = b.iter().fold(0.0f32, |m, y| m.max(y.abs()));
+        let (value, bound) = if *name_k == "rgb" {
+            (diff, 1e-4)
+        } else {
+            (diff / scale.max(1e-12), 2e-3)
+        };
+        report.push(format!("{name_k} {value:.1e}"));
+        if value.is_nan() || value > bound || a.iter().any(|x| !x.is_finite()) {
+            bail!("{name}: {name_k} differs from the reference: {value:e} > {bound:e}");
+        }
+    }
+    eprintln!(
+        "check {name} vs reference, {} Gaussians: max error (rgb absolute, gradients relative): {}",
+        scene.len(),
+        report.join(", ")
+    );
+    Ok(())
+}
+
 fn write_scene(path: &Path, scene: &HostGaussians, camera: &Camera) -> Result<()> {
     let n = scene.len();
     let k = camera.intrinsics();
@@ -203,6 +285,10 @@ fn render(args: RenderArgs) -> Result<()> {
         scene_files.push(path);
         for name in &args.devices {
             let device = backends::device_by_name(name).map_err(anyhow::Error::msg)?;
+            if let Some(reference) = &args.check_against {
+                let reference = backends::device_by_name(reference).map_err(anyhow::Error::msg)?;
+                check_against(&scene, &camera, &device, &reference, name)?;
+            }
             let (f, fb) = time_ours(&scene, &camera, &device, args.reps)?;
             eprintln!("ours/{name}: {n} Gaussians: forward {f:.2} ms, forward+backward {fb:.2} ms");
             rows.push(serde_json::json!({

@@ -20,6 +20,7 @@ pub fn cpu_devices() -> Vec<(&'static str, Device)> {
 /// when no adapter exists. `wgpu` picks the best adapter (override with
 /// `CUBECL_WGPU_DEFAULT_DEVICE`, e.g. `Cpu` for Mesa's lavapipe); `vulkan` pins the Vulkan API
 /// and its SPIR-V compiler (native float atomics).
+#[allow(clippy::vec_init_then_push)] // the pushes are feature-gated
 pub fn gpu_devices() -> Vec<(&'static str, Device)> {
     #[allow(unused_mut)]
     let mut devices = Vec::new();

@@ -463,6 +463,7 @@ pub fn backward(
         let flat = if len == flat.meta.num_elements() {
             flat
         } else {
+            #[allow(clippy::single_range_in_vec_init)] // one range per dimension
             burn_cubecl::kernel::slice(flat, &[0..len])
         };
         burn_cubecl::ops::reshape(flat, shape.into())

@@ -11,6 +11,9 @@
 //! The per-ray maths mirrors [`crate::math`] line for line so the two paths agree to rounding;
 //! each helper's gradient sits beside it.
 
+// `div_ceil` is not available inside cubecl kernels; the manual form is what they compile.
+#![allow(clippy::manual_div_ceil)]
+
 use cubecl::prelude::*;
 
 /// Floats per projected Gaussian.
@@ -1009,7 +1012,7 @@ pub fn input_stats_kernel(inputs: &[f32], ends: &[u32], stats: &mut [f32]) {
         let mut k = begin + UNIT_POS;
         while k < end {
             if non_finite(inputs[k as usize]) {
-                flags = flags | (1u32 << part);
+                flags |= 1u32 << part;
             }
             k += CUBE_DIM;
         }
