@@ -91,6 +91,13 @@ impl RasterOptions {
     }
 }
 
+/// `GAUSMOKE_KERNEL_TIMINGS` is set: print the time of validation and of each GPU stage to
+/// stderr (read once per process; renders are a hot path).
+pub(crate) fn timings_enabled() -> bool {
+    static ENABLED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *ENABLED.get_or_init(|| std::env::var_os("GAUSMOKE_KERNEL_TIMINGS").is_some())
+}
+
 /// Why a render was refused. Every variant names the offending argument.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum RenderError {
@@ -269,7 +276,7 @@ pub fn render_volume(
     options.validate()?;
     let started = std::time::Instant::now();
     validate(gaussians, background)?;
-    if std::env::var_os("GAUSMOKE_KERNEL_TIMINGS").is_some() {
+    if timings_enabled() {
         eprintln!(
             "gausmoke input validation: {:.3} ms",
             started.elapsed().as_secs_f64() * 1e3

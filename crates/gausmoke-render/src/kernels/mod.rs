@@ -46,9 +46,7 @@ struct StageTimer {
 
 impl StageTimer {
     fn new(client: &Client) -> Self {
-        static ENABLED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-        let enabled =
-            *ENABLED.get_or_init(|| std::env::var_os("GAUSMOKE_KERNEL_TIMINGS").is_some());
+        let enabled = crate::timings_enabled();
         if enabled {
             let _ = cubecl::future::block_on(client.sync());
         }

@@ -420,6 +420,20 @@ fn after(depths: &[f32], a: u32, b: u32) -> bool {
     da > db || (da == db && a > b)
 }
 
+/// One comparator of the sorting network: puts list entries `a < b` of the tile starting at
+/// `start` in order. `b` past the list's end is virtual +infinity padding, already in place.
+#[cube]
+fn order_pair(depths: &[f32], list: &mut [u32], start: u32, a: u32, b: u32, len: u32) {
+    if b < len {
+        let ia = list[(start + a) as usize];
+        let ib = list[(start + b) as usize];
+        if after(depths, ia, ib) {
+            list[(start + a) as usize] = ib;
+            list[(start + b) as usize] = ia;
+        }
+    }
+}
+
 /// Sorts each tile's list in place, one cube per tile, with a bitonic network in its
 /// "flip" form: every sub-block is sorted ascending, so the list can be padded virtually to a
 /// power of two with +infinity and comparisons against the padding skipped.
@@ -443,14 +457,7 @@ pub fn sort_tiles_kernel(depths: &[f32], offsets: &[u32], list: &mut [u32]) {
             let pos = p % half;
             let a = block * size + pos;
             let b = block * size + size - 1 - pos;
-            if b < len {
-                let ia = list[(start + a) as usize];
-                let ib = list[(start + b) as usize];
-                if after(depths, ia, ib) {
-                    list[(start + a) as usize] = ib;
-                    list[(start + b) as usize] = ia;
-                }
-            }
+            order_pair(depths, list, start, a, b, len);
             p += CUBE_DIM;
         }
         sync_storage();
@@ -460,15 +467,7 @@ pub fn sort_tiles_kernel(depths: &[f32], offsets: &[u32], list: &mut [u32]) {
             let mut p = UNIT_POS;
             while p < pairs {
                 let a = (p / stride) * 2 * stride + p % stride;
-                let b = a + stride;
-                if b < len {
-                    let ia = list[(start + a) as usize];
-                    let ib = list[(start + b) as usize];
-                    if after(depths, ia, ib) {
-                        list[(start + a) as usize] = ib;
-                        list[(start + b) as usize] = ia;
-                    }
-                }
+                order_pair(depths, list, start, a, a + stride, len);
                 p += CUBE_DIM;
             }
             sync_storage();
