@@ -1,15 +1,18 @@
 //! Density splatting and the Eq. 11 interpolation with its closed-form divergence, values and
-//! gradients, on every CPU backend, against the torch float64 reference.
+//! gradients, against the torch float64 reference: splatting on every compiled backend (the
+//! cubecl kernels too, on lavapipe in CI), interpolation (plain burn ops) on the CPU backends.
 //!
 //! Tolerances (same reasoning as the renderer's goldens): values within `1e-5 * max|ref|`;
 //! gradients element-wise within `1e-5 * (largest gradient of the case) + 5e-5 * max|g_ref|`
-//! of the same tensor. f32 sums over a few hundred cells or 64 stencil nodes.
+//! of the same tensor. f32 sums over a few hundred cells or 64 stencil nodes. The GPU kernels
+//! get 4x these bounds, as the renderer's: device exp is not correctly rounded and the forward
+//! adds atomically in no fixed order.
 
 use burn::tensor::{Device, Tensor, TensorData};
 use gausmoke_core::glam::Vec3;
 use gausmoke_model::{GridSpec, Interpolation, density_grid, sample_velocity};
 use gausmoke_render::GaussianTensors;
-use gausmoke_render::backends::cpu_devices;
+use gausmoke_render::backends::{all_devices, cpu_devices};
 use gausmoke_tests::{Golden, assert_close};
 
 fn tensor<const D: usize>(golden: &Golden, key: &str, device: &Device) -> Tensor<D> {
@@ -32,6 +35,11 @@ fn grid_of(golden: &Golden) -> GridSpec {
 }
 
 fn check_grads(golden: &Golden, what: &str, pairs: &[(&str, Vec<f32>)]) {
+    check_grads_scaled(golden, what, pairs, 1.0);
+}
+
+/// [`check_grads`] with both bounds multiplied by `slack`.
+fn check_grads_scaled(golden: &Golden, what: &str, pairs: &[(&str, Vec<f32>)], slack: f32) {
     let case_scale = pairs
         .iter()
         .flat_map(|(k, _)| golden.get(&format!("grad_{k}")))
@@ -41,8 +49,8 @@ fn check_grads(golden: &Golden, what: &str, pairs: &[(&str, Vec<f32>)]) {
             &format!("{what}: grad {name}"),
             actual,
             golden.get(&format!("grad_{name}")),
-            1e-5 * case_scale,
-            5e-5,
+            1e-5 * case_scale * slack,
+            5e-5 * slack,
         );
     }
 }
@@ -51,7 +59,9 @@ fn check_grads(golden: &Golden, what: &str, pairs: &[(&str, Vec<f32>)]) {
 fn density_splatting_matches_torch() {
     let golden = Golden::load("model_density_splat");
     let grid = grid_of(&golden);
-    for (backend, device) in cpu_devices() {
+    let cpu: Vec<_> = cpu_devices().into_iter().map(|(name, _)| name).collect();
+    for (backend, device) in all_devices() {
+        let slack = if cpu.contains(&backend) { 1.0 } else { 4.0 };
         let ad = device.autodiff();
         let n = golden.shape("raw_densities")[0];
         let g = GaussianTensors {
@@ -70,14 +80,14 @@ fn density_splatting_matches_torch() {
             &format!("density on {backend}"),
             &host(sigma.clone()),
             golden.get("sigma"),
-            1e-5 * scale,
+            1e-5 * scale * slack,
             0.0,
         );
         let grads = (sigma * tensor::<3>(&golden, "weight", &ad))
             .sum()
             .backward();
         let grad2 = |t: &Tensor<2>| host(t.grad(&grads).unwrap());
-        check_grads(
+        check_grads_scaled(
             &golden,
             &format!("density on {backend}"),
             &[
@@ -86,6 +96,7 @@ fn density_splatting_matches_torch() {
                 ("log_scales", grad2(&g.log_scales)),
                 ("raw_densities", host(g.raw_densities.grad(&grads).unwrap())),
             ],
+            slack,
         );
     }
 }

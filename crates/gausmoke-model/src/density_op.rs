@@ -173,10 +173,40 @@ macro_rules! cpu_density_backend {
 cpu_density_backend!(burn::backend::NdArray);
 #[cfg(feature = "flex")]
 cpu_density_backend!(burn::backend::Flex);
-// GPU backends splat on the host for now (inputs read back, the grid uploaded): a cubecl
-// splatting kernel is future work.
+/// The cube backends (wgpu, Vulkan, CUDA) run the kernels of [`crate::density_kernel`].
 #[cfg(feature = "cube")]
-cpu_density_backend!(burn_cubecl::CubeBackend);
+impl DensityBackend for burn_cubecl::CubeBackend {
+    fn splat_field(
+        means: FloatTensor<Self>,
+        rotations: FloatTensor<Self>,
+        log_scales: FloatTensor<Self>,
+        raw_densities: FloatTensor<Self>,
+        grid: SplatGrid,
+        field: DensityField,
+    ) -> FloatTensor<Self> {
+        crate::density_kernel::splat_field(means, rotations, log_scales, raw_densities, &grid, field)
+    }
+
+    fn splat_field_backward(
+        means: FloatTensor<Self>,
+        rotations: FloatTensor<Self>,
+        log_scales: FloatTensor<Self>,
+        raw_densities: FloatTensor<Self>,
+        grid: SplatGrid,
+        field: DensityField,
+        grad: FloatTensor<Self>,
+    ) -> GaussianGrads<Self> {
+        crate::density_kernel::splat_field_backward(
+            means,
+            rotations,
+            log_scales,
+            raw_densities,
+            &grid,
+            field,
+            grad,
+        )
+    }
+}
 
 #[derive(Debug, Clone)]
 struct SplatState<B: Backend> {

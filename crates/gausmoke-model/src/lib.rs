@@ -13,6 +13,8 @@
 
 pub mod advect;
 pub mod density;
+#[cfg(feature = "cube")]
+mod density_kernel;
 mod density_op;
 pub mod grid;
 pub mod interp;

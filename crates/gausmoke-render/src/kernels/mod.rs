@@ -80,7 +80,7 @@ impl StageTimer {
 }
 
 /// Units per cube of the per-Gaussian kernels.
-const GAUSSIAN_BLOCK: u32 = 256;
+pub const GAUSSIAN_BLOCK: u32 = 256;
 
 /// The view as the kernels read it (see [`ViewParam`]).
 fn view_params(camera: &Camera, options: &RasterOptions) -> [f32; VIEW_FLOATS] {
@@ -111,11 +111,13 @@ fn view_params(camera: &Camera, options: &RasterOptions) -> [f32; VIEW_FLOATS] {
 }
 
 /// A device buffer argument covering all of `tensor` (which must be contiguous).
-fn buffer(tensor: &CubeTensor) -> BufferArg {
+pub fn buffer(tensor: &CubeTensor) -> BufferArg {
     tensor.clone().into_buffer_arg()
 }
 
-fn contiguous_f32(tensor: CubeTensor, name: &str) -> CubeTensor {
+/// `tensor` as a contiguous f32 buffer; panics naming `name` for another dtype (the kernels
+/// are f32 only).
+pub fn contiguous_f32(tensor: CubeTensor, name: &str) -> CubeTensor {
     assert_eq!(
         tensor.dtype,
         DType::F32,
@@ -126,7 +128,7 @@ fn contiguous_f32(tensor: CubeTensor, name: &str) -> CubeTensor {
 }
 
 /// Number of cubes of [`GAUSSIAN_BLOCK`] units covering `n` Gaussians.
-fn gaussian_cubes(n: usize) -> CubeCount {
+pub fn gaussian_cubes(n: usize) -> CubeCount {
     let cubes = n.div_ceil(GAUSSIAN_BLOCK as usize).max(1);
     assert!(
         cubes <= u16::MAX as usize,
@@ -453,27 +455,148 @@ pub fn backward(
     timer.stage(&client, "background");
     timer.report("backward");
 
-    // The buffers hold at least one element (zero-sized allocations are avoided); take the
-    // leading `n * columns` of each.
-    let shaped = |tensor: CubeTensor, shape: Vec<usize>| {
-        let len: usize = shape.iter().product();
-        let flat = burn_cubecl::ops::reshape(tensor.clone(), [tensor.meta.num_elements()].into());
-        let flat = if len == flat.meta.num_elements() {
-            flat
-        } else {
-            #[allow(clippy::single_range_in_vec_init)] // one range per dimension
-            burn_cubecl::kernel::slice(flat, &[0..len])
-        };
-        burn_cubecl::ops::reshape(flat, shape.into())
-    };
     (
-        shaped(grad_means, vec![n, 3]),
-        shaped(grad_quats, vec![n, 4]),
-        shaped(grad_log_scales, vec![n, 3]),
-        shaped(grad_raw_densities, vec![n]),
-        shaped(grad_colors, vec![n, 3]),
-        shaped(grad_background, vec![3]),
+        leading(grad_means, vec![n, 3]),
+        leading(grad_quats, vec![n, 4]),
+        leading(grad_log_scales, vec![n, 3]),
+        leading(grad_raw_densities, vec![n]),
+        leading(grad_colors, vec![n, 3]),
+        leading(grad_background, vec![3]),
     )
+}
+
+/// The view of a camera at the world origin with axes aligned to the world's, and no
+/// culling (the near plane at infinity): with it `project_kernel` returns each Gaussian's
+/// world-space whitening and `view_backward_kernel` chains gradients of that whitening.
+fn world_view_params() -> [f32; VIEW_FLOATS] {
+    let mut params = [0.0f32; VIEW_FLOATS];
+    params[ViewParam::ROTATION] = 1.0;
+    params[ViewParam::ROTATION + 4] = 1.0;
+    params[ViewParam::ROTATION + 8] = 1.0;
+    params[ViewParam::NEAR_PLANE] = f32::INFINITY;
+    params[ViewParam::KERNEL_CUTOFF] = 9.0;
+    params[ViewParam::MIN_OPTICAL_DEPTH] = 1.0;
+    params
+}
+
+/// World-space whitening of every Gaussian, [`SPLAT_FLOATS`] floats each: `L = S^-1 R^T`
+/// (row-major), `L mu`, `sigma = softplus(raw)`, and a zero colour. This is what density
+/// splatting evaluates (`k(x) = exp(-|L x - L mu|^2 / 2)`); it is the renderer's projection
+/// with the camera at the origin, so both ops share one parameterisation.
+pub fn world_splats(
+    means: CubeTensor,
+    quats: CubeTensor,
+    log_scales: CubeTensor,
+    raw_densities: CubeTensor,
+) -> CubeTensor {
+    let scene = world_scene(means, quats, log_scales, raw_densities);
+    let n = scene.len();
+    let view = f32_tensor(&scene, &world_view_params());
+    let splats = empty(&scene, n * SPLAT_FLOATS, DType::F32);
+    let depths = empty(&scene, n, DType::F32);
+    let rects = empty(&scene, n * 4, DType::U32);
+    let counts = zeros(&scene, 1, DType::U32);
+    if n > 0 {
+        project_kernel::launch(
+            scene.client(),
+            gaussian_cubes(n),
+            CubeDim::new_1d(GAUSSIAN_BLOCK),
+            buffer(&scene.means),
+            buffer(&scene.quats),
+            buffer(&scene.log_scales),
+            buffer(&scene.raw_densities),
+            buffer(&scene.colors),
+            buffer(&view),
+            buffer(&splats),
+            buffer(&depths),
+            buffer(&rects),
+            buffer(&counts),
+            n as u32,
+            1,
+            1,
+        );
+    }
+    splats
+}
+
+/// Gradients `(means, quats, log_scales, raw_densities)` given the gradient of
+/// [`world_splats`]' output (`[n * SPLAT_FLOATS]`; its colour slots are ignored).
+pub fn world_splats_backward(
+    means: CubeTensor,
+    quats: CubeTensor,
+    log_scales: CubeTensor,
+    raw_densities: CubeTensor,
+    splat_grads: CubeTensor,
+) -> (CubeTensor, CubeTensor, CubeTensor, CubeTensor) {
+    let scene = world_scene(means, quats, log_scales, raw_densities);
+    let splat_grads = contiguous_f32(splat_grads, "splat gradients");
+    let n = scene.len();
+    assert_eq!(
+        splat_grads.meta.num_elements(),
+        (n * SPLAT_FLOATS).max(1),
+        "splat gradients must hold SPLAT_FLOATS values per Gaussian"
+    );
+    let view = f32_tensor(&scene, &world_view_params());
+    let grad_means = empty(&scene, n * 3, DType::F32);
+    let grad_quats = empty(&scene, n * 4, DType::F32);
+    let grad_log_scales = empty(&scene, n * 3, DType::F32);
+    let grad_raw_densities = empty(&scene, n, DType::F32);
+    let grad_colors = empty(&scene, n * 3, DType::F32);
+    if n > 0 {
+        raster::view_backward_kernel::launch(
+            scene.client(),
+            gaussian_cubes(n),
+            CubeDim::new_1d(GAUSSIAN_BLOCK),
+            buffer(&scene.means),
+            buffer(&scene.quats),
+            buffer(&scene.log_scales),
+            buffer(&scene.raw_densities),
+            buffer(&view),
+            buffer(&splat_grads),
+            buffer(&grad_means),
+            buffer(&grad_quats),
+            buffer(&grad_log_scales),
+            buffer(&grad_raw_densities),
+            buffer(&grad_colors),
+            n as u32,
+        );
+    }
+    (
+        leading(grad_means, vec![n, 3]),
+        leading(grad_quats, vec![n, 4]),
+        leading(grad_log_scales, vec![n, 3]),
+        leading(grad_raw_densities, vec![n]),
+    )
+}
+
+/// The Gaussians with a zero colour and background (not read by the world-space kernels
+/// apart from the colour slots they copy).
+fn world_scene(
+    means: CubeTensor,
+    quats: CubeTensor,
+    log_scales: CubeTensor,
+    raw_densities: CubeTensor,
+) -> DeviceScene {
+    let n = raw_densities.meta.num_elements();
+    let client = means.client.clone();
+    let device = means.device.clone();
+    let colors = zeros_client(client.clone(), device.clone(), [(n * 3).max(1)].into(), DType::F32);
+    let background = zeros_client(client, device, [3].into(), DType::F32);
+    DeviceScene::new(means, quats, log_scales, raw_densities, colors, background)
+}
+
+/// The leading `shape.product()` values of a flat buffer (kernel buffers hold at least one
+/// element: zero-sized allocations are avoided), reshaped to `shape`.
+pub fn leading(tensor: CubeTensor, shape: Vec<usize>) -> CubeTensor {
+    let len: usize = shape.iter().product();
+    let flat = burn_cubecl::ops::reshape(tensor.clone(), [tensor.meta.num_elements()].into());
+    let flat = if len == flat.meta.num_elements() {
+        flat
+    } else {
+        #[allow(clippy::single_range_in_vec_init)] // one range per dimension
+        burn_cubecl::kernel::slice(flat, &[0..len])
+    };
+    burn_cubecl::ops::reshape(flat, shape.into())
 }
 
 static FORCE_COMPARE_AND_SWAP: std::sync::atomic::AtomicBool =
