@@ -1,6 +1,8 @@
-//! Density splatting and the Eq. 11 interpolation with its closed-form divergence, values and
-//! gradients, against the torch float64 reference: splatting on every compiled backend (the
-//! cubecl kernels too, on lavapipe in CI), interpolation (plain burn ops) on the CPU backends.
+//! Density splatting, the Eq. 11 interpolation with its closed-form divergence, and one
+//! forward of the U-Net Phi on fixed weights: values and gradients against the torch float64
+//! reference. Splatting and the U-Net on every compiled backend (the cubecl kernels and
+//! burn-wgpu's Conv3d too, on lavapipe in CI), interpolation (plain burn ops) on the CPU
+//! backends.
 //!
 //! Tolerances (same reasoning as the renderer's goldens): values within `1e-5 * max|ref|`;
 //! gradients element-wise within `1e-5 * (largest gradient of the case) + 5e-5 * max|g_ref|`
@@ -153,5 +155,135 @@ fn kernel_interpolation_and_divergence_match_torch() {
                 ("points", host(points.grad(&grads).unwrap())),
             ],
         );
+    }
+}
+
+/// Sets every float parameter of a module from the golden's `param.<path>` tensors (burn's
+/// and torch's conv weight layouts agree), counting how many it set.
+struct GoldenWeights<'a> {
+    golden: &'a Golden,
+    device: Device,
+    path: Vec<String>,
+    loaded: Vec<String>,
+}
+
+impl burn::module::ModuleMapper for GoldenWeights<'_> {
+    fn enter_module(&mut self, name: &str, _container_type: &str) {
+        self.path.push(name.to_string());
+    }
+
+    fn exit_module(&mut self, _name: &str, _container_type: &str) {
+        self.path.pop();
+    }
+
+    fn map_float<const D: usize>(
+        &mut self,
+        param: burn::module::Param<Tensor<D>>,
+    ) -> burn::module::Param<Tensor<D>> {
+        let key = format!("param.{}", self.path.join("."));
+        let shape: [usize; D] = self
+            .golden
+            .shape(&key)
+            .try_into()
+            .unwrap_or_else(|_| panic!("{key}: rank differs from the module's"));
+        assert_eq!(param.val().dims(), shape, "{key}: shape differs");
+        self.loaded.push(key.clone());
+        let value = Tensor::<D>::from_data(
+            TensorData::new(self.golden.get(&key).to_vec(), shape),
+            &self.device,
+        )
+        .require_grad();
+        burn::module::Param::initialized(param.id, value)
+    }
+}
+
+#[test]
+fn unet_forward_and_gradients_match_torch() {
+    use burn::module::Module;
+    use gausmoke_model::{UNetConfig, VelocityUNet};
+    let golden = Golden::load("model_unet");
+    let config = golden.get("config");
+    let unet_config = UNetConfig {
+        base_channels: config[0] as usize,
+        time_frequencies: config[1] as usize,
+    };
+    let cpu: Vec<_> = cpu_devices().into_iter().map(|(name, _)| name).collect();
+    for (backend, device) in all_devices() {
+        let slack = if cpu.contains(&backend) { 1.0 } else { 4.0 };
+        let ad = device.autodiff();
+        let mut weights = GoldenWeights {
+            golden: &golden,
+            device: ad.clone(),
+            path: Vec::new(),
+            loaded: Vec::new(),
+        };
+        let unet = VelocityUNet::new(&unet_config, &ad).map(&mut weights);
+        // 5 double convolutions (2 layers each), 2 down, 2 up and the output layer.
+        assert_eq!(weights.loaded.len(), 2 * 15, "{:?}", weights.loaded);
+        let velocity = tensor::<4>(&golden, "velocity", &ad).require_grad();
+        let density = tensor::<3>(&golden, "density", &ad).require_grad();
+        let delta = unet
+            .forward(velocity.clone(), density.clone(), config[2])
+            .unwrap();
+        let scale = golden
+            .get("delta")
+            .iter()
+            .fold(0.0f32, |m, v| m.max(v.abs()));
+        assert_close(
+            &format!("U-Net delta on {backend}"),
+            &host(delta.clone()),
+            golden.get("delta"),
+            1e-5 * scale * slack,
+            0.0,
+        );
+        let grads = (delta * tensor::<4>(&golden, "weight", &ad))
+            .sum()
+            .backward();
+        let param_grad = |path: &str| {
+            let mut found = None;
+            let mut finder = FindParam {
+                path: Vec::new(),
+                wanted: path,
+                grads: &grads,
+                found: &mut found,
+            };
+            unet.visit(&mut finder);
+            found.unwrap_or_else(|| panic!("no gradient for {path}"))
+        };
+        check_grads_scaled(
+            &golden,
+            &format!("U-Net on {backend}"),
+            &[
+                ("velocity", host(velocity.grad(&grads).unwrap())),
+                ("density", host(density.grad(&grads).unwrap())),
+                ("encode1.first.weight", param_grad("encode1.first.weight")),
+                ("output.weight", param_grad("output.weight")),
+            ],
+            slack,
+        );
+    }
+}
+
+/// Reads the gradient of the float parameter at `wanted` (a dotted module path).
+struct FindParam<'a> {
+    path: Vec<String>,
+    wanted: &'a str,
+    grads: &'a burn::tensor::Gradients,
+    found: &'a mut Option<Vec<f32>>,
+}
+
+impl burn::module::ModuleVisitor for FindParam<'_> {
+    fn enter_module(&mut self, name: &str, _container_type: &str) {
+        self.path.push(name.to_string());
+    }
+
+    fn exit_module(&mut self, _name: &str, _container_type: &str) {
+        self.path.pop();
+    }
+
+    fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<D>>) {
+        if self.path.join(".") == self.wanted {
+            *self.found = param.val().grad(self.grads).map(host);
+        }
     }
 }

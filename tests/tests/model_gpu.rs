@@ -116,13 +116,7 @@ fn compare(spatial_gradient: bool) {
     );
     let (_, cpu) = cpu_devices().remove(0);
     // Non-cubic on purpose: a wrong axis order in the kernel's flat index fails here.
-    let grid = GridSpec::new(
-        Vec3::splat(-1.0),
-        Vec3::new(1.0, 1.2, 0.9),
-        [20, 24, 18],
-        1,
-    )
-    .unwrap();
+    let grid = GridSpec::new(Vec3::splat(-1.0), Vec3::new(1.0, 1.2, 0.9), [20, 24, 18], 1).unwrap();
     let scene = random_scene(3000, 7);
     let channels = if spatial_gradient { 3 } else { 1 };
     let mut rng = SplitMix64::new(11);

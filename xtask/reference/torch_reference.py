@@ -361,6 +361,73 @@ def sample_velocity(velocity, points, lo, cell, res, stencil, std_cells):
     return u, jac
 
 
+def unet_forward(w, velocity, density, t, frequencies):
+    """Phi of gausmoke-model's unet.rs on one grid: velocity [nx, ny, nz, 3], density [nx, ny, nz]."""
+    F = torch.nn.functional
+    nx, ny, nz, _ = velocity.shape
+    enc = []
+    for k in range(frequencies):
+        phase = (2 ** k) * math.pi * t
+        enc += [math.sin(phase), math.cos(phase)]
+    time = torch.tensor(enc, dtype=velocity.dtype).view(1, -1, 1, 1, 1).expand(1, 2 * frequencies, nx, ny, nz)
+    x = torch.cat([velocity.permute(3, 0, 1, 2)[None], density[None, None], time], 1)
+
+    def conv(name, x, padding):
+        return F.conv3d(x, w[name + ".weight"], w[name + ".bias"], padding=padding)
+
+    def double(name, x):
+        return F.silu(conv(name + ".second", F.silu(conv(name + ".first", x, 1)), 1))
+
+    def down(name, x):
+        return F.conv3d(x, w[name + ".weight"], w[name + ".bias"], stride=2)
+
+    def up(name, x):
+        return F.conv_transpose3d(x, w[name + ".weight"], w[name + ".bias"], stride=2)
+
+    skip1 = double("encode1", x)
+    skip2 = double("encode2", F.silu(down("down1", skip1)))
+    deep = double("bottleneck", F.silu(down("down2", skip2)))
+    up2 = double("decode2", torch.cat([up("up2", deep), skip2], 1))
+    up1 = double("decode1", torch.cat([up("up1", up2), skip1], 1))
+    return conv("output", up1, 0)[0].permute(1, 2, 3, 0)
+
+
+def unet_golden(rng, gen):
+    """One forward of Phi on fixed random weights (output layer not zero), with gradients."""
+    c, frequencies, res, t = 4, 2, (8, 8, 4), 0.3
+    inputs = 4 + 2 * frequencies
+    # (name, out, in, kernel, transposed): burn's and torch's weight layouts agree
+    # (conv [out, in, k, k, k]; transposed conv [in, out, k, k, k]).
+    layers = []
+    for name, i, o in [("encode1", inputs, c), ("encode2", 2 * c, 2 * c), ("bottleneck", 4 * c, 4 * c),
+                       ("decode2", 4 * c, 2 * c), ("decode1", 2 * c, c)]:
+        layers += [(name + ".first", o, i, 3, False), (name + ".second", o, o, 3, False)]
+    layers += [("down1", 2 * c, c, 2, False), ("down2", 4 * c, 2 * c, 2, False),
+               ("up2", 2 * c, 4 * c, 2, True), ("up1", c, 2 * c, 2, True), ("output", 3, c, 1, False)]
+    w = {}
+    for name, o, i, k, transposed in layers:
+        shape = (i, o, k, k, k) if transposed else (o, i, k, k, k)
+        scale = 1.0 / math.sqrt(i * k ** 3)
+        w[name + ".weight"] = rng.normal(0.0, 1.5 * scale, size=shape)
+        w[name + ".bias"] = rng.normal(0.0, 0.1, size=o)
+    w = {k: torch.tensor(v.astype(np.float32), dtype=torch.float64, requires_grad=True) for k, v in w.items()}
+    velocity = torch.tensor(rng.uniform(-1, 1, size=(*res, 3)).astype(np.float32), dtype=torch.float64,
+                            requires_grad=True)
+    density = torch.tensor(rng.uniform(0, 2, size=res).astype(np.float32), dtype=torch.float64,
+                           requires_grad=True)
+    delta = unet_forward(w, velocity, density, t, frequencies)
+    weight = torch.randn(*res, 3, generator=gen, dtype=torch.float64).float()
+    (delta * weight.double()).sum().backward()
+    out = {"param." + k: v.detach().float() for k, v in w.items()}
+    out.update({"velocity": velocity.detach().float(), "density": density.detach().float(),
+                "config": torch.tensor([c, frequencies, t], dtype=torch.float32),
+                "weight": weight, "delta": delta.detach().float(),
+                "grad_velocity": velocity.grad.float(), "grad_density": density.grad.float(),
+                "grad_encode1.first.weight": w["encode1.first.weight"].grad.float(),
+                "grad_output.weight": w["output.weight"].grad.float()})
+    return out, "U-Net Phi (4 base channels, L = 2, t = 0.3) on an 8x8x4 grid, fixed random weights"
+
+
 def model_goldens(out_dir, check):
     rng = np.random.default_rng(7)
     files = {}
@@ -408,6 +475,8 @@ def model_goldens(out_dir, check):
          "jacobian": jac.detach().float(), "divergence": div.detach().float(),
          "grad_velocity": velocity.grad.float(), "grad_points": points.grad.float()}
     files["model_interp_gaussian"] = (t, "Eq. 11 interpolation (4x4x4, std 0.6 cells) and Eq. 12 divergence at 40 points")
+
+    files["model_unet"] = unet_golden(rng, gen)
 
     worst = 0.0
     for name, (tensors, description) in files.items():

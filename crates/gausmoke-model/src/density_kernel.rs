@@ -128,11 +128,12 @@ pub fn splat_field_kernel<A: GradientAdd>(
         let x0 = grid[GridParam::LO] + (f32::cast_from(ci) + 0.5) * grid[GridParam::CELL];
         let mut cj = range_y.start;
         while cj < range_y.end {
-            let x1 = grid[GridParam::LO + 1] + (f32::cast_from(cj) + 0.5) * grid[GridParam::CELL + 1];
+            let x1 =
+                grid[GridParam::LO + 1] + (f32::cast_from(cj) + 0.5) * grid[GridParam::CELL + 1];
             let mut ck = range_z.start;
             while ck < range_z.end {
-                let x2 =
-                    grid[GridParam::LO + 2] + (f32::cast_from(ck) + 0.5) * grid[GridParam::CELL + 2];
+                let x2 = grid[GridParam::LO + 2]
+                    + (f32::cast_from(ck) + 0.5) * grid[GridParam::CELL + 2];
                 let (m0, m1, m2) = whitened_offset(splats, base, x0, x1, x2);
                 let k2 = m0 * m0 + m1 * m1 + m2 * m2;
                 if k2 <= cutoff {
@@ -260,11 +261,12 @@ pub fn splat_field_backward_kernel(
         let x0 = grid[GridParam::LO] + (f32::cast_from(ci) + 0.5) * grid[GridParam::CELL];
         let mut cj = range_y.start;
         while cj < range_y.end {
-            let x1 = grid[GridParam::LO + 1] + (f32::cast_from(cj) + 0.5) * grid[GridParam::CELL + 1];
+            let x1 =
+                grid[GridParam::LO + 1] + (f32::cast_from(cj) + 0.5) * grid[GridParam::CELL + 1];
             let mut ck = range_z.start;
             while ck < range_z.end {
-                let x2 =
-                    grid[GridParam::LO + 2] + (f32::cast_from(ck) + 0.5) * grid[GridParam::CELL + 2];
+                let x2 = grid[GridParam::LO + 2]
+                    + (f32::cast_from(ck) + 0.5) * grid[GridParam::CELL + 2];
                 let (m0, m1, m2) = whitened_offset(splats, base, x0, x1, x2);
                 let k2 = m0 * m0 + m1 * m1 + m2 * m2;
                 if k2 <= cutoff {
@@ -275,11 +277,14 @@ pub fn splat_field_backward_kernel(
                         let up0 = grad_field[3 * cell];
                         let up1 = grad_field[3 * cell + 1];
                         let up2 = grad_field[3 * cell + 2];
-                        let v0 = splats[base] * up0 + splats[base + 1] * up1 + splats[base + 2] * up2;
-                        let v1 =
-                            splats[base + 3] * up0 + splats[base + 4] * up1 + splats[base + 5] * up2;
-                        let v2 =
-                            splats[base + 6] * up0 + splats[base + 7] * up1 + splats[base + 8] * up2;
+                        let v0 =
+                            splats[base] * up0 + splats[base + 1] * up1 + splats[base + 2] * up2;
+                        let v1 = splats[base + 3] * up0
+                            + splats[base + 4] * up1
+                            + splats[base + 5] * up2;
+                        let v2 = splats[base + 6] * up0
+                            + splats[base + 7] * up1
+                            + splats[base + 8] * up2;
                         let s = m0 * v0 + m1 * v1 + m2 * v2;
                         acc.sigma -= kernel * s;
                         let sk = sigma * kernel;

@@ -184,7 +184,14 @@ impl DensityBackend for burn_cubecl::CubeBackend {
         grid: SplatGrid,
         field: DensityField,
     ) -> FloatTensor<Self> {
-        crate::density_kernel::splat_field(means, rotations, log_scales, raw_densities, &grid, field)
+        crate::density_kernel::splat_field(
+            means,
+            rotations,
+            log_scales,
+            raw_densities,
+            &grid,
+            field,
+        )
     }
 
     fn splat_field_backward(

@@ -9,7 +9,7 @@
 //! The density's analytic spatial gradient comes from the same op; the losses `L_div`,
 //! `L_adv` and `L_refine` are plain tensor functions.
 //!
-//! Still to come (issue 4): torch goldens for these ops, their benchmark, and GPU kernels.
+//! `Pi` also comes in the paper's penalty form ([`penalty`]), for comparison.
 
 pub mod advect;
 pub mod density;
@@ -19,6 +19,7 @@ mod density_op;
 pub mod grid;
 pub mod interp;
 pub mod losses;
+pub mod penalty;
 pub mod projection;
 mod projection_op;
 pub mod unet;
@@ -28,6 +29,7 @@ pub use density_op::{DensityBackend, DensityField, density_gradient_grid, densit
 pub use grid::{GridError, GridSpec};
 pub use interp::{Interpolation, VelocitySample, grid_from_fn, sample_velocity};
 pub use losses::{advection_loss, divergence_loss, refine_loss};
+pub use penalty::{PenaltyOptions, penalty_projection};
 pub use projection::{ProjectionOptions, ProjectionReport};
 pub use projection_op::{ProjectionBackend, ProjectionSpec, project_velocity, project_with_report};
 pub use unet::{UNetConfig, UNetError, VelocityUNet};

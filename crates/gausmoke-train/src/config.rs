@@ -52,6 +52,16 @@ pub enum IntegratorKind {
     Rk2,
 }
 
+/// Which form of the incompressibility projection `Pi` (paper Eq. 10) the run uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ProjectionKind {
+    /// Exact discrete Helmholtz projection (PCG Poisson solve, solid walls).
+    Exact,
+    /// The paper's penalty form: `penalty_steps` gradient steps on `|D u|^2 / 2`.
+    Penalty,
+}
+
 /// Everything a training run needs besides the data set. Field names are the TOML keys.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -95,9 +105,14 @@ pub struct TrainConfig {
     pub time_frequencies: usize,
     pub interpolation: InterpolationKind,
     pub integrator: IntegratorKind,
-    /// Relative residual at which the projection's PCG solve stops.
+    /// Form of `Pi`: `exact` (default) or `penalty` (the paper's description).
+    pub projection: ProjectionKind,
+    /// Relative residual at which the exact projection's PCG solve stops.
     pub projection_tolerance: f64,
     pub projection_max_iterations: usize,
+    /// Gradient steps of the penalty form (`projection = "penalty"`), each with step size
+    /// `1 / sum_a h_a^-2`.
+    pub penalty_steps: usize,
     /// Ablation switch: `false` drops L_div and L_adv (paper Table 3, "w/o physics").
     pub physics_losses: bool,
     /// Ablation switch: `false` skips the K' refinement iterations ("w/o refinement").
@@ -137,8 +152,10 @@ impl Default for TrainConfig {
             time_frequencies: 4,
             interpolation: InterpolationKind::Gaussian,
             integrator: IntegratorKind::Euler,
+            projection: ProjectionKind::Exact,
             projection_tolerance: 1e-5,
             projection_max_iterations: 400,
+            penalty_steps: 20,
             physics_losses: true,
             refinement: true,
             volumetric: true,

@@ -17,17 +17,18 @@ use std::time::Instant;
 
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Gradients, Tensor, TensorData};
+use gausmoke_model::penalty::penalty_projection_with_report;
 use gausmoke_model::{
-    GridSpec, Integrator, Interpolation, ProjectionOptions, UNetConfig, VelocityUNet, advect,
-    advection_loss, density_gradient_grid, density_grid, divergence_loss, project_velocity,
-    project_with_report, refine_loss,
+    GridSpec, Integrator, Interpolation, PenaltyOptions, ProjectionOptions, ProjectionReport,
+    UNetConfig, VelocityUNet, advect, advection_loss, density_gradient_grid, density_grid,
+    divergence_loss, penalty_projection, project_velocity, project_with_report, refine_loss,
 };
 use gausmoke_render::{GaussianTensors, RasterOptions, render_volume};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
 
 use crate::checkpoint::{self, CheckpointMeta, HostArrays};
-use crate::config::{IntegratorKind, InterpolationKind, TrainConfig};
+use crate::config::{IntegratorKind, InterpolationKind, ProjectionKind, TrainConfig};
 use crate::gaussians::GaussianModel;
 use crate::scene::{Observation, Scene};
 use crate::visuals::Picture;
@@ -279,6 +280,33 @@ impl Trainer {
         }
     }
 
+    fn penalty(&self) -> PenaltyOptions {
+        PenaltyOptions {
+            steps: self.config.penalty_steps,
+            ..PenaltyOptions::default()
+        }
+    }
+
+    /// `Pi(velocity)` in the configured form (differentiable either way).
+    fn project(&self, velocity: Tensor<4>) -> Tensor<4> {
+        match self.config.projection {
+            ProjectionKind::Exact => project_velocity(&self.grid, velocity, self.projection()),
+            ProjectionKind::Penalty => penalty_projection(&self.grid, velocity, &self.penalty()),
+        }
+    }
+
+    /// What the configured `Pi` does to `velocity` (for the frame's metrics).
+    fn projection_report(&self, velocity: Tensor<4>) -> ProjectionReport {
+        match self.config.projection {
+            ProjectionKind::Exact => {
+                project_with_report(&self.grid, &mut host(velocity), &self.projection())
+            }
+            ProjectionKind::Penalty => {
+                penalty_projection_with_report(&self.grid, velocity, &self.penalty()).1
+            }
+        }
+    }
+
     fn elapsed(&self) -> f64 {
         self.elapsed_before + self.session_start.elapsed().as_secs_f64()
     }
@@ -469,7 +497,7 @@ impl Trainer {
                 time,
             )?;
             let update = previous_velocity.clone() + delta;
-            let projected = project_velocity(&self.grid, update.clone(), self.projection());
+            let projected = self.project(update.clone());
             let moved = advect(
                 &self.grid,
                 &projected,
@@ -581,7 +609,7 @@ impl Trainer {
         }
         bar.finish_and_clear();
         self.state.velocity = velocity;
-        let report = project_with_report(&self.grid, &mut host(unprojected), &self.projection());
+        let report = self.projection_report(unprojected);
         self.finish_frame(t, last_render as f64, Some(report), clamped, start)
     }
 

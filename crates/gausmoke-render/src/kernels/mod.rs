@@ -580,7 +580,12 @@ fn world_scene(
     let n = raw_densities.meta.num_elements();
     let client = means.client.clone();
     let device = means.device.clone();
-    let colors = zeros_client(client.clone(), device.clone(), [(n * 3).max(1)].into(), DType::F32);
+    let colors = zeros_client(
+        client.clone(),
+        device.clone(),
+        [(n * 3).max(1)].into(),
+        DType::F32,
+    );
     let background = zeros_client(client, device, [3].into(), DType::F32);
     DeviceScene::new(means, quats, log_scales, raw_densities, colors, background)
 }
