@@ -12,6 +12,7 @@
 //! deep-learning framework.
 
 mod camera;
+pub mod profile;
 
 pub use camera::{Camera, CameraError, Intrinsics};
 pub use glam;

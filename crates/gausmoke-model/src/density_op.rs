@@ -235,7 +235,10 @@ impl<B: Backend + DensityBackend> Backward<B, 4> for SplatBackward {
             grid,
             field,
         } = ops.state;
-        let (gm, gq, gs, gd) = B::splat_field_backward(m, q, s, d, grid, field, grad);
+        let (gm, gq, gs, gd) = {
+            let _timed = gausmoke_core::profile::scope("density splat backward");
+            B::splat_field_backward(m, q, s, d, grid, field, grad)
+        };
         for (parent, g) in ops.parents.into_iter().zip([gm, gq, gs, gd]) {
             if let Some(node) = parent {
                 grads.register::<B>(node.id, g);
@@ -266,7 +269,10 @@ impl<B: Backend + DensityBackend, C: CheckpointStrategy> DensityBackend for Auto
             raw_densities.into_primitive(),
         ];
         let [m, q, s, d] = inputs.clone();
-        let output = B::splat_field(m, q, s, d, grid, field);
+        let output = {
+            let _timed = gausmoke_core::profile::scope("density splat");
+            B::splat_field(m, q, s, d, grid, field)
+        };
         let state = SplatState {
             inputs,
             grid,

@@ -99,6 +99,7 @@ impl<B: Backend + ProjectionBackend> Backward<B, 1> for ProjectBackward {
     fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
         let grad = grads.consume::<B>(&ops.node);
         if let [Some(parent)] = ops.parents {
+            let _timed = gausmoke_core::profile::scope("projection backward");
             grads.register::<B>(parent.id, B::project_velocity(grad, ops.state));
         }
     }
@@ -107,7 +108,10 @@ impl<B: Backend + ProjectionBackend> Backward<B, 1> for ProjectBackward {
 impl<B: Backend + ProjectionBackend, C: CheckpointStrategy> ProjectionBackend for Autodiff<B, C> {
     fn project_velocity(velocity: FloatTensor<Self>, spec: ProjectionSpec) -> FloatTensor<Self> {
         let node = velocity.node();
-        let output = B::project_velocity(velocity.into_primitive(), spec);
+        let output = {
+            let _timed = gausmoke_core::profile::scope("projection");
+            B::project_velocity(velocity.into_primitive(), spec)
+        };
         match ProjectBackward
             .prepare::<C>([node])
             .compute_bound()

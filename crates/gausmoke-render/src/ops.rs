@@ -457,6 +457,7 @@ impl<B: Backend + VolumeRenderBackend> Backward<B, 6> for VolumeRenderBackward {
             colors,
             background,
         ] = inputs;
+        let _timed = gausmoke_core::profile::scope("render backward");
         let (g_means, g_rotations, g_log_scales, g_raw_densities, g_colors, g_background) =
             B::volume_render_backward(
                 means,
@@ -516,7 +517,10 @@ impl<B: Backend + VolumeRenderBackend, C: CheckpointStrategy> VolumeRenderBacken
             background.into_primitive(),
         ];
         let [m, r, s, d, c, bg] = inputs.clone();
-        let output = B::volume_render(m, r, s, d, c, bg, camera, options);
+        let output = {
+            let _timed = gausmoke_core::profile::scope("render");
+            B::volume_render(m, r, s, d, c, bg, camera, options)
+        };
         match VolumeRenderBackward
             .prepare::<C>(nodes)
             .compute_bound()

@@ -17,6 +17,7 @@ use std::time::Instant;
 
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Gradients, Tensor, TensorData};
+use gausmoke_core::profile;
 use gausmoke_model::penalty::penalty_projection_with_report;
 use gausmoke_model::{
     GridSpec, Integrator, Interpolation, PenaltyOptions, ProjectionOptions, ProjectionReport,
@@ -105,6 +106,8 @@ pub struct Trainer {
     elapsed_before: f64,
     session_start: Instant,
     quiet: bool,
+    /// Wall time per phase of the optimisation (see `gausmoke_core::profile`).
+    phase_times: Vec<profile::PhaseTime>,
 }
 
 fn scalar(t: &Tensor<1>) -> f32 {
@@ -177,7 +180,10 @@ impl Trainer {
             elapsed_before: 0.0,
             session_start: Instant::now(),
             quiet: false,
+            phase_times: Vec::new(),
         };
+        profile::set_enabled(true);
+        let _ = profile::take();
         if let Some(dir) = existing.filter(|_| resume) {
             trainer.restore(&dir)?;
         }
@@ -349,6 +355,7 @@ impl Trainer {
         for (id, lr) in ids.into_iter().zip(learning_rates) {
             let param_grads = GradientsParams::from_params(grads, &model, &[id]);
             if lr > 0.0 && !param_grads.is_empty() {
+                let _timed = profile::scope("optimizer");
                 model = self.state.gaussian_optim.step(lr, model, param_grads);
             }
         }
@@ -356,6 +363,17 @@ impl Trainer {
     }
 
     fn check_finite(&self, row: &LossRow, phase: &'static str) -> Result<(), TrainError> {
+        self.check_finite_with(row, phase, None)
+    }
+
+    /// As [`Self::check_finite`], also checking `extra` (a named quantity such as the largest
+    /// velocity) first, so the report names the earliest thing that went wrong.
+    fn check_finite_with(
+        &self,
+        row: &LossRow,
+        phase: &'static str,
+        extra: Option<(&'static str, f32)>,
+    ) -> Result<(), TrainError> {
         let terms = [
             ("the render loss", row.render),
             ("L_div", row.divergence),
@@ -363,7 +381,9 @@ impl Trainer {
             ("L_refine", row.refine),
             ("the total loss", row.total),
         ];
-        if let Some((quantity, value)) = terms.into_iter().find(|(_, v)| !v.is_finite()) {
+        if let Some((quantity, value)) =
+            extra.into_iter().chain(terms).find(|(_, v)| !v.is_finite())
+        {
             return Err(TrainError::NonFinite {
                 quantity,
                 value,
@@ -445,7 +465,10 @@ impl Trainer {
             };
             self.check_finite(&row, "init")?;
             self.losses.push(row);
-            let mut grads = loss.backward();
+            let mut grads = {
+                let _timed = profile::scope("backward (all ops)");
+                loss.backward()
+            };
             self.step_gaussians(&mut grads, learning_rates);
             last_render = value;
             bar.set_message(format!("L1 {value:.5}"));
@@ -491,11 +514,14 @@ impl Trainer {
             let step_start = Instant::now();
             let previous = self.state.gaussians.tensors_at(previous_means.clone());
             let sigma_previous = density_grid(&previous, &self.grid, SPLAT_CUTOFF);
-            let delta = self.state.phi.forward(
-                previous_velocity.clone(),
-                sigma_previous.clone().detach(),
-                time,
-            )?;
+            let delta = {
+                let _timed = profile::scope("U-Net forward");
+                self.state.phi.forward(
+                    previous_velocity.clone(),
+                    sigma_previous.clone().detach(),
+                    time,
+                )?
+            };
             let update = previous_velocity.clone() + delta;
             let projected = self.project(update.clone());
             let moved = advect(
@@ -539,7 +565,8 @@ impl Trainer {
                 advection: advection_value,
                 refine: 0.0,
             };
-            self.check_finite(&row, "advect")?;
+            let speed = scalar(&projected.clone().abs().max());
+            self.check_finite_with(&row, "advect", Some(("the velocity grid (max |u|)", speed)))?;
             bar.set_message(format!(
                 "L1 {render_value:.5} div {divergence_value:.2e} adv {advection_value:.2e}"
             ));
@@ -551,10 +578,16 @@ impl Trainer {
             advected = moved.positions.detach();
             clamped = scalar(&moved.left_box.float().sum()) as usize;
 
-            let mut grads = loss.backward();
+            let mut grads = {
+                let _timed = profile::scope("backward (all ops)");
+                loss.backward()
+            };
             let phi_grads = GradientsParams::from_module(&mut grads, &self.state.phi);
             let phi = self.state.phi.clone();
-            self.state.phi = self.state.phi_optim.step(lr_velocity, phi, phi_grads);
+            self.state.phi = {
+                let _timed = profile::scope("optimizer");
+                self.state.phi_optim.step(lr_velocity, phi, phi_grads)
+            };
             self.step_gaussians(
                 &mut grads,
                 [0.0, lr_gaussians, lr_gaussians, lr_gaussians, lr_gaussians],
@@ -603,7 +636,10 @@ impl Trainer {
             bar.set_message(format!("L1 {render_value:.5} refine {refine_value:.2e}"));
             self.losses.push(row);
             last_render = render_value;
-            let mut grads = loss.backward();
+            let mut grads = {
+                let _timed = profile::scope("backward (all ops)");
+                loss.backward()
+            };
             self.step_gaussians(&mut grads, [lr_gaussians; 5]);
             bar.inc(1);
         }
@@ -645,6 +681,40 @@ impl Trainer {
 
     /// Per-frame outputs, metrics and the checkpoint.
     fn finish_frame(
+        &mut self,
+        t: usize,
+        train_l1: f64,
+        projection: Option<gausmoke_model::ProjectionReport>,
+        clamped_to_box: usize,
+        start: Instant,
+    ) -> Result<(), TrainError> {
+        // The optimisation's phase times so far; the evaluation and outputs below render too,
+        // and their time goes to "outputs and evaluation" instead.
+        self.add_phase_times(profile::take());
+        let outputs_start = Instant::now();
+        let result = self.finish_frame_outputs(t, train_l1, projection, clamped_to_box, start);
+        let _ = profile::take();
+        self.add_phase_times(vec![profile::PhaseTime {
+            name: "outputs and evaluation",
+            seconds: outputs_start.elapsed().as_secs_f64(),
+            calls: 1,
+        }]);
+        result
+    }
+
+    fn add_phase_times(&mut self, times: Vec<profile::PhaseTime>) {
+        for time in times {
+            match self.phase_times.iter_mut().find(|p| p.name == time.name) {
+                Some(total) => {
+                    total.seconds += time.seconds;
+                    total.calls += time.calls;
+                }
+                None => self.phase_times.push(time),
+            }
+        }
+    }
+
+    fn finish_frame_outputs(
         &mut self,
         t: usize,
         train_l1: f64,
@@ -890,6 +960,13 @@ impl Trainer {
             "train_l1_mean": mean(|r| Some(r.train_l1)),
             "training_seconds": self.elapsed(),
             "device": format!("{:?}", self.device),
+            // Wall time per phase in this session (a resumed run counts from the resume).
+            // Nested: "backward (all ops)" includes the ops' own backward phases, "density
+            // splat" counts every splatting call (U-Net input and physics losses).
+            "phase_seconds": self.phase_times.iter().map(|p| (p.name.to_string(), serde_json::json!({
+                "seconds": p.seconds,
+                "calls": p.calls,
+            }))).collect::<serde_json::Map<String, serde_json::Value>>(),
             "per_frame": self.reports.iter().map(|r| serde_json::json!({
                 "frame": r.frame,
                 "train_l1": r.train_l1,

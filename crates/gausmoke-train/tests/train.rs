@@ -295,3 +295,30 @@ fn bad_options_and_data_are_reported_plainly() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("not implemented"));
 }
+
+#[test]
+fn a_diverging_run_stops_naming_the_quantity_and_keeps_the_last_frame() {
+    // An absurd velocity learning rate: Phi's weights jump to ~1e30 after the first step, the
+    // velocity grid overflows, and the run must stop at frame 1 with frame 0 kept.
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let run = dir.path().join("run");
+    let out = train_command(&data, &run)
+        .args(["--set", "frames=2", "--set", "init_iterations=5"])
+        .args(["--set", "lr_velocity=1e30", "--set", "output_every=1"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert!(stderr.contains("at frame 1"), "{stderr}");
+    assert!(
+        stderr.contains("velocity grid") || stderr.contains("loss") || stderr.contains("L_"),
+        "names the quantity: {stderr}"
+    );
+    assert!(
+        run.join("frames/frame_000.safetensors").exists(),
+        "frame 0's checkpoint is kept"
+    );
+    assert!(!run.join("frames/frame_001.safetensors").exists());
+}

@@ -1,0 +1,103 @@
+//! Wall-time totals per named phase of training (render, its backward, density splatting,
+//! projection, ...), process-wide, so the slowest phase of a run is known.
+//!
+//! Off by default (one relaxed atomic load per scope). The custom ops record their own forward
+//! and backward calls; the trainer records the rest. On the CPU backends the ops run eagerly,
+//! so a scope measures the work; on GPU backends kernel launches return before the work ends
+//! unless the device is synchronised, so there a scope measures launch cost only.
+
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+static ENABLED: AtomicBool = AtomicBool::new(false);
+static TOTALS: Mutex<Vec<PhaseTime>> = Mutex::new(Vec::new());
+
+/// Total wall time and number of calls of one phase.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PhaseTime {
+    pub name: &'static str,
+    pub seconds: f64,
+    pub calls: u64,
+}
+
+/// Turns recording on or off for the whole process.
+pub fn set_enabled(enabled: bool) {
+    ENABLED.store(enabled, Ordering::Relaxed);
+}
+
+pub fn enabled() -> bool {
+    ENABLED.load(Ordering::Relaxed)
+}
+
+/// Adds `seconds` to `name`'s total.
+pub fn record(name: &'static str, seconds: f64) {
+    let mut totals = TOTALS
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner());
+    match totals.iter_mut().find(|p| p.name == name) {
+        Some(phase) => {
+            phase.seconds += seconds;
+            phase.calls += 1;
+        }
+        None => totals.push(PhaseTime {
+            name,
+            seconds,
+            calls: 1,
+        }),
+    }
+}
+
+/// Returns the totals so far (in first-seen order) and starts again from zero.
+pub fn take() -> Vec<PhaseTime> {
+    std::mem::take(
+        &mut *TOTALS
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner()),
+    )
+}
+
+/// Times the scope it lives in (when recording is on) and adds it to `name` on drop.
+#[must_use = "the scope is timed until this guard is dropped"]
+pub struct Scope {
+    name: &'static str,
+    start: Option<Instant>,
+}
+
+pub fn scope(name: &'static str) -> Scope {
+    Scope {
+        name,
+        start: enabled().then(Instant::now),
+    }
+}
+
+impl Drop for Scope {
+    fn drop(&mut self) {
+        if let Some(start) = self.start {
+            record(self.name, start.elapsed().as_secs_f64());
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scopes_add_up_per_name_only_when_enabled() {
+        let _ = take();
+        drop(scope("off"));
+        assert!(take().is_empty());
+        set_enabled(true);
+        for _ in 0..3 {
+            let _timed = scope("phase");
+            std::thread::sleep(std::time::Duration::from_millis(2));
+        }
+        set_enabled(false);
+        let totals = take();
+        assert_eq!(totals.len(), 1);
+        assert_eq!(totals[0].calls, 3);
+        assert!(totals[0].seconds >= 0.006, "{totals:?}");
+        assert!(take().is_empty());
+    }
+}
