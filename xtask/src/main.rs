@@ -5,8 +5,11 @@
 //! * `bench render`: CPU timings of the renderer, forward and forward+backward, next to the
 //!   dense torch reference on the same scenes. Run in release:
 //!   `cargo run --release -p xtask -- bench render`.
+//! * `reproduce scalar-real|synthetic [--quick]`: train, evaluate, and record the results in
+//!   `docs/results/` and `docs/RESULTS.md`.
 
 mod bench;
+mod reproduce;
 mod venv;
 
 use std::path::PathBuf;
@@ -33,6 +36,9 @@ enum Task {
         #[command(subcommand)]
         which: bench::Which,
     },
+    /// Train, evaluate and record the paper's experiments (writes docs/results/*.json and
+    /// the tables of docs/RESULTS.md).
+    Reproduce(reproduce::ReproduceArgs),
 }
 
 /// Root of the workspace (xtask lives one level below it).
@@ -57,5 +63,6 @@ fn main() -> Result<()> {
             venv::run(&mut cmd)
         }
         Task::Bench { which } => bench::run(which),
+        Task::Reproduce(args) => reproduce::run(args),
     }
 }

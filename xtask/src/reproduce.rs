@@ -1,0 +1,441 @@
+//! `cargo xtask reproduce scalar-real|synthetic [--quick]`: trains with the library API the
+//! CLI uses, evaluates on the held-out views, and records what was measured.
+//!
+//! Every run writes `docs/results/<key>.json` (metrics, timings, memory, storage, machine,
+//! date and the command), and `docs/RESULTS.md`'s generated block (between the
+//! `results:begin` / `results:end` markers) is rebuilt from all such files, so the tables hold
+//! only measured numbers. The prose around the block is written by people.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, ValueEnum};
+use gausmoke_data::synth::{SynthConfig, generate};
+use gausmoke_render::backends;
+use gausmoke_train::{TrainConfig, Trainer, eval, scene::Scene};
+use serde_json::{Value, json};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Target {
+    /// The real ScalarFlow capture (paper Table 1/2): train00, 01, 03, 04; test train02.
+    ScalarReal,
+    /// A synthetic plume with ground truth, and the paper's Table 3 ablations.
+    Synthetic,
+}
+
+#[derive(Debug, Args)]
+pub struct ReproduceArgs {
+    target: Target,
+    /// A reduced run that finishes on a 2-core CPU in minutes (fewer frames, iterations and
+    /// Gaussians, a coarser grid and smaller images): a smoke test of the protocol, not the
+    /// paper's setting.
+    #[arg(long)]
+    quick: bool,
+    /// Backend to train on (`flex`, `ndarray`, or a GPU one compiled in).
+    #[arg(long, default_value = "flex")]
+    device: String,
+    /// Folder for the runs (and the generated synthetic data).
+    #[arg(long, default_value = "runs/reproduce")]
+    out: PathBuf,
+    /// Data set (scalar-real: default `../shared/datasets/scalar_real`).
+    #[arg(long)]
+    data: Option<PathBuf>,
+    /// Train only the first N frames (default: all, or the quick preset's count).
+    #[arg(long)]
+    frames: Option<usize>,
+    /// Continue runs found in --out instead of refusing them.
+    #[arg(long)]
+    resume: bool,
+    /// Synthetic: skip the ablations.
+    #[arg(long)]
+    no_ablations: bool,
+}
+
+/// The paper's reference figures (Table 1/2, ScalarFlow real capture).
+const PAPER_SCALAR_REAL: &str = "34.83 dB PSNR, 0.955 SSIM, 0.0168 LPIPS; 0.8 h training on an \
+                                 RTX 3090; 114 FPS rendering; 42 MB";
+
+fn quick_scalar_real() -> TrainConfig {
+    TrainConfig {
+        gaussians: 8000,
+        grid_resolution: 32,
+        image_size: Some([90, 160]),
+        frames: Some(8),
+        init_iterations: 400,
+        advect_iterations: 20,
+        refine_iterations: 5,
+        lr_velocity: 2e-3,
+        lr_gaussians: 2e-3,
+        unet_channels: 8,
+        time_frequencies: 2,
+        output_every: 4,
+        ..TrainConfig::default()
+    }
+}
+
+fn paper_scalar_real() -> TrainConfig {
+    TrainConfig {
+        image_size: Some([270, 480]),
+        train_views: Some(
+            ["train00", "train01", "train03", "train04"]
+                .map(String::from)
+                .into(),
+        ),
+        test_views: Some(vec!["train02".into()]),
+        output_every: 10,
+        ..TrainConfig::default()
+    }
+}
+
+/// One training run of the reproduction: a key for file names, a label for tables.
+struct Variant {
+    key: String,
+    label: &'static str,
+    config: TrainConfig,
+}
+
+fn variants(args: &ReproduceArgs) -> Vec<Variant> {
+    let suffix = if args.quick { "-quick" } else { "" };
+    let mut base = match (args.target, args.quick) {
+        (Target::ScalarReal, true) => TrainConfig {
+            train_views: paper_scalar_real().train_views,
+            test_views: paper_scalar_real().test_views,
+            ..quick_scalar_real()
+        },
+        (Target::ScalarReal, false) => paper_scalar_real(),
+        (Target::Synthetic, true) => TrainConfig::quick_demo(),
+        (Target::Synthetic, false) => TrainConfig::default(),
+    };
+    if let Some(frames) = args.frames {
+        base.frames = Some(frames);
+    }
+    match args.target {
+        Target::ScalarReal => vec![Variant {
+            key: format!("scalar-real{suffix}"),
+            label: "full method",
+            config: base,
+        }],
+        Target::Synthetic => {
+            let mut list = vec![Variant {
+                key: format!("synthetic{suffix}"),
+                label: "full method",
+                config: base.clone(),
+            }];
+            if !args.no_ablations {
+                list.push(Variant {
+                    key: format!("synthetic{suffix}-no-physics"),
+                    label: "w/o physical losses",
+                    config: TrainConfig {
+                        physics_losses: false,
+                        ..base.clone()
+                    },
+                });
+                list.push(Variant {
+                    key: format!("synthetic{suffix}-no-refinement"),
+                    label: "w/o refinement",
+                    config: TrainConfig {
+                        refinement: false,
+                        ..base.clone()
+                    },
+                });
+                let no_volumetric = TrainConfig {
+                    volumetric: false,
+                    ..base.clone()
+                };
+                // Listed once the trainer accepts it (`TrainConfig::validate`).
+                if no_volumetric.validate().is_ok() {
+                    list.push(Variant {
+                        key: format!("synthetic{suffix}-no-volumetric"),
+                        label: "w/o volumetric rendering",
+                        config: no_volumetric,
+                    });
+                }
+            }
+            list
+        }
+    }
+}
+
+/// Peak resident memory of this process so far (Linux `VmHWM`), in MiB.
+fn peak_memory_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
+}
+
+fn machine() -> String {
+    let cpu = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|info| {
+            info.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|s| s.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    format!("{cpu}, {threads} threads")
+}
+
+fn utc_now() -> String {
+    std::process::Command::new("date")
+        .args(["-u", "+%Y-%m-%d %H:%M UTC"])
+        .output()
+        .ok()
+        .and_then(|o| String::from_utf8(o.stdout).ok())
+        .map(|s| s.trim().to_string())
+        .unwrap_or_else(|| "unknown date".into())
+}
+
+fn file_size(path: &Path) -> u64 {
+    std::fs::metadata(path).map_or(0, |m| m.len())
+}
+
+fn command_line(args: &ReproduceArgs) -> String {
+    let mut line = format!(
+        "cargo run --release -p xtask -- reproduce {}",
+        match args.target {
+            Target::ScalarReal => "scalar-real",
+            Target::Synthetic => "synthetic",
+        }
+    );
+    if args.quick {
+        line += " --quick";
+    }
+    if args.device != "flex" {
+        line += &format!(" --device {}", args.device);
+    }
+    if let Some(frames) = args.frames {
+        line += &format!(" --frames {frames}");
+    }
+    line
+}
+
+pub fn run(args: ReproduceArgs) -> Result<()> {
+    if cfg!(debug_assertions) {
+        eprintln!("warning: a debug build; use `cargo run --release -p xtask -- reproduce ...`");
+    }
+    let root = crate::workspace_root();
+    let data = match (args.target, &args.data) {
+        (_, Some(path)) => path.clone(),
+        (Target::ScalarReal, None) => root.join("../shared/datasets/scalar_real"),
+        (Target::Synthetic, None) => {
+            let preset = if args.quick { "tiny" } else { "scalarflow" };
+            let path = args.out.join(format!("data-synthetic-{preset}"));
+            if !path.join("info.json").is_file() {
+                let config = if args.quick {
+                    SynthConfig::tiny()
+                } else {
+                    SynthConfig::scalarflow()
+                };
+                eprintln!(
+                    "generating the `{preset}` synthetic scene in {}",
+                    path.display()
+                );
+                generate(&config, &path)?;
+            }
+            path
+        }
+    };
+    if !data.join("info.json").is_file() {
+        bail!(
+            "{}: no info.json (is this the data set folder?)",
+            data.display()
+        );
+    }
+    let device = backends::device_by_name(&args.device).map_err(anyhow::Error::msg)?;
+    let results_dir = root.join("docs/results");
+    std::fs::create_dir_all(&results_dir)?;
+    for variant in variants(&args) {
+        let run_dir = args.out.join(&variant.key);
+        eprintln!(
+            "== {} ({}) -> {}",
+            variant.key,
+            variant.label,
+            run_dir.display()
+        );
+        let scene = Scene::open(&data, &variant.config)
+            .with_context(|| format!("loading {}", data.display()))?;
+        let frames = scene.frames();
+        let start = Instant::now();
+        let mut trainer = Trainer::new(
+            scene,
+            variant.config.clone(),
+            device.clone().autodiff(),
+            &run_dir,
+            args.resume,
+        )?;
+        trainer.run()?;
+        let wall_seconds = start.elapsed().as_secs_f64();
+        let gaussians = trainer.state.gaussians.len();
+        drop(trainer);
+        let report = eval::evaluate(&run_dir, &device, None)?;
+        let metrics: Value = serde_json::from_str(
+            &std::fs::read_to_string(run_dir.join("metrics.json")).context("metrics.json")?,
+        )?;
+        let last_frame = run_dir
+            .join("frames")
+            .join(format!("frame_{:03}.safetensors", frames - 1));
+        let frames_bytes: u64 = std::fs::read_dir(run_dir.join("frames"))
+            .map(|dir| dir.flatten().map(|e| file_size(&e.path())).sum())
+            .unwrap_or(0);
+        let record = json!({
+            "key": variant.key,
+            "target": format!("{:?}", args.target),
+            "variant": variant.label,
+            "quick": args.quick,
+            "command": command_line(&args),
+            "data": data.display().to_string(),
+            "device": args.device,
+            "machine": machine(),
+            "date": utc_now(),
+            "frames": frames,
+            "gaussians": gaussians,
+            "config": serde_json::to_value(&variant.config)?,
+            "test_psnr": report.test_psnr_mean,
+            "test_ssim": report.test_ssim_mean,
+            "lpips": report.lpips,
+            "mean_abs_divergence": report.mean_abs_divergence,
+            "velocity_relative_error": report.velocity_relative_error_mean,
+            "density_relative_error": report.density_relative_error_mean,
+            "training_seconds": metrics["training_seconds"],
+            "wall_seconds_with_outputs": wall_seconds,
+            "phase_seconds": metrics["phase_seconds"],
+            "peak_memory_mib": peak_memory_mib(),
+            "state_bytes_per_frame": file_size(&last_frame),
+            "state_bytes_all_frames": frames_bytes,
+            "run": run_dir.display().to_string(),
+        });
+        let path = results_dir.join(format!("{}.json", variant.key));
+        std::fs::write(&path, serde_json::to_string_pretty(&record)?)?;
+        eprintln!(
+            "   PSNR {:?} SSIM {:?} |div u| {:.3e} in {:.0} s; wrote {}",
+            report.test_psnr_mean,
+            report.test_ssim_mean,
+            report.mean_abs_divergence,
+            wall_seconds,
+            path.display()
+        );
+    }
+    write_results_md(&root)
+}
+
+fn number(value: &Value, digits: usize) -> String {
+    value
+        .as_f64()
+        .map_or("n/a".into(), |v| format!("{v:.digits$}"))
+}
+
+fn mib(value: &Value) -> String {
+    value
+        .as_f64()
+        .map_or("n/a".into(), |v| format!("{:.1}", v / (1024.0 * 1024.0)))
+}
+
+/// Rebuilds the generated block of `docs/RESULTS.md` from `docs/results/*.json`.
+pub fn write_results_md(root: &Path) -> Result<()> {
+    let mut records: Vec<Value> = std::fs::read_dir(root.join("docs/results"))?
+        .flatten()
+        .filter(|e| e.path().extension().is_some_and(|x| x == "json"))
+        .map(|e| -> Result<Value> {
+            Ok(serde_json::from_str(&std::fs::read_to_string(e.path())?)?)
+        })
+        .collect::<Result<_>>()?;
+    records.sort_by(|a, b| a["key"].as_str().cmp(&b["key"].as_str()));
+
+    let mut block = String::new();
+    writeln!(
+        block,
+        "Generated by `cargo xtask reproduce` from `docs/results/*.json`; do not edit by hand.\n"
+    )?;
+    writeln!(
+        block,
+        "| run | variant | frames | Gaussians | held-out PSNR (dB) | SSIM | mean abs div u (1/frame) | velocity rel. error | density rel. error | training (s) | peak memory (MiB) | state per frame (MiB) | device, machine, date |"
+    )?;
+    writeln!(
+        block,
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"
+    )?;
+    for r in &records {
+        writeln!(
+            block,
+            "| `{}` | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {}, {}, {} |",
+            r["key"].as_str().unwrap_or("?"),
+            r["variant"].as_str().unwrap_or("?"),
+            r["frames"],
+            r["gaussians"],
+            number(&r["test_psnr"], 2),
+            number(&r["test_ssim"], 4),
+            r["mean_abs_divergence"]
+                .as_f64()
+                .map_or("n/a".into(), |v| format!("{v:.2e}")),
+            number(&r["velocity_relative_error"], 3),
+            number(&r["density_relative_error"], 3),
+            number(&r["training_seconds"], 0),
+            number(&r["peak_memory_mib"], 0),
+            mib(&r["state_bytes_per_frame"]),
+            r["device"].as_str().unwrap_or("?"),
+            r["machine"].as_str().unwrap_or("?"),
+            r["date"].as_str().unwrap_or("?"),
+        )?;
+    }
+    writeln!(
+        block,
+        "\nPaper, ScalarFlow real capture (Table 1/2): {PAPER_SCALAR_REAL}.\n"
+    )?;
+    writeln!(
+        block,
+        "Per-phase wall time (s) of each run's optimisation (calls in brackets; nested phases are inside \"backward (all ops)\"):\n"
+    )?;
+    for r in &records {
+        let Some(phases) = r["phase_seconds"].as_object() else {
+            continue;
+        };
+        let mut phases: Vec<(&String, &Value)> = phases.iter().collect();
+        phases.sort_by(|a, b| {
+            b.1["seconds"]
+                .as_f64()
+                .partial_cmp(&a.1["seconds"].as_f64())
+                .unwrap_or(std::cmp::Ordering::Equal)
+        });
+        let parts: Vec<String> = phases
+            .iter()
+            .map(|(name, v)| format!("{name} {} ({})", number(&v["seconds"], 1), v["calls"]))
+            .collect();
+        writeln!(
+            block,
+            "- `{}`: {}",
+            r["key"].as_str().unwrap_or("?"),
+            parts.join(", ")
+        )?;
+    }
+    writeln!(block, "\nCommands:\n")?;
+    let mut commands: Vec<&str> = records
+        .iter()
+        .filter_map(|r| r["command"].as_str())
+        .collect();
+    commands.sort();
+    commands.dedup();
+    for command in commands {
+        writeln!(block, "- `{command}`")?;
+    }
+
+    let path = root.join("docs/RESULTS.md");
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|_| {
+        "# Results\n\n<!-- results:begin -->\n<!-- results:end -->\n".to_string()
+    });
+    let (begin, end) = ("<!-- results:begin -->", "<!-- results:end -->");
+    let (Some(start), Some(stop)) = (text.find(begin), text.find(end)) else {
+        bail!(
+            "{}: the {begin} / {end} markers are missing",
+            path.display()
+        );
+    };
+    let updated = format!("{}{begin}\n{block}{}", &text[..start], &text[stop..]);
+    std::fs::write(&path, updated)?;
+    eprintln!("wrote {}", path.display());
+    Ok(())
+}
