@@ -6,7 +6,9 @@ use std::path::{Path, PathBuf};
 
 use burn::tensor::{Device, Tensor, TensorData};
 use gausmoke_core::glam::Mat4;
-use gausmoke_render::{Camera, GaussianTensors, Intrinsics, RasterOptions, render_volume};
+use gausmoke_render::{
+    AlphaModel, Camera, GaussianTensors, Intrinsics, RasterOptions, render_volume,
+};
 use safetensors::{Dtype, SafeTensors};
 
 /// Directory of the committed golden files.
@@ -105,6 +107,11 @@ impl Golden {
             transmittance_min: v[2],
             kernel_cutoff: v[3],
             near_plane: v[4],
+            // Files written before the ablation have five entries (Beer-Lambert).
+            alpha_model: match v.get(5) {
+                None | Some(0.0) => AlphaModel::BeerLambert,
+                Some(_) => AlphaModel::SplatOpacity,
+            },
         }
     }
 }

@@ -131,7 +131,11 @@ def gaussian_alphas(params, cam, origin, dirs, opts):
     beta = a.rsqrt()
     integral = math.sqrt(2.0 * math.pi) * beta * torch.exp(-0.5 * transverse)  # Eq. 27
     sigma = F.softplus(raw_densities)
-    raw_alpha = 1.0 - torch.exp(-sigma[None, :] * integral)
+    if opts.get("alpha_model", 0) == 0:
+        raw_alpha = 1.0 - torch.exp(-sigma[None, :] * integral)  # Beer-Lambert
+    else:
+        # The 3DGS-style ablation: opacity 1 - exp(-sigma) times the projected kernel.
+        raw_alpha = (1.0 - torch.exp(-sigma[None, :])) * torch.exp(-0.5 * transverse)
 
     c2w = torch.as_tensor(np.asarray(cam["c2w"], dtype=np.float64), dtype=means.dtype)
     depth = -((means - c2w[:3, 3]) @ c2w[:3, 2])  # view depth of the centre
@@ -262,6 +266,24 @@ def cases():
         rng.uniform(np.log(0.1), np.log(0.3), size=(n, 3)),
         rng.uniform(3.0, 6.0, size=n), rng.uniform(0.0, 1.0, size=(n, 3)), [0.0, 0.0, 0.0],
     ))
+    # The "w/o volumetric rendering" ablation: splat-opacity alpha (alpha_model = 1).
+    splat = dict(OPTIONS, alpha_model=1)
+    n = 200
+    out.append(dict(case(
+        "splat_random_200", "splat-opacity alpha (3DGS ablation): 200 random Gaussians",
+        camera(56, 44, look_at((0.2, 0.4, 3.0), (0.0, 0.1, 0.0)), fov_x=0.9),
+        rng.uniform(-0.7, 0.7, size=(n, 3)), random_quats(rng, n),
+        rng.uniform(np.log(0.03), np.log(0.2), size=(n, 3)),
+        rng.uniform(-3.0, 1.0, size=n), rng.uniform(0.0, 1.0, size=(n, 3)), [0.05, 0.05, 0.08],
+    ), options=splat))
+    n = 50
+    out.append(dict(case(
+        "splat_dense", "splat-opacity alpha with opaque Gaussians: the 0.99 clamp and early stop",
+        camera(36, 36, front, fov_x=0.7),
+        rng.uniform(-0.4, 0.4, size=(n, 3)), random_quats(rng, n),
+        rng.uniform(np.log(0.1), np.log(0.3), size=(n, 3)),
+        rng.uniform(2.0, 8.0, size=n), rng.uniform(0.0, 1.0, size=(n, 3)), [0.0, 0.0, 0.0],
+    ), options=splat))
     return out
 
 
@@ -279,14 +301,17 @@ def golden_tensors(c):
     gen = torch.Generator().manual_seed(len(c["name"]) * 7919)
     weight_rgb = torch.randn(h, w, 3, generator=gen, dtype=torch.float64).float()
     weight_t = torch.randn(h, w, generator=gen, dtype=torch.float64).float()
-    rgb, final_t = render(params, cam, OPTIONS)
+    opts = c.get("options", OPTIONS)
+    rgb, final_t = render(params, cam, opts)
     rgb, final_t = rgb.reshape(h, w, 3), final_t.reshape(h, w)
     # A fixed random linear loss exercises every output (and so every gradient term).
     loss = (rgb * weight_rgb.double()).sum() + (final_t * weight_t.double()).sum()
     loss.backward()
     out = {k: torch.tensor(v) for k, v in c["params"].items()}
     out["camera"] = camera_vector(cam)
-    out["options"] = torch.tensor([OPTIONS[k] for k in OPTION_ORDER], dtype=torch.float32)
+    # A sixth entry only where the alpha model is not Beer-Lambert's (older files have five).
+    extra = [opts["alpha_model"]] if "alpha_model" in opts else []
+    out["options"] = torch.tensor([opts[k] for k in OPTION_ORDER] + extra, dtype=torch.float32)
     out["weight_rgb"] = weight_rgb
     out["weight_transmittance"] = weight_t
     out["rgb"] = rgb.detach().float()

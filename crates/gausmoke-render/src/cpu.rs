@@ -12,8 +12,8 @@
 
 use rayon::prelude::*;
 
-use crate::RasterOptions;
 use crate::math::{RaySample, ViewContext, ViewSplat, WorldGaussian, WorldGaussianGrad};
+use crate::{AlphaModel, RasterOptions};
 use gausmoke_core::Camera;
 
 /// Tile edge in pixels (shared with the GPU kernels so both bin identically).
@@ -151,11 +151,17 @@ struct TileRect {
 }
 
 /// Largest transverse term `K` at which this Gaussian can still reach `alpha_min` on some ray:
-/// `I <= sqrt(2 pi) s_max exp(-K/2)` because `beta <= s_max` for unit directions.
+/// Beer-Lambert: `I <= sqrt(2 pi) s_max exp(-K/2)` because `beta <= s_max` for unit
+/// directions; splat opacity: `alpha = o exp(-K/2)`.
 fn effective_cutoff(splat: &ViewSplat, max_scale: f32, options: &RasterOptions) -> f32 {
-    let needed_optical_depth = -(1.0 - options.alpha_min).ln();
-    let peak = splat.sigma * (std::f32::consts::TAU).sqrt() * max_scale;
-    let alpha_bound = 2.0 * (peak / needed_optical_depth).ln();
+    let alpha_bound = match options.alpha_model {
+        AlphaModel::BeerLambert => {
+            let needed_optical_depth = -(1.0 - options.alpha_min).ln();
+            let peak = splat.sigma * (std::f32::consts::TAU).sqrt() * max_scale;
+            2.0 * (peak / needed_optical_depth).ln()
+        }
+        AlphaModel::SplatOpacity => 2.0 * (splat_opacity(splat.sigma) / options.alpha_min).ln(),
+    };
     // Slightly generous so rounding never culls a pixel that the exact test keeps.
     options.kernel_cutoff.min(alpha_bound * 1.001 + 1e-3)
 }
@@ -295,14 +301,26 @@ fn project_and_bin(scene: &SceneRef, frame: &ViewFrame, options: &RasterOptions)
     }
 }
 
-/// Opacity of one Gaussian on one ray, with the unclamped value for the gradient.
+/// Opacity of one Gaussian on one ray, with the unclamped value and its partial derivatives
+/// for the gradient.
 #[derive(Debug, Clone, Copy)]
 struct Opacity {
     sample: RaySample,
-    /// `1 - exp(-sigma I)` before the `alpha_max` clamp.
+    /// Alpha before the `alpha_max` clamp (see [`AlphaModel`]).
     raw_alpha: f32,
     /// Composited opacity, `min(raw_alpha, alpha_max)`.
     alpha: f32,
+    /// `d raw_alpha / d sigma`.
+    d_alpha_d_sigma: f32,
+    /// `d raw_alpha / d ln(kernel)`: the kernel is `I` (Beer-Lambert) or `exp(-K/2)`.
+    d_alpha_d_log_kernel: f32,
+    /// 1 when the kernel is the line integral `I` (its `-ln(a)/2` term counts), else 0.
+    length_weight: f32,
+}
+
+/// `o = 1 - exp(-sigma)`: the opacity of [`AlphaModel::SplatOpacity`].
+fn splat_opacity(sigma: f32) -> f32 {
+    -(-sigma).exp_m1()
 }
 
 /// The one place that decides whether a Gaussian contributes to a ray; forward and backward
@@ -310,7 +328,25 @@ struct Opacity {
 #[inline]
 fn opacity(splat: &ViewSplat, dir: [f32; 3], options: &RasterOptions) -> Option<Opacity> {
     let sample = splat.sample(dir, options.kernel_cutoff)?;
-    let raw_alpha = -(-splat.sigma * sample.integral).exp_m1();
+    let (raw_alpha, d_alpha_d_sigma, d_alpha_d_log_kernel, length_weight) =
+        match options.alpha_model {
+            AlphaModel::BeerLambert => {
+                // alpha = 1 - exp(-sigma I): d alpha / d(sigma I) = exp(-sigma I).
+                let optical_depth = splat.sigma * sample.integral;
+                let transmitted = (-optical_depth).exp();
+                (
+                    -(-optical_depth).exp_m1(),
+                    transmitted * sample.integral,
+                    transmitted * optical_depth,
+                    1.0,
+                )
+            }
+            AlphaModel::SplatOpacity => {
+                let kernel = (-0.5 * sample.transverse).exp();
+                let raw_alpha = splat_opacity(splat.sigma) * kernel;
+                (raw_alpha, (-splat.sigma).exp() * kernel, raw_alpha, 0.0)
+            }
+        };
     if raw_alpha < options.alpha_min {
         return None;
     }
@@ -318,6 +354,9 @@ fn opacity(splat: &ViewSplat, dir: [f32; 3], options: &RasterOptions) -> Option<
         sample,
         raw_alpha,
         alpha: raw_alpha.min(options.alpha_max),
+        d_alpha_d_sigma,
+        d_alpha_d_log_kernel,
+        length_weight,
     })
 }
 
@@ -466,13 +505,12 @@ fn backward_tile(
                 if op.raw_alpha >= options.alpha_max {
                     continue; // clamped: alpha is constant here
                 }
-                // alpha = 1 - exp(-sigma I): d alpha / d(sigma I) = exp(-sigma I) = 1 - alpha.
-                let grad_optical_depth = grad_alpha * (1.0 - op.raw_alpha);
-                g.sigma += grad_optical_depth * op.sample.integral;
+                g.sigma += grad_alpha * op.d_alpha_d_sigma;
                 crate::math::sample_vjp(
                     &op.sample,
                     dir,
-                    grad_optical_depth * splat.sigma,
+                    grad_alpha * op.d_alpha_d_log_kernel,
+                    op.length_weight,
                     &mut g.whiten,
                     &mut g.center,
                 );

@@ -159,22 +159,27 @@ impl ViewSplat {
     }
 }
 
-/// Gradient of a loss with respect to `L` and `m` of one [`ViewSplat`], given `dLoss/dI` for
-/// one ray, accumulated into `grad_whiten` / `grad_center`.
+/// Gradient of a loss with respect to `L` and `m` of one [`ViewSplat`], given the loss's
+/// gradient with respect to `ln I` (`grad_log_integral`) for one ray, accumulated into
+/// `grad_whiten` / `grad_center`.
 ///
 /// `ln I = ln sqrt(2 pi) - ln(a) / 2 - K / 2`, whence `d lnI / de = -e / a - gamma r` and
-/// `d lnI / dm = r`; `e = L d` gives `dLoss/dL += (dLoss/de) d^T`.
+/// `d lnI / dm = r`; `e = L d` gives `dLoss/dL += (dLoss/de) d^T`. With
+/// `length_weight = 0` only the `-K / 2` part is differentiated: the gradient of the projected
+/// kernel `ln exp(-K / 2)` used by [`crate::AlphaModel::SplatOpacity`].
 #[inline]
 pub fn sample_vjp(
     s: &RaySample,
     dir: [f32; 3],
-    grad_integral: f32,
+    grad_log_integral: f32,
+    length_weight: f32,
     grad_whiten: &mut [[f32; 3]; 3],
     grad_center: &mut [f32; 3],
 ) {
-    let g_ln = grad_integral * s.integral;
+    let g_ln = grad_log_integral;
     for k in 0..3 {
-        let g_e = g_ln * (-s.dir_whitened[k] / s.dir_norm_sq - s.peak_depth * s.residual[k]);
+        let g_e = g_ln
+            * (-length_weight * s.dir_whitened[k] / s.dir_norm_sq - s.peak_depth * s.residual[k]);
         for j in 0..3 {
             grad_whiten[k][j] += g_e * dir[j];
         }

@@ -117,8 +117,9 @@ pub struct TrainConfig {
     pub physics_losses: bool,
     /// Ablation switch: `false` skips the K' refinement iterations ("w/o refinement").
     pub refinement: bool,
-    /// Ablation switch: `false` replaces Beer-Lambert volumetric alpha with 3DGS's 2D
-    /// splat alpha ("w/o volumetric rendering"). Not implemented yet: training refuses it.
+    /// Ablation switch: `false` replaces Beer-Lambert volumetric alpha with 3DGS's splat
+    /// alpha, an opacity times the projected 2D Gaussian ("w/o volumetric rendering"; see
+    /// `gausmoke_render::AlphaModel::SplatOpacity`).
     pub volumetric: bool,
     /// Seed of the Gaussians' initialisation.
     pub seed: u64,
@@ -256,11 +257,6 @@ impl TrainConfig {
                 self.grid_resolution
             ));
         }
-        if !self.volumetric {
-            return bad(
-                "volumetric = false (the 3DGS 2D-splat ablation) is not implemented yet".into(),
-            );
-        }
         let positive = [
             ("lr_velocity", self.lr_velocity),
             ("lr_gaussians", self.lr_gaussians),
@@ -296,6 +292,19 @@ impl TrainConfig {
 
     pub fn to_toml(&self) -> String {
         toml::to_string_pretty(self).expect("the configuration serialises to TOML")
+    }
+
+    /// The rasterizer's options: the defaults, with the ablation's alpha model when
+    /// `volumetric` is off.
+    pub fn raster_options(&self) -> gausmoke_render::RasterOptions {
+        gausmoke_render::RasterOptions {
+            alpha_model: if self.volumetric {
+                gausmoke_render::AlphaModel::BeerLambert
+            } else {
+                gausmoke_render::AlphaModel::SplatOpacity
+            },
+            ..Default::default()
+        }
     }
 
     /// Learning-rate factor for frame `frame` (x`lr_decay` every `lr_decay_every` frames).

@@ -7,7 +7,7 @@ use std::path::Path;
 use burn::tensor::Device;
 use gausmoke_core::glam::Vec3;
 use gausmoke_model::GridSpec;
-use gausmoke_render::{GaussianTensors, RasterOptions, render_volume};
+use gausmoke_render::{GaussianTensors, render_volume};
 use serde::{Deserialize, Serialize};
 
 use crate::checkpoint::{read_arrays, take_array};
@@ -206,7 +206,7 @@ pub fn evaluate(
                 &gaussians,
                 &observation.camera,
                 &background,
-                &RasterOptions::default(),
+                &config.raster_options(),
             )?;
             let rgb = out
                 .rgb

@@ -98,7 +98,7 @@ struct TrainArgs {
     /// Ablation: no K' refinement iterations.
     #[arg(long)]
     no_refinement: bool,
-    /// Ablation: 3DGS 2D-splat alpha instead of Beer-Lambert (not implemented yet).
+    /// Ablation: 3DGS splat alpha (opacity x projected 2D Gaussian) instead of Beer-Lambert.
     #[arg(long)]
     no_volumetric: bool,
     /// Hide progress bars.

@@ -165,6 +165,7 @@ impl Trainer {
         let state = Self::fresh_state(&scene, &config, &grid, &device);
         let background =
             Tensor::<1>::from_data(TensorData::new(scene.background.to_vec(), [3]), &device);
+        let raster = config.raster_options();
         let mut trainer = Self {
             config,
             scene,
@@ -176,7 +177,7 @@ impl Trainer {
             losses: Vec::new(),
             reports: Vec::new(),
             background,
-            raster: RasterOptions::default(),
+            raster,
             elapsed_before: 0.0,
             session_start: Instant::now(),
             quiet: false,

@@ -107,6 +107,10 @@ fn view_params(camera: &Camera, options: &RasterOptions) -> [f32; VIEW_FLOATS] {
     params[ViewParam::KERNEL_CUTOFF] = options.kernel_cutoff;
     params[ViewParam::NEAR_PLANE] = options.near_plane;
     params[ViewParam::MIN_OPTICAL_DEPTH] = -(1.0 - options.alpha_min).ln();
+    params[ViewParam::ALPHA_MODEL] = match options.alpha_model {
+        crate::AlphaModel::BeerLambert => 0.0,
+        crate::AlphaModel::SplatOpacity => 1.0,
+    };
     params
 }
 

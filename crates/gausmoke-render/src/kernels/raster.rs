@@ -42,10 +42,12 @@ impl ViewParam {
     pub const NEAR_PLANE: usize = 20;
     /// `-ln(1 - alpha_min)`, the optical depth a Gaussian must reach to count.
     pub const MIN_OPTICAL_DEPTH: usize = 21;
+    /// 0: Beer-Lambert alpha; 1: splat opacity (`crate::AlphaModel`).
+    pub const ALPHA_MODEL: usize = 22;
 }
 
 /// Number of floats in the view parameter buffer.
-pub const VIEW_FLOATS: usize = 22;
+pub const VIEW_FLOATS: usize = 23;
 
 /// `sqrt(2 pi)`.
 const SQRT_TAU: f32 = 2.506_628_3;
@@ -96,10 +98,16 @@ pub struct RayHit {
     pub r2: f32,
     /// `I`, the kernel's line integral.
     pub integral: f32,
-    /// `1 - exp(-sigma I)` before the clamp.
+    /// Alpha before the clamp (`crate::AlphaModel`).
     pub raw_alpha: f32,
     /// Composited opacity, `min(raw_alpha, alpha_max)`.
     pub alpha: f32,
+    /// `d raw_alpha / d sigma`.
+    pub d_alpha_d_sigma: f32,
+    /// `d raw_alpha / d ln(kernel)` (kernel `I`, or `exp(-K/2)` for splat opacity).
+    pub d_alpha_d_log_kernel: f32,
+    /// 1 when the kernel is `I` (its `-ln(a)/2` term counts in the gradient), else 0.
+    pub length_weight: f32,
     /// Whether the Gaussian contributes to the ray at all.
     pub hit: bool,
 }
@@ -126,9 +134,22 @@ fn ray_hit(splats: &[f32], base: usize, d0: f32, d1: f32, d2: f32, view: &[f32])
         hit = true;
     }
     let tau = 6.283_185_5f32;
-    let integral = (tau / a).sqrt() * (-0.5f32 * transverse).exp();
+    let kernel = (-0.5f32 * transverse).exp();
+    let integral = (tau / a).sqrt() * kernel;
+    // Beer-Lambert: alpha = 1 - exp(-sigma I).
     let optical_depth = sigma * integral;
-    let raw_alpha = -(-optical_depth).exp_m1();
+    let transmitted = (-optical_depth).exp();
+    let mut raw_alpha = -(-optical_depth).exp_m1();
+    let mut d_alpha_d_sigma = transmitted * integral;
+    let mut d_alpha_d_log_kernel = transmitted * optical_depth;
+    let mut length_weight = 1.0f32;
+    if view[ViewParam::ALPHA_MODEL] != 0.0 {
+        // Splat opacity: alpha = (1 - exp(-sigma)) exp(-K/2).
+        raw_alpha = -(-sigma).exp_m1() * kernel;
+        d_alpha_d_sigma = (-sigma).exp() * kernel;
+        d_alpha_d_log_kernel = raw_alpha;
+        length_weight = 0.0;
+    }
     if raw_alpha < view[ViewParam::ALPHA_MIN] {
         hit = false;
     }
@@ -144,6 +165,9 @@ fn ray_hit(splats: &[f32], base: usize, d0: f32, d1: f32, d2: f32, view: &[f32])
         integral,
         raw_alpha,
         alpha: raw_alpha.min(view[ViewParam::ALPHA_MAX]),
+        d_alpha_d_sigma,
+        d_alpha_d_log_kernel,
+        length_weight,
         hit,
     }
 }
@@ -252,7 +276,11 @@ pub fn project_kernel(
     let max_log_scale = ls0.max(ls1).max(ls2);
     // Largest transverse term at which alpha_min is still reachable (`cpu::effective_cutoff`).
     let peak = sigma * SQRT_TAU * max_log_scale.exp();
-    let alpha_bound = 2.0 * (peak / view[ViewParam::MIN_OPTICAL_DEPTH]).ln();
+    let mut alpha_bound = 2.0 * (peak / view[ViewParam::MIN_OPTICAL_DEPTH]).ln();
+    if view[ViewParam::ALPHA_MODEL] != 0.0 {
+        // Splat opacity: alpha = o exp(-K/2) reaches alpha_min while K <= 2 ln(o / alpha_min).
+        alpha_bound = 2.0 * (-(-sigma).exp_m1() / view[ViewParam::ALPHA_MIN]).ln();
+    }
     let cutoff = view[ViewParam::KERNEL_CUTOFF].min(alpha_bound * 1.001 + 1e-3);
     if depth > view[ViewParam::NEAR_PLANE] && sigma > 0.0 && cutoff > 0.0 {
         // The rays with K <= cutoff are those meeting the ellipsoid
@@ -719,14 +747,14 @@ pub fn rasterize_backward_kernel<A: GradientAdd>(
                     behind_b += weight * cb;
                     transmittance_after = transmittance_before;
                     if hit.raw_alpha < alpha_max {
-                        // d alpha / d(sigma I) = exp(-sigma I) = 1 - raw_alpha.
-                        let grad_optical_depth = grad_alpha * (1.0 - hit.raw_alpha);
-                        A::add(splat_grads, out + 12, grad_optical_depth * hit.integral);
-                        // d lnI/de = -e/a - gamma r, d lnI/dm = r (`math::sample_vjp`).
-                        let g_ln = grad_optical_depth * batch[base + 12] * hit.integral;
-                        let ge0 = g_ln * (-hit.e0 / hit.dir_norm_sq - hit.peak_depth * hit.r0);
-                        let ge1 = g_ln * (-hit.e1 / hit.dir_norm_sq - hit.peak_depth * hit.r1);
-                        let ge2 = g_ln * (-hit.e2 / hit.dir_norm_sq - hit.peak_depth * hit.r2);
+                        A::add(splat_grads, out + 12, grad_alpha * hit.d_alpha_d_sigma);
+                        // d lnI/de = -e/a - gamma r, d lnI/dm = r (`math::sample_vjp`); the
+                        // splat kernel exp(-K/2) has no -e/a term (length_weight 0).
+                        let g_ln = grad_alpha * hit.d_alpha_d_log_kernel;
+                        let lw = hit.length_weight / hit.dir_norm_sq;
+                        let ge0 = g_ln * (-hit.e0 * lw - hit.peak_depth * hit.r0);
+                        let ge1 = g_ln * (-hit.e1 * lw - hit.peak_depth * hit.r1);
+                        let ge2 = g_ln * (-hit.e2 * lw - hit.peak_depth * hit.r2);
                         A::add(splat_grads, out, ge0 * d0);
                         A::add(splat_grads, out + 1, ge0 * d1);
                         A::add(splat_grads, out + 2, ge0 * d2);
