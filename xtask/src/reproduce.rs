@@ -51,6 +51,9 @@ pub struct ReproduceArgs {
     /// Synthetic: skip the ablations.
     #[arg(long)]
     no_ablations: bool,
+    /// LPIPS weights (see `gausmoke-train eval --help`); without them LPIPS is not reported.
+    #[arg(long)]
+    lpips_weights: Option<PathBuf>,
 }
 
 /// The paper's reference figures (Table 1/2, ScalarFlow real capture).
@@ -97,7 +100,10 @@ struct Variant {
 }
 
 fn variants(args: &ReproduceArgs) -> Vec<Variant> {
-    let suffix = if args.quick { "-quick" } else { "" };
+    let mut suffix = if args.quick { "-quick" } else { "" }.to_string();
+    if let Some(frames) = args.frames {
+        suffix += &format!("-f{frames}");
+    }
     let mut base = match (args.target, args.quick) {
         (Target::ScalarReal, true) => TrainConfig {
             train_views: paper_scalar_real().train_views,
@@ -272,7 +278,7 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
         let wall_seconds = start.elapsed().as_secs_f64();
         let gaussians = trainer.state.gaussians.len();
         drop(trainer);
-        let report = eval::evaluate(&run_dir, &device, None)?;
+        let report = eval::evaluate(&run_dir, &device, args.lpips_weights.as_deref())?;
         let metrics: Value = serde_json::from_str(
             &std::fs::read_to_string(run_dir.join("metrics.json")).context("metrics.json")?,
         )?;
@@ -297,6 +303,7 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             "config": serde_json::to_value(&variant.config)?,
             "test_psnr": report.test_psnr_mean,
             "test_ssim": report.test_ssim_mean,
+            "test_lpips": report.test_lpips_mean,
             "lpips": report.lpips,
             "mean_abs_divergence": report.mean_abs_divergence,
             "velocity_relative_error": report.velocity_relative_error_mean,
@@ -353,22 +360,23 @@ pub fn write_results_md(root: &Path) -> Result<()> {
     )?;
     writeln!(
         block,
-        "| run | variant | frames | Gaussians | held-out PSNR (dB) | SSIM | mean abs div u (1/frame) | velocity rel. error | density rel. error | training (s) | peak memory (MiB) | state per frame (MiB) | device, machine, date |"
+        "| run | variant | frames | Gaussians | held-out PSNR (dB) | SSIM | LPIPS | mean abs div u (1/frame) | velocity rel. error | density rel. error | training (s) | peak memory (MiB) | state per frame (MiB) | device, machine, date |"
     )?;
     writeln!(
         block,
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"
     )?;
     for r in &records {
         writeln!(
             block,
-            "| `{}` | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {}, {}, {} |",
+            "| `{}` | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {}, {}, {} |",
             r["key"].as_str().unwrap_or("?"),
             r["variant"].as_str().unwrap_or("?"),
             r["frames"],
             r["gaussians"],
             number(&r["test_psnr"], 2),
             number(&r["test_ssim"], 4),
+            number(&r["test_lpips"], 4),
             r["mean_abs_divergence"]
                 .as_f64()
                 .map_or("n/a".into(), |v| format!("{v:.2e}")),

@@ -19,6 +19,8 @@ pub struct FrameEval {
     pub frame: usize,
     pub test_psnr: Option<f64>,
     pub test_ssim: Option<f64>,
+    /// AlexNet LPIPS on the held-out views (only with `--lpips-weights`).
+    pub test_lpips: Option<f64>,
     pub mean_abs_divergence: f64,
     /// Against ground truth (synthetic scenes), over the cells where the true density is
     /// above 1% of its maximum: RMS of `u - u_true` and that RMS relative to RMS `u_true`.
@@ -37,7 +39,8 @@ pub struct EvalReport {
     pub mean_abs_divergence: f64,
     pub velocity_relative_error_mean: Option<f64>,
     pub density_relative_error_mean: Option<f64>,
-    /// Why LPIPS is absent.
+    pub test_lpips_mean: Option<f64>,
+    /// Where the LPIPS weights came from, or why LPIPS is absent.
     pub lpips: String,
 }
 
@@ -144,14 +147,10 @@ pub fn evaluate(
     device: &Device,
     lpips_weights: Option<&Path>,
 ) -> Result<EvalReport, TrainError> {
-    if let Some(weights) = lpips_weights {
-        return Err(TrainError::Config {
-            origin: weights.display().to_string(),
-            reason: "LPIPS (AlexNet) is not implemented yet in this version; run eval without \
-                     --lpips-weights"
-                .into(),
-        });
-    }
+    // Load the weights first: a bad file is reported before any rendering.
+    let lpips = lpips_weights
+        .map(|path| crate::lpips::Lpips::load(path, device))
+        .transpose()?;
     let config = TrainConfig::from_toml_file(&run.join("config.toml"))?;
     let run_json = run.join("run.json");
     let text = std::fs::read_to_string(&run_json).map_err(|source| TrainError::Io {
@@ -201,6 +200,7 @@ pub fn evaluate(
         )?;
         let mut psnr = Vec::new();
         let mut ssim = Vec::new();
+        let mut perceptual = Vec::new();
         for observation in &scene.test[t] {
             let out = render_volume(
                 &gaussians,
@@ -218,6 +218,9 @@ pub fn evaluate(
                 observation.image.height() as usize,
             );
             psnr.push(metrics::psnr(&rgb, observation.image.data()));
+            if let Some(lpips) = &lpips {
+                perceptual.push(lpips.distance(&rgb, observation.image.data(), w, h));
+            }
             ssim.push(metrics::ssim(&rgb, observation.image.data(), w, h));
         }
         let average = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
@@ -231,6 +234,7 @@ pub fn evaluate(
             frame: t,
             test_psnr: average(&psnr),
             test_ssim: average(&ssim),
+            test_lpips: average(&perceptual),
             mean_abs_divergence: metrics::mean_abs_divergence(&grid, &velocity),
             velocity_rmse: truth.map(|e| e.0),
             velocity_relative_error: truth.map(|e| e.1),
@@ -250,7 +254,13 @@ pub fn evaluate(
             .unwrap_or(f64::NAN),
         velocity_relative_error_mean: mean(frames.iter().map(|f| f.velocity_relative_error)),
         density_relative_error_mean: mean(frames.iter().map(|f| f.density_relative_error)),
-        lpips: "not computed: AlexNet LPIPS is not implemented in this version".into(),
+        test_lpips_mean: mean(frames.iter().map(|f| f.test_lpips)),
+        lpips: match lpips_weights {
+            Some(path) => format!("AlexNet LPIPS v0.1, weights from {}", path.display()),
+            None => "not computed: LPIPS needs its AlexNet weights, which cannot be downloaded \
+                     here; pass --lpips-weights FILE (see xtask/reference/lpips_export.py)"
+                .into(),
+        },
         frames,
     };
     crate::export::write_atomic(

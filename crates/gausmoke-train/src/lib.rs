@@ -20,6 +20,7 @@ pub mod config;
 pub mod eval;
 pub mod export;
 pub mod gaussians;
+pub mod lpips;
 pub mod metrics;
 pub mod scene;
 pub mod trainer;

@@ -38,7 +38,8 @@ enum Command {
         /// The run folder written by `train`.
         #[arg(long)]
         run: PathBuf,
-        /// LPIPS AlexNet weights (not supported yet; giving them is an error).
+        /// LPIPS (AlexNet, v0.1) weights as safetensors with the `lpips` package's names
+        /// (write them with xtask/reference/lpips_export.py); without, LPIPS is skipped.
         #[arg(long)]
         lpips_weights: Option<PathBuf>,
         #[arg(long, default_value = "flex")]
@@ -150,7 +151,8 @@ fn main() -> Result<()> {
                 "density rel. error   {}",
                 show(report.density_relative_error_mean)
             );
-            println!("LPIPS                {}", report.lpips);
+            println!("held-out LPIPS       {}", show(report.test_lpips_mean));
+            println!("  ({})", report.lpips);
             println!("wrote {}", run.join("eval.json").display());
             Ok(())
         }
