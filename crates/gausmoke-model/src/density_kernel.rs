@@ -85,6 +85,39 @@ fn support_radius(grid: &[f32], log_scales: &[f32], i: usize) -> f32 {
     grid[GridParam::CUTOFF].sqrt() * largest.exp()
 }
 
+/// The cell ranges along each axis that hold Gaussian `i`'s support.
+#[derive(CubeType, Clone, Copy)]
+pub struct GaussianSupport {
+    pub x: CellRange,
+    pub y: CellRange,
+    pub z: CellRange,
+}
+
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn gaussian_support(
+    means: &[f32],
+    log_scales: &[f32],
+    grid: &[f32],
+    i: usize,
+    nx: u32,
+    ny: u32,
+    nz: u32,
+) -> GaussianSupport {
+    let radius = support_radius(grid, log_scales, i);
+    GaussianSupport {
+        x: axis_support(grid, 0usize, means[3 * i], radius, nx),
+        y: axis_support(grid, 1usize, means[3 * i + 1], radius, ny),
+        z: axis_support(grid, 2usize, means[3 * i + 2], radius, nz),
+    }
+}
+
+/// World coordinate along `axis` of the centre of cell `index`.
+#[cube]
+fn cell_centre(grid: &[f32], axis: usize, index: u32) -> f32 {
+    grid[GridParam::LO + axis] + (f32::cast_from(index) + 0.5) * grid[GridParam::CELL + axis]
+}
+
 /// Whitened offset `m = L x - L mu` of the point `x` for the splat at `base`.
 #[cube]
 fn whitened_offset(splats: &[f32], base: usize, x0: f32, x1: f32, x2: f32) -> (f32, f32, f32) {
@@ -118,22 +151,20 @@ pub fn splat_field_kernel<A: GradientAdd>(
     }
     let base = i * SPLAT_FLOATS;
     let sigma = splats[base + 12];
-    let radius = support_radius(grid, log_scales, i);
-    let range_x = axis_support(grid, 0usize, means[3 * i], radius, nx);
-    let range_y = axis_support(grid, 1usize, means[3 * i + 1], radius, ny);
-    let range_z = axis_support(grid, 2usize, means[3 * i + 2], radius, nz);
+    let support = gaussian_support(means, log_scales, grid, i, nx, ny, nz);
+    let range_x = support.x;
+    let range_y = support.y;
+    let range_z = support.z;
     let cutoff = grid[GridParam::CUTOFF];
     let mut ci = range_x.start;
     while ci < range_x.end {
-        let x0 = grid[GridParam::LO] + (f32::cast_from(ci) + 0.5) * grid[GridParam::CELL];
+        let x0 = cell_centre(grid, 0usize, ci);
         let mut cj = range_y.start;
         while cj < range_y.end {
-            let x1 =
-                grid[GridParam::LO + 1] + (f32::cast_from(cj) + 0.5) * grid[GridParam::CELL + 1];
+            let x1 = cell_centre(grid, 1usize, cj);
             let mut ck = range_z.start;
             while ck < range_z.end {
-                let x2 = grid[GridParam::LO + 2]
-                    + (f32::cast_from(ck) + 0.5) * grid[GridParam::CELL + 2];
+                let x2 = cell_centre(grid, 2usize, ck);
                 let (m0, m1, m2) = whitened_offset(splats, base, x0, x1, x2);
                 let k2 = m0 * m0 + m1 * m1 + m2 * m2;
                 if k2 <= cutoff {
@@ -250,23 +281,21 @@ pub fn splat_field_backward_kernel(
     }
     let base = i * SPLAT_FLOATS;
     let sigma = splats[base + 12];
-    let radius = support_radius(grid, log_scales, i);
-    let range_x = axis_support(grid, 0usize, means[3 * i], radius, nx);
-    let range_y = axis_support(grid, 1usize, means[3 * i + 1], radius, ny);
-    let range_z = axis_support(grid, 2usize, means[3 * i + 2], radius, nz);
+    let support = gaussian_support(means, log_scales, grid, i, nx, ny, nz);
+    let range_x = support.x;
+    let range_y = support.y;
+    let range_z = support.z;
     let cutoff = grid[GridParam::CUTOFF];
     let mut acc = WhiteningGrad::zero();
     let mut ci = range_x.start;
     while ci < range_x.end {
-        let x0 = grid[GridParam::LO] + (f32::cast_from(ci) + 0.5) * grid[GridParam::CELL];
+        let x0 = cell_centre(grid, 0usize, ci);
         let mut cj = range_y.start;
         while cj < range_y.end {
-            let x1 =
-                grid[GridParam::LO + 1] + (f32::cast_from(cj) + 0.5) * grid[GridParam::CELL + 1];
+            let x1 = cell_centre(grid, 1usize, cj);
             let mut ck = range_z.start;
             while ck < range_z.end {
-                let x2 = grid[GridParam::LO + 2]
-                    + (f32::cast_from(ck) + 0.5) * grid[GridParam::CELL + 2];
+                let x2 = cell_centre(grid, 2usize, ck);
                 let (m0, m1, m2) = whitened_offset(splats, base, x0, x1, x2);
                 let k2 = m0 * m0 + m1 * m1 + m2 * m2;
                 if k2 <= cutoff {

@@ -421,31 +421,14 @@ pub fn backward(
     }
     timer.stage(&client, "rasterize_backward");
 
-    let grad_means = empty(&scene, n * 3, DType::F32);
-    let grad_quats = empty(&scene, n * 4, DType::F32);
-    let grad_log_scales = empty(&scene, n * 3, DType::F32);
-    let grad_raw_densities = empty(&scene, n, DType::F32);
-    let grad_colors = empty(&scene, n * 3, DType::F32);
-    if n > 0 {
-        raster::view_backward_kernel::launch(
-            &client,
-            gaussian_cubes(n),
-            CubeDim::new_1d(GAUSSIAN_BLOCK),
-            buffer(&scene.means),
-            buffer(&scene.quats),
-            buffer(&scene.log_scales),
-            buffer(&scene.raw_densities),
-            buffer(&binning.view),
-            buffer(&splat_grads),
-            buffer(&grad_means),
-            buffer(&grad_quats),
-            buffer(&grad_log_scales),
-            buffer(&grad_raw_densities),
-            buffer(&grad_colors),
-            n as u32,
-        );
-        timer.stage(&client, "view_backward");
-    }
+    let [
+        grad_means,
+        grad_quats,
+        grad_log_scales,
+        grad_raw_densities,
+        grad_colors,
+    ] = view_backward(&scene, &binning.view, &splat_grads);
+    timer.stage(&client, "view_backward");
     let grad_background = empty(&scene, 3, DType::F32);
     raster::background_grad_kernel::launch(
         &client,
@@ -541,30 +524,13 @@ pub fn world_splats_backward(
         "splat gradients must hold SPLAT_FLOATS values per Gaussian"
     );
     let view = f32_tensor(&scene, &world_view_params());
-    let grad_means = empty(&scene, n * 3, DType::F32);
-    let grad_quats = empty(&scene, n * 4, DType::F32);
-    let grad_log_scales = empty(&scene, n * 3, DType::F32);
-    let grad_raw_densities = empty(&scene, n, DType::F32);
-    let grad_colors = empty(&scene, n * 3, DType::F32);
-    if n > 0 {
-        raster::view_backward_kernel::launch(
-            scene.client(),
-            gaussian_cubes(n),
-            CubeDim::new_1d(GAUSSIAN_BLOCK),
-            buffer(&scene.means),
-            buffer(&scene.quats),
-            buffer(&scene.log_scales),
-            buffer(&scene.raw_densities),
-            buffer(&view),
-            buffer(&splat_grads),
-            buffer(&grad_means),
-            buffer(&grad_quats),
-            buffer(&grad_log_scales),
-            buffer(&grad_raw_densities),
-            buffer(&grad_colors),
-            n as u32,
-        );
-    }
+    let [
+        grad_means,
+        grad_quats,
+        grad_log_scales,
+        grad_raw_densities,
+        _,
+    ] = view_backward(&scene, &view, &splat_grads);
     (
         leading(grad_means, vec![n, 3]),
         leading(grad_quats, vec![n, 4]),
@@ -606,6 +572,39 @@ pub fn leading(tensor: CubeTensor, shape: Vec<usize>) -> CubeTensor {
         burn_cubecl::kernel::slice(flat, &[0..len])
     };
     burn_cubecl::ops::reshape(flat, shape.into())
+}
+
+/// Chains per-Gaussian splat gradients (`[n * SPLAT_FLOATS]`) through `view` back to the
+/// world-space parameters: `[means, quats, log_scales, raw_densities, colors]` gradients,
+/// flat (see [`leading`] for their shapes).
+fn view_backward(
+    scene: &DeviceScene,
+    view: &CubeTensor,
+    splat_grads: &CubeTensor,
+) -> [CubeTensor; 5] {
+    let n = scene.len();
+    let grads = [3, 4, 3, 1, 3].map(|columns| empty(scene, n * columns, DType::F32));
+    if n > 0 {
+        let [means, quats, log_scales, raw_densities, colors] = &grads;
+        raster::view_backward_kernel::launch(
+            scene.client(),
+            gaussian_cubes(n),
+            CubeDim::new_1d(GAUSSIAN_BLOCK),
+            buffer(&scene.means),
+            buffer(&scene.quats),
+            buffer(&scene.log_scales),
+            buffer(&scene.raw_densities),
+            buffer(view),
+            buffer(splat_grads),
+            buffer(means),
+            buffer(quats),
+            buffer(log_scales),
+            buffer(raw_densities),
+            buffer(colors),
+            n as u32,
+        );
+    }
+    grads
 }
 
 static FORCE_COMPARE_AND_SWAP: std::sync::atomic::AtomicBool =
