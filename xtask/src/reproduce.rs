@@ -54,6 +54,10 @@ pub struct ReproduceArgs {
     /// LPIPS weights (see `gausmoke-train eval --help`); without them LPIPS is not reported.
     #[arg(long)]
     lpips_weights: Option<PathBuf>,
+    /// Seed of the Gaussians' initialisation (default: the configuration's, 2026). Runs with
+    /// other seeds get `-s<seed>` keys and are summarised across seeds in RESULTS.md.
+    #[arg(long)]
+    seed: Option<u64>,
 }
 
 /// The paper's reference figures (Table 1/2, ScalarFlow real capture).
@@ -92,9 +96,11 @@ fn paper_scalar_real() -> TrainConfig {
     }
 }
 
-/// One training run of the reproduction: a key for file names, a label for tables.
+/// One training run of the reproduction: a key for file names, a label for tables, and the
+/// group of runs it repeats with another seed.
 struct Variant {
     key: String,
+    group: String,
     label: &'static str,
     config: TrainConfig,
 }
@@ -103,6 +109,10 @@ fn variants(args: &ReproduceArgs) -> Vec<Variant> {
     let mut suffix = if args.quick { "-quick" } else { "" }.to_string();
     if let Some(frames) = args.frames {
         suffix += &format!("-f{frames}");
+    }
+    let group_suffix = suffix.clone();
+    if let Some(seed) = args.seed {
+        suffix += &format!("-s{seed}");
     }
     let mut base = match (args.target, args.quick) {
         (Target::ScalarReal, true) => TrainConfig {
@@ -117,46 +127,50 @@ fn variants(args: &ReproduceArgs) -> Vec<Variant> {
     if let Some(frames) = args.frames {
         base.frames = Some(frames);
     }
+    if let Some(seed) = args.seed {
+        base.seed = seed;
+    }
+    let keyed = |target: &str, ablation: &str, label, config| Variant {
+        key: format!("{target}{suffix}{ablation}"),
+        group: format!("{target}{group_suffix}{ablation}"),
+        label,
+        config,
+    };
     match args.target {
-        Target::ScalarReal => vec![Variant {
-            key: format!("scalar-real{suffix}"),
-            label: "full method",
-            config: base,
-        }],
+        Target::ScalarReal => vec![keyed("scalar-real", "", "full method", base)],
         Target::Synthetic => {
-            let mut list = vec![Variant {
-                key: format!("synthetic{suffix}"),
-                label: "full method",
-                config: base.clone(),
-            }];
+            let mut list = vec![keyed("synthetic", "", "full method", base.clone())];
             if !args.no_ablations {
-                list.push(Variant {
-                    key: format!("synthetic{suffix}-no-physics"),
-                    label: "w/o physical losses",
-                    config: TrainConfig {
+                list.push(keyed(
+                    "synthetic",
+                    "-no-physics",
+                    "w/o physical losses",
+                    TrainConfig {
                         physics_losses: false,
                         ..base.clone()
                     },
-                });
-                list.push(Variant {
-                    key: format!("synthetic{suffix}-no-refinement"),
-                    label: "w/o refinement",
-                    config: TrainConfig {
+                ));
+                list.push(keyed(
+                    "synthetic",
+                    "-no-refinement",
+                    "w/o refinement",
+                    TrainConfig {
                         refinement: false,
                         ..base.clone()
                     },
-                });
+                ));
                 let no_volumetric = TrainConfig {
                     volumetric: false,
                     ..base.clone()
                 };
                 // Listed once the trainer accepts it (`TrainConfig::validate`).
                 if no_volumetric.validate().is_ok() {
-                    list.push(Variant {
-                        key: format!("synthetic{suffix}-no-volumetric"),
-                        label: "w/o volumetric rendering",
-                        config: no_volumetric,
-                    });
+                    list.push(keyed(
+                        "synthetic",
+                        "-no-volumetric",
+                        "w/o volumetric rendering",
+                        no_volumetric,
+                    ));
                 }
             }
             list
@@ -216,6 +230,9 @@ fn command_line(args: &ReproduceArgs) -> String {
     }
     if let Some(frames) = args.frames {
         line += &format!(" --frames {frames}");
+    }
+    if let Some(seed) = args.seed {
+        line += &format!(" --seed {seed}");
     }
     line
 }
@@ -290,6 +307,8 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             .unwrap_or(0);
         let record = json!({
             "key": variant.key,
+            "group": variant.group,
+            "seed": variant.config.seed,
             "target": format!("{:?}", args.target),
             "variant": variant.label,
             "quick": args.quick,
@@ -342,6 +361,63 @@ fn mib(value: &Value) -> String {
         .map_or("n/a".into(), |v| format!("{:.1}", v / (1024.0 * 1024.0)))
 }
 
+/// Mean and sample standard deviation.
+fn mean_std(values: &[f64]) -> (f64, f64) {
+    let n = values.len() as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0);
+    (mean, var.sqrt())
+}
+
+/// For every group of runs that differ only in their seed (two or more), the mean and
+/// standard deviation of the held-out metrics.
+fn write_seed_summary(block: &mut String, records: &[Value]) -> Result<()> {
+    let mut groups: std::collections::BTreeMap<&str, Vec<&Value>> = Default::default();
+    for r in records {
+        // Records written before groups existed are their own group.
+        let group = r["group"].as_str().or(r["key"].as_str()).unwrap_or("?");
+        groups.entry(group).or_default().push(r);
+    }
+    let repeated: Vec<_> = groups.iter().filter(|(_, runs)| runs.len() >= 2).collect();
+    if repeated.is_empty() {
+        return Ok(());
+    }
+    writeln!(
+        block,
+        "\nAcross seeds (mean +- sample standard deviation over the runs of a group):\n"
+    )?;
+    writeln!(
+        block,
+        "| group | variant | seeds | held-out PSNR (dB) | SSIM | velocity rel. error | density rel. error |"
+    )?;
+    writeln!(block, "|---|---|---|---:|---:|---:|---:|")?;
+    for (group, runs) in repeated {
+        let column = |name: &str, digits: usize| {
+            let values: Vec<f64> = runs.iter().filter_map(|r| r[name].as_f64()).collect();
+            if values.len() < 2 {
+                return "n/a".to_string();
+            }
+            let (mean, std) = mean_std(&values);
+            format!("{mean:.digits$} +- {std:.digits$}")
+        };
+        let seeds: Vec<String> = runs
+            .iter()
+            .map(|r| r["seed"].as_u64().unwrap_or(2026).to_string())
+            .collect();
+        writeln!(
+            block,
+            "| `{group}` | {} | {} | {} | {} | {} | {} |",
+            runs[0]["variant"].as_str().unwrap_or("?"),
+            seeds.join(", "),
+            column("test_psnr", 2),
+            column("test_ssim", 4),
+            column("velocity_relative_error", 3),
+            column("density_relative_error", 3),
+        )?;
+    }
+    Ok(())
+}
+
 /// Rebuilds the generated block of `docs/RESULTS.md` from `docs/results/*.json`.
 pub fn write_results_md(root: &Path) -> Result<()> {
     let mut records: Vec<Value> = std::fs::read_dir(root.join("docs/results"))?
@@ -390,6 +466,7 @@ pub fn write_results_md(root: &Path) -> Result<()> {
             r["date"].as_str().unwrap_or("?"),
         )?;
     }
+    write_seed_summary(&mut block, &records)?;
     writeln!(
         block,
         "\nPaper, ScalarFlow real capture (Table 1/2): {PAPER_SCALAR_REAL}.\n"
