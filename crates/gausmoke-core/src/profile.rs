@@ -30,22 +30,30 @@ pub fn enabled() -> bool {
     ENABLED.load(Ordering::Relaxed)
 }
 
-/// Adds `seconds` to `name`'s total.
+/// Adds `time` to the entry of the same name in `totals` (or appends it).
+pub fn accumulate(totals: &mut Vec<PhaseTime>, time: PhaseTime) {
+    match totals.iter_mut().find(|p| p.name == time.name) {
+        Some(phase) => {
+            phase.seconds += time.seconds;
+            phase.calls += time.calls;
+        }
+        None => totals.push(time),
+    }
+}
+
+/// Adds `seconds` (one call) to `name`'s process-wide total.
 pub fn record(name: &'static str, seconds: f64) {
     let mut totals = TOTALS
         .lock()
         .unwrap_or_else(|poisoned| poisoned.into_inner());
-    match totals.iter_mut().find(|p| p.name == name) {
-        Some(phase) => {
-            phase.seconds += seconds;
-            phase.calls += 1;
-        }
-        None => totals.push(PhaseTime {
+    accumulate(
+        &mut totals,
+        PhaseTime {
             name,
             seconds,
             calls: 1,
-        }),
-    }
+        },
+    );
 }
 
 /// Returns the totals so far (in first-seen order) and starts again from zero.

@@ -152,18 +152,15 @@ pub fn splat_field_kernel<A: GradientAdd>(
     let base = i * SPLAT_FLOATS;
     let sigma = splats[base + 12];
     let support = gaussian_support(means, log_scales, grid, i, nx, ny, nz);
-    let range_x = support.x;
-    let range_y = support.y;
-    let range_z = support.z;
     let cutoff = grid[GridParam::CUTOFF];
-    let mut ci = range_x.start;
-    while ci < range_x.end {
+    let mut ci = support.x.start;
+    while ci < support.x.end {
         let x0 = cell_centre(grid, 0usize, ci);
-        let mut cj = range_y.start;
-        while cj < range_y.end {
+        let mut cj = support.y.start;
+        while cj < support.y.end {
             let x1 = cell_centre(grid, 1usize, cj);
-            let mut ck = range_z.start;
-            while ck < range_z.end {
+            let mut ck = support.z.start;
+            while ck < support.z.end {
                 let x2 = cell_centre(grid, 2usize, ck);
                 let (m0, m1, m2) = whitened_offset(splats, base, x0, x1, x2);
                 let k2 = m0 * m0 + m1 * m1 + m2 * m2;
@@ -282,19 +279,16 @@ pub fn splat_field_backward_kernel(
     let base = i * SPLAT_FLOATS;
     let sigma = splats[base + 12];
     let support = gaussian_support(means, log_scales, grid, i, nx, ny, nz);
-    let range_x = support.x;
-    let range_y = support.y;
-    let range_z = support.z;
     let cutoff = grid[GridParam::CUTOFF];
     let mut acc = WhiteningGrad::zero();
-    let mut ci = range_x.start;
-    while ci < range_x.end {
+    let mut ci = support.x.start;
+    while ci < support.x.end {
         let x0 = cell_centre(grid, 0usize, ci);
-        let mut cj = range_y.start;
-        while cj < range_y.end {
+        let mut cj = support.y.start;
+        while cj < support.y.end {
             let x1 = cell_centre(grid, 1usize, cj);
-            let mut ck = range_z.start;
-            while ck < range_z.end {
+            let mut ck = support.z.start;
+            while ck < support.z.end {
                 let x2 = cell_centre(grid, 2usize, ck);
                 let (m0, m1, m2) = whitened_offset(splats, base, x0, x1, x2);
                 let k2 = m0 * m0 + m1 * m1 + m2 * m2;

@@ -86,6 +86,17 @@ impl GridSpec {
         self.resolution.iter().product()
     }
 
+    /// Panics unless `dims` is `[nx, ny, nz, 3]`, a velocity grid on this grid (a programming
+    /// error: the ops that take one state the shape in their docs).
+    pub fn assert_velocity_shape(&self, dims: [usize; 4]) {
+        let [nx, ny, nz, c] = dims;
+        assert_eq!(
+            ([nx, ny, nz], c),
+            (self.resolution, 3),
+            "velocity must be [nx, ny, nz, 3] on the grid"
+        );
+    }
+
     /// Edge lengths of one cell, world units.
     pub fn cell_size(&self) -> Vec3 {
         let [nx, ny, nz] = self.resolution;

@@ -96,12 +96,7 @@ pub fn penalty_projection(
     velocity: Tensor<4>,
     options: &PenaltyOptions,
 ) -> Tensor<4> {
-    let [nx, ny, nz, c] = velocity.dims();
-    assert_eq!(
-        ([nx, ny, nz], c),
-        (grid.resolution(), 3),
-        "velocity must be [nx, ny, nz, 3] on the grid"
-    );
+    grid.assert_velocity_shape(velocity.dims());
     let cell = grid.cell_size();
     let curvature = 1.0 / (cell.x * cell.x) + 1.0 / (cell.y * cell.y) + 1.0 / (cell.z * cell.z);
     let eta = options.step_fraction / curvature;

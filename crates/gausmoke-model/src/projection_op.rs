@@ -131,12 +131,7 @@ pub fn project_velocity(
     options: ProjectionOptions,
 ) -> Tensor<4> {
     use burn::backend::Dispatch;
-    let [nx, ny, nz, c] = velocity.dims();
-    assert_eq!(
-        ([nx, ny, nz], c),
-        (grid.resolution(), 3),
-        "velocity must be [nx, ny, nz, 3] on the grid"
-    );
+    grid.assert_velocity_shape(velocity.dims());
     Tensor::from_dispatch(<Dispatch as ProjectionBackend>::project_velocity(
         velocity.into_dispatch(),
         ProjectionSpec::new(grid, options),

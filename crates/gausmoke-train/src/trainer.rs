@@ -690,39 +690,11 @@ impl Trainer {
         start: Instant,
     ) -> Result<(), TrainError> {
         // The optimisation's phase times so far; the evaluation and outputs below render too,
-        // and their time goes to "outputs and evaluation" instead.
-        self.add_phase_times(profile::take());
-        let outputs_start = Instant::now();
-        let result = self.finish_frame_outputs(t, train_l1, projection, clamped_to_box, start);
-        let _ = profile::take();
-        self.add_phase_times(vec![profile::PhaseTime {
-            name: "outputs and evaluation",
-            seconds: outputs_start.elapsed().as_secs_f64(),
-            calls: 1,
-        }]);
-        result
-    }
-
-    fn add_phase_times(&mut self, times: Vec<profile::PhaseTime>) {
-        for time in times {
-            match self.phase_times.iter_mut().find(|p| p.name == time.name) {
-                Some(total) => {
-                    total.seconds += time.seconds;
-                    total.calls += time.calls;
-                }
-                None => self.phase_times.push(time),
-            }
+        // and their time goes to "outputs and evaluation" instead (at the end).
+        for time in profile::take() {
+            profile::accumulate(&mut self.phase_times, time);
         }
-    }
-
-    fn finish_frame_outputs(
-        &mut self,
-        t: usize,
-        train_l1: f64,
-        projection: Option<gausmoke_model::ProjectionReport>,
-        clamped_to_box: usize,
-        start: Instant,
-    ) -> Result<(), TrainError> {
+        let outputs_start = Instant::now();
         let velocity = host(self.state.velocity.clone());
         let density = self.density_host();
         let gaussians = self.state.gaussians.to_host();
@@ -865,6 +837,15 @@ impl Trainer {
         };
         checkpoint::save(&self.out, &self.state, &meta)?;
         self.write_losses()?;
+        let _ = profile::take();
+        profile::accumulate(
+            &mut self.phase_times,
+            profile::PhaseTime {
+                name: "outputs and evaluation",
+                seconds: outputs_start.elapsed().as_secs_f64(),
+                calls: 1,
+            },
+        );
         Ok(())
     }
 

@@ -231,30 +231,12 @@ fn bin(
     let num_tiles = (tiles_x * tiles_y) as usize;
 
     let view = f32_tensor(scene, &view_params(camera, options));
-    let splats = empty(scene, n * SPLAT_FLOATS, DType::F32);
-    let depths = empty(scene, n, DType::F32);
-    let rects = empty(scene, n * 4, DType::U32);
-    let counts = zeros(scene, num_tiles, DType::U32);
-    if n > 0 {
-        project_kernel::launch(
-            &client,
-            gaussian_cubes(n),
-            CubeDim::new_1d(GAUSSIAN_BLOCK),
-            buffer(&scene.means),
-            buffer(&scene.quats),
-            buffer(&scene.log_scales),
-            buffer(&scene.raw_densities),
-            buffer(&scene.colors),
-            buffer(&view),
-            buffer(&splats),
-            buffer(&depths),
-            buffer(&rects),
-            buffer(&counts),
-            n as u32,
-            width,
-            height,
-        );
-    }
+    let Projection {
+        splats,
+        depths,
+        rects,
+        counts,
+    } = project(scene, &view, width, height);
     timer.stage(&client, "project");
 
     let offsets = empty(scene, num_tiles + 1, DType::U32);
@@ -308,7 +290,47 @@ fn bin(
     }
 }
 
-use raster::project_kernel;
+/// What `project_kernel` writes: the splats, centre depths, tile rectangles and per-tile
+/// counts of one view.
+struct Projection {
+    splats: CubeTensor,
+    depths: CubeTensor,
+    rects: CubeTensor,
+    counts: CubeTensor,
+}
+
+/// Projects every Gaussian of `scene` into `view` for a `width` x `height` image.
+fn project(scene: &DeviceScene, view: &CubeTensor, width: u32, height: u32) -> Projection {
+    let n = scene.len();
+    let num_tiles = (width.div_ceil(TILE_EDGE) * height.div_ceil(TILE_EDGE)) as usize;
+    let projection = Projection {
+        splats: empty(scene, n * SPLAT_FLOATS, DType::F32),
+        depths: empty(scene, n, DType::F32),
+        rects: empty(scene, n * 4, DType::U32),
+        counts: zeros(scene, num_tiles, DType::U32),
+    };
+    if n > 0 {
+        raster::project_kernel::launch(
+            scene.client(),
+            gaussian_cubes(n),
+            CubeDim::new_1d(GAUSSIAN_BLOCK),
+            buffer(&scene.means),
+            buffer(&scene.quats),
+            buffer(&scene.log_scales),
+            buffer(&scene.raw_densities),
+            buffer(&scene.colors),
+            buffer(view),
+            buffer(&projection.splats),
+            buffer(&projection.depths),
+            buffer(&projection.rects),
+            buffer(&projection.counts),
+            n as u32,
+            width,
+            height,
+        );
+    }
+    projection
+}
 
 /// Forward render on the device: `[H, W, OUTPUT_CHANNELS]`, as [`crate::cpu::forward`].
 #[allow(clippy::too_many_arguments)]
@@ -477,33 +499,9 @@ pub fn world_splats(
     raw_densities: CubeTensor,
 ) -> CubeTensor {
     let scene = world_scene(means, quats, log_scales, raw_densities);
-    let n = scene.len();
     let view = f32_tensor(&scene, &world_view_params());
-    let splats = empty(&scene, n * SPLAT_FLOATS, DType::F32);
-    let depths = empty(&scene, n, DType::F32);
-    let rects = empty(&scene, n * 4, DType::U32);
-    let counts = zeros(&scene, 1, DType::U32);
-    if n > 0 {
-        project_kernel::launch(
-            scene.client(),
-            gaussian_cubes(n),
-            CubeDim::new_1d(GAUSSIAN_BLOCK),
-            buffer(&scene.means),
-            buffer(&scene.quats),
-            buffer(&scene.log_scales),
-            buffer(&scene.raw_densities),
-            buffer(&scene.colors),
-            buffer(&view),
-            buffer(&splats),
-            buffer(&depths),
-            buffer(&rects),
-            buffer(&counts),
-            n as u32,
-            1,
-            1,
-        );
-    }
-    splats
+    // A 1x1 image: with the near plane at infinity no Gaussian touches a tile.
+    project(&scene, &view, 1, 1).splats
 }
 
 /// Gradients `(means, quats, log_scales, raw_densities)` given the gradient of
