@@ -159,26 +159,30 @@ fn variants(args: &ReproduceArgs) -> Vec<Variant> {
                         ..base.clone()
                     },
                 ));
-                let no_volumetric = TrainConfig {
-                    volumetric: false,
-                    ..base.clone()
-                };
-                // Listed once the trainer accepts it (`TrainConfig::validate`).
-                if no_volumetric.validate().is_ok() {
-                    list.push(keyed(
-                        "synthetic",
-                        "-no-volumetric",
-                        "w/o volumetric rendering",
-                        no_volumetric,
-                    ));
-                }
+                list.push(keyed(
+                    "synthetic",
+                    "-no-volumetric",
+                    "w/o volumetric rendering",
+                    TrainConfig {
+                        volumetric: false,
+                        ..base
+                    },
+                ));
             }
             list
         }
     }
 }
 
-/// Peak resident memory of this process so far (Linux `VmHWM`), in MiB.
+/// Starts the peak-resident-memory count again (Linux: writing 5 to `/proc/self/clear_refs`
+/// resets `VmHWM`), so each variant of one invocation reports its own peak.
+fn reset_peak_memory() {
+    if let Err(e) = std::fs::write("/proc/self/clear_refs", "5") {
+        eprintln!("warning: cannot reset the peak memory count ({e}); it includes earlier runs");
+    }
+}
+
+/// Peak resident memory since the last [`reset_peak_memory`] (Linux `VmHWM`), in MiB.
 fn peak_memory_mib() -> Option<f64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
     let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
@@ -234,6 +238,15 @@ fn command_line(args: &ReproduceArgs) -> String {
     if let Some(seed) = args.seed {
         line += &format!(" --seed {seed}");
     }
+    if args.no_ablations {
+        line += " --no-ablations";
+    }
+    if let Some(data) = &args.data {
+        line += &format!(" --data {}", data.display());
+    }
+    if let Some(weights) = &args.lpips_weights {
+        line += &format!(" --lpips-weights {}", weights.display());
+    }
     line
 }
 
@@ -280,6 +293,7 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             variant.label,
             run_dir.display()
         );
+        reset_peak_memory();
         let scene = Scene::open(&data, &variant.config)
             .with_context(|| format!("loading {}", data.display()))?;
         let frames = scene.frames();
