@@ -121,6 +121,13 @@ pub struct TrainConfig {
     /// alpha, an opacity times the projected 2D Gaussian ("w/o volumetric rendering"; see
     /// `gausmoke_render::AlphaModel::SplatOpacity`).
     pub volumetric: bool,
+    /// Most Gaussians moved per frame, as a fraction of all, from the box's faces and from
+    /// invisibility to where the training views show missing smoke (`respawn` module). 0 is
+    /// the paper's method (a fixed set, only advected).
+    pub respawn_fraction: f32,
+    /// Smallest smoke deficit (image units in `[0, 1]`) a place must show in every training
+    /// view to receive recycled Gaussians.
+    pub respawn_threshold: f32,
     /// Seed of the Gaussians' initialisation.
     pub seed: u64,
     /// Write renders, exports and velocity slices every this many frames (1 = all).
@@ -160,6 +167,8 @@ impl Default for TrainConfig {
             physics_losses: true,
             refinement: true,
             volumetric: true,
+            respawn_fraction: 0.0,
+            respawn_threshold: 0.05,
             seed: 2026,
             output_every: 1,
         }
@@ -278,6 +287,18 @@ impl TrainConfig {
             if !(value.is_finite() && value >= 0.0) {
                 return bad(format!("{name} must be >= 0, got {value}"));
             }
+        }
+        if !(0.0..=1.0).contains(&self.respawn_fraction) {
+            return bad(format!(
+                "respawn_fraction must be in [0, 1], got {}",
+                self.respawn_fraction
+            ));
+        }
+        if !(self.respawn_threshold.is_finite() && self.respawn_threshold >= 0.0) {
+            return bad(format!(
+                "respawn_threshold must be >= 0, got {}",
+                self.respawn_threshold
+            ));
         }
         if self.lr_decay_every == 0 || self.output_every == 0 || self.unet_channels == 0 {
             return bad("lr_decay_every, output_every and unet_channels must be >= 1".into());

@@ -120,6 +120,25 @@ impl GaussianModel {
         }
     }
 
+    /// Replaces every parameter's values with `host`'s (same count), keeping the parameter
+    /// ids so the optimiser's state carries over (used when Gaussians are recycled).
+    pub fn with_host_values(self, host: &HostGaussians) -> Self {
+        assert_eq!(host.len(), self.len(), "recycling keeps the Gaussian count");
+        let device = self.means.val().device();
+        let fresh = Self::from_host(host, &device);
+        let keep = |id, tensor: Tensor<2>| Param::initialized(id, tensor.require_grad());
+        Self {
+            means: keep(self.means.id, fresh.means.val()),
+            rotations: keep(self.rotations.id, fresh.rotations.val()),
+            log_scales: keep(self.log_scales.id, fresh.log_scales.val()),
+            raw_densities: Param::initialized(
+                self.raw_densities.id,
+                fresh.raw_densities.val().require_grad(),
+            ),
+            colors: keep(self.colors.id, fresh.colors.val()),
+        }
+    }
+
     /// Keeps colours in `[0, 1]` and log-scales in the renderer's accepted range after an
     /// optimiser step (a projection onto the feasible set, not a reparameterisation).
     pub fn clamped(self) -> Self {

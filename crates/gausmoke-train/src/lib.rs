@@ -22,6 +22,7 @@ pub mod export;
 pub mod gaussians;
 pub mod lpips;
 pub mod metrics;
+pub mod respawn;
 pub mod scene;
 pub mod trainer;
 pub mod visuals;

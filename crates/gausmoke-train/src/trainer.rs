@@ -31,6 +31,7 @@ use serde::{Deserialize, Serialize};
 use crate::checkpoint::{self, CheckpointMeta, HostArrays};
 use crate::config::{IntegratorKind, InterpolationKind, ProjectionKind, TrainConfig};
 use crate::gaussians::GaussianModel;
+use crate::respawn::{DeficitView, RespawnOptions, RespawnReport, SpawnLattice, respawn};
 use crate::scene::{Observation, Scene};
 use crate::visuals::Picture;
 use crate::{TrainError, export, metrics, visuals};
@@ -83,6 +84,9 @@ pub struct FrameReport {
     pub divergence_rms_after: f64,
     /// Gaussians whose advected centre left the box and was clamped back onto it.
     pub clamped_to_box: usize,
+    /// Gaussians recycled before this frame's optimisation (`respawn_fraction`).
+    #[serde(default)]
+    pub respawned: usize,
     /// Mean and largest speed of the velocity grid (world units per frame).
     pub mean_speed: f64,
     pub max_speed: f64,
@@ -477,7 +481,7 @@ impl Trainer {
         }
         bar.finish_and_clear();
         let velocity = self.state.velocity.clone();
-        self.finish_frame(0, last_render as f64, None, 0, start)?;
+        self.finish_frame(0, last_render as f64, None, [0, 0], start)?;
         self.state.velocity = velocity;
         Ok(())
     }
@@ -485,6 +489,7 @@ impl Trainer {
     /// Frames `t-1 -> t`: K joint iterations, then K' refinement iterations.
     pub fn advance_to(&mut self, t: usize) -> Result<(), TrainError> {
         let start = Instant::now();
+        let respawned = self.respawn(t - 1)?.indices.len();
         let config = self.config.clone();
         let observations = self.scene.train[t].clone();
         let targets: Vec<Tensor<3>> = observations
@@ -647,7 +652,62 @@ impl Trainer {
         bar.finish_and_clear();
         self.state.velocity = velocity;
         let report = self.projection_report(unprojected);
-        self.finish_frame(t, last_render as f64, Some(report), clamped, start)
+        self.finish_frame(
+            t,
+            last_render as f64,
+            Some(report),
+            [clamped, respawned],
+            start,
+        )
+    }
+
+    /// Recycles Gaussians (see [`crate::respawn`]) against frame `t`'s training views, before
+    /// they move on from frame `t`; nothing happens with `respawn_fraction = 0`.
+    fn respawn(&mut self, t: usize) -> Result<RespawnReport, TrainError> {
+        if self.config.respawn_fraction <= 0.0 {
+            return Ok(RespawnReport::default());
+        }
+        let _timed = profile::scope("respawn");
+        let observations = &self.scene.train[t];
+        let renders = self.render_host(observations)?;
+        let views: Vec<DeficitView> = observations
+            .iter()
+            .zip(&renders)
+            .map(|(observation, rendered)| DeficitView {
+                camera: &observation.camera,
+                observed: observation.image.data(),
+                rendered,
+            })
+            .collect();
+        let mut host = self.state.gaussians.to_host();
+        let extent = self.grid.hi() - self.grid.lo();
+        let options = RespawnOptions {
+            fraction: self.config.respawn_fraction,
+            threshold: self.config.respawn_threshold,
+            // The initialisation's size (see `GaussianModel::init_in_box`).
+            std: 0.5 * (extent.x * extent.y * extent.z / host.len() as f32).cbrt(),
+            background: self.scene.background,
+            // A per-frame stream, so a resumed run draws what an uninterrupted one did.
+            seed: self.config.seed ^ (t as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        };
+        let lattice = SpawnLattice {
+            lo: self.grid.lo(),
+            hi: self.grid.hi(),
+            resolution: self.grid.resolution(),
+        };
+        let report = respawn(&mut host, &views, &lattice, &options);
+        if !report.indices.is_empty() {
+            self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
+        }
+        tracing::debug!(
+            frame = t,
+            recycled = report.indices.len(),
+            from_box_faces = report.from_box_faces,
+            deficit_cells = report.deficit_cells,
+            max_deficit = report.max_deficit,
+            "respawn"
+        );
+        Ok(report)
     }
 
     /// The current Gaussians outside the autodiff graph (for outputs and metrics).
@@ -686,7 +746,7 @@ impl Trainer {
         t: usize,
         train_l1: f64,
         projection: Option<gausmoke_model::ProjectionReport>,
-        clamped_to_box: usize,
+        [clamped_to_box, respawned]: [usize; 2],
         start: Instant,
     ) -> Result<(), TrainError> {
         // The optimisation's phase times so far; the evaluation and outputs below render too,
@@ -729,6 +789,7 @@ impl Trainer {
             divergence_rms_before: projection.divergence_rms_before,
             divergence_rms_after: projection.divergence_rms_after,
             clamped_to_box,
+            respawned,
             mean_speed: speeds.iter().sum::<f64>() / speeds.len().max(1) as f64,
             max_speed: speeds.iter().cloned().fold(0.0, f64::max),
             seconds: start.elapsed().as_secs_f64(),
@@ -961,6 +1022,7 @@ impl Trainer {
                 "divergence_rms_before": r.divergence_rms_before,
                 "divergence_rms_after": r.divergence_rms_after,
                 "clamped_to_box": r.clamped_to_box,
+                "respawned": r.respawned,
                 "mean_speed": r.mean_speed,
                 "max_speed": r.max_speed,
                 "seconds": r.seconds,

@@ -1,0 +1,475 @@
+//! Recycling Gaussians between frames: smoke that leaves the box and primitives that became
+//! invisible are moved to where the training views show smoke the reconstruction lacks.
+//!
+//! The paper keeps one fixed set of Gaussians and only advects it. On a real plume that set
+//! runs out: smoke rises through the box's top face (where advection clamps it) while fresh
+//! smoke enters at the source, where no Gaussian is. This is our design choice for the gap,
+//! off by default (`respawn_fraction = 0`, the paper's method):
+//!
+//! - **Which to recycle.** Gaussians clamped onto a face of the box first, then those whose
+//!   largest possible opacity `1 - exp(-sigma sqrt(2 pi) max_std)` is below 1/255 (they add
+//!   nothing to any image), least visible first; at most `respawn_fraction` of all per frame.
+//! - **Where to put them.** Every cell centre of the velocity grid is projected into every
+//!   training view. Its score is the smallest, over the views, of the pixel's *smoke
+//!   deficit*: how much further the observation is from the background than the render is
+//!   (mean over channels, clamped at 0). A point missing from the reconstruction in every
+//!   view is a visual-hull argument for smoke there. Cells above `respawn_threshold` are
+//!   drawn without replacement with probability proportional to the score and jittered
+//!   within the cell.
+//! - **What they start as.** Isotropic, the initialisation's size, the mean colour of the
+//!   visible Gaussians, and a density whose opacity through the centre supplies half of the
+//!   cell's deficit (half, because neighbouring recycled Gaussians overlap along rays).
+//!
+//! The count stays fixed, so the optimisers' per-row state keeps its shape; the recycled rows
+//! keep their Adam moments, which fade within ~10 steps (first moment) but may make the first
+//! steps larger or smaller than `lr` (second moment). Everything here is host-side and
+//! deterministic in its seed, so a resumed run matches an uninterrupted one.
+
+use gausmoke_core::Camera;
+use gausmoke_core::glam::Vec3;
+use gausmoke_render::scenes::{HostGaussians, SplitMix64};
+
+/// Opacity below which a Gaussian cannot change an 8-bit pixel.
+const INVISIBLE_OPACITY: f32 = 1.0 / 255.0;
+const SQRT_TAU: f32 = 2.506_628_3;
+
+/// One training view of the frame the Gaussians are fitted to.
+#[derive(Debug, Clone, Copy)]
+pub struct DeficitView<'a> {
+    pub camera: &'a Camera,
+    /// Observed and rendered images, `[H, W, 3]` row-major, values in `[0, 1]`.
+    pub observed: &'a [f32],
+    pub rendered: &'a [f32],
+}
+
+/// The box and lattice the recycled Gaussians are placed in (the velocity grid's cells).
+#[derive(Debug, Clone, Copy)]
+pub struct SpawnLattice {
+    pub lo: Vec3,
+    pub hi: Vec3,
+    pub resolution: [usize; 3],
+}
+
+impl SpawnLattice {
+    fn cell_size(&self) -> Vec3 {
+        let [nx, ny, nz] = self.resolution;
+        (self.hi - self.lo) / Vec3::new(nx as f32, ny as f32, nz as f32)
+    }
+
+    fn cell_centre(&self, [i, j, k]: [usize; 3]) -> Vec3 {
+        self.lo + self.cell_size() * Vec3::new(i as f32 + 0.5, j as f32 + 0.5, k as f32 + 0.5)
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RespawnOptions {
+    /// Most Gaussians recycled per frame, as a fraction of all.
+    pub fraction: f32,
+    /// Smallest smoke deficit (in `[0, 1]` image units) a cell must show in every view.
+    pub threshold: f32,
+    /// Standard deviation of a recycled Gaussian (world units).
+    pub std: f32,
+    pub background: [f32; 3],
+    pub seed: u64,
+}
+
+/// What [`respawn`] did, for the frame report.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RespawnReport {
+    /// Recycled rows, in the order they were chosen.
+    pub indices: Vec<usize>,
+    /// Of those, the ones taken from a face of the box.
+    pub from_box_faces: usize,
+    /// Lattice cells whose deficit exceeded the threshold in every view.
+    pub deficit_cells: usize,
+    /// The largest cell score (smallest deficit over the views) of any cell.
+    pub max_deficit: f32,
+}
+
+/// Largest opacity a Gaussian can give a ray (through its centre, along its longest axis).
+fn peak_opacity(gaussians: &HostGaussians, index: usize) -> f32 {
+    let sigma = softplus(gaussians.raw_densities[index]);
+    let max_log_std = gaussians.log_scales[3 * index..3 * index + 3]
+        .iter()
+        .cloned()
+        .fold(f32::NEG_INFINITY, f32::max);
+    1.0 - (-sigma * SQRT_TAU * max_log_std.exp()).exp()
+}
+
+fn softplus(x: f32) -> f32 {
+    if x > 20.0 { x } else { x.exp().ln_1p() }
+}
+
+/// The raw density whose softplus is `sigma > 0`.
+fn inverse_softplus(sigma: f32) -> f32 {
+    if sigma > 20.0 {
+        sigma
+    } else {
+        sigma.exp_m1().max(f32::MIN_POSITIVE).ln()
+    }
+}
+
+fn on_box_face(position: Vec3, lattice: &SpawnLattice) -> bool {
+    let tolerance = 1e-5 * (lattice.hi - lattice.lo).max_element();
+    (position - lattice.lo).min_element() <= tolerance
+        || (lattice.hi - position).min_element() <= tolerance
+}
+
+/// Rows to recycle, best candidates first: on a box face, then invisible by ascending opacity.
+fn recycling_candidates(gaussians: &HostGaussians, lattice: &SpawnLattice) -> (Vec<usize>, usize) {
+    let mut on_faces = Vec::new();
+    let mut invisible = Vec::new();
+    for index in 0..gaussians.len() {
+        let m = &gaussians.means[3 * index..3 * index + 3];
+        let opacity = peak_opacity(gaussians, index);
+        if on_box_face(Vec3::new(m[0], m[1], m[2]), lattice) {
+            on_faces.push(index);
+        } else if opacity < INVISIBLE_OPACITY {
+            invisible.push((opacity, index));
+        }
+    }
+    invisible.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    let faces = on_faces.len();
+    on_faces.extend(invisible.into_iter().map(|(_, index)| index));
+    (on_faces, faces)
+}
+
+/// Per-pixel smoke deficit of one view: how much further from the background the
+/// observation is than the render (mean over channels, at least 0).
+fn deficit_image(view: &DeficitView, background: [f32; 3]) -> Vec<f32> {
+    view.observed
+        .chunks_exact(3)
+        .zip(view.rendered.chunks_exact(3))
+        .map(|(observed, rendered)| {
+            let distance = |pixel: &[f32]| {
+                pixel
+                    .iter()
+                    .zip(background)
+                    .map(|(v, b)| (v - b).abs())
+                    .sum::<f32>()
+                    / 3.0
+            };
+            (distance(observed) - distance(rendered)).max(0.0)
+        })
+        .collect()
+}
+
+/// Score of every lattice cell: its smallest deficit over the views (0 where a view misses it).
+fn cell_scores(views: &[DeficitView], lattice: &SpawnLattice, background: [f32; 3]) -> Vec<f32> {
+    let [nx, ny, nz] = lattice.resolution;
+    let mut scores = vec![f32::INFINITY; nx * ny * nz];
+    for view in views {
+        let (width, height) = (view.camera.width() as usize, view.camera.height() as usize);
+        assert_eq!(
+            view.observed.len(),
+            width * height * 3,
+            "observed image does not match its camera"
+        );
+        assert_eq!(
+            view.rendered.len(),
+            width * height * 3,
+            "rendered image does not match its camera"
+        );
+        let deficit = deficit_image(view, background);
+        for i in 0..nx {
+            for j in 0..ny {
+                for k in 0..nz {
+                    let cell = (i * ny + j) * nz + k;
+                    let value = view
+                        .camera
+                        .project(lattice.cell_centre([i, j, k]))
+                        .filter(|p| {
+                            p.x >= 0.0 && p.y >= 0.0 && p.x < width as f32 && p.y < height as f32
+                        })
+                        .map_or(0.0, |p| deficit[p.y as usize * width + p.x as usize]);
+                    scores[cell] = scores[cell].min(value);
+                }
+            }
+        }
+    }
+    if views.is_empty() {
+        scores.fill(0.0);
+    }
+    scores
+}
+
+/// Recycles up to `options.fraction` of `gaussians` in place (see the module docs).
+pub fn respawn(
+    gaussians: &mut HostGaussians,
+    views: &[DeficitView],
+    lattice: &SpawnLattice,
+    options: &RespawnOptions,
+) -> RespawnReport {
+    let budget = (options.fraction.max(0.0) * gaussians.len() as f32).floor() as usize;
+    if budget == 0 || views.is_empty() {
+        return RespawnReport::default();
+    }
+    let scores = cell_scores(views, lattice, options.background);
+    let mut cells: Vec<(usize, f32)> = scores
+        .iter()
+        .enumerate()
+        .filter(|(_, s)| **s > options.threshold)
+        .map(|(cell, s)| (cell, *s))
+        .collect();
+    let deficit_cells = cells.len();
+    let max_deficit = scores.iter().cloned().fold(0.0, f32::max);
+    let (candidates, faces) = recycling_candidates(gaussians, lattice);
+    let count = budget.min(cells.len()).min(candidates.len());
+    if count == 0 {
+        return RespawnReport {
+            deficit_cells,
+            max_deficit,
+            ..Default::default()
+        };
+    }
+
+    // The colour the reconstruction already gives smoke: the visible Gaussians' mean.
+    let visible: Vec<usize> = (0..gaussians.len())
+        .filter(|&i| peak_opacity(gaussians, i) >= INVISIBLE_OPACITY)
+        .collect();
+    let mut colour = [0.5f32; 3];
+    if !visible.is_empty() {
+        for (channel, value) in colour.iter_mut().enumerate() {
+            *value = visible
+                .iter()
+                .map(|&i| gaussians.colors[3 * i + channel])
+                .sum::<f32>()
+                / visible.len() as f32;
+        }
+    }
+    let contrast = colour
+        .iter()
+        .zip(options.background)
+        .map(|(c, b)| (c - b).abs())
+        .sum::<f32>()
+        / 3.0;
+
+    let mut rng = SplitMix64::new(options.seed);
+    let [_, ny, nz] = lattice.resolution;
+    let cell_size = lattice.cell_size();
+    let log_std = options.std.ln();
+    let mut report = RespawnReport {
+        indices: Vec::with_capacity(count),
+        from_box_faces: faces.min(count),
+        deficit_cells,
+        max_deficit,
+    };
+    for &index in candidates.iter().take(count) {
+        // Weighted draw without replacement (linear scan: `count` is small).
+        let total: f32 = cells.iter().map(|(_, s)| s).sum();
+        let mut pick = rng.uniform() * total;
+        let mut chosen = cells.len() - 1;
+        for (position, (_, score)) in cells.iter().enumerate() {
+            if pick < *score {
+                chosen = position;
+                break;
+            }
+            pick -= score;
+        }
+        let (cell, score) = cells.swap_remove(chosen);
+        let (i, j, k) = (cell / (ny * nz), (cell / nz) % ny, cell % nz);
+        let centre = lattice.cell_centre([i, j, k]);
+        let jitter = Vec3::new(
+            rng.range(-0.5, 0.5),
+            rng.range(-0.5, 0.5),
+            rng.range(-0.5, 0.5),
+        );
+        let position = centre + jitter * cell_size;
+
+        let opacity = (0.5 * score / contrast.max(0.05)).clamp(INVISIBLE_OPACITY, 0.5);
+        let sigma = -(1.0 - opacity).ln() / (SQRT_TAU * options.std);
+
+        gaussians.means[3 * index..3 * index + 3].copy_from_slice(&position.to_array());
+        gaussians.rotations[4 * index..4 * index + 4].copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
+        gaussians.log_scales[3 * index..3 * index + 3].fill(log_std);
+        gaussians.raw_densities[index] = inverse_softplus(sigma);
+        gaussians.colors[3 * index..3 * index + 3].copy_from_slice(&colour);
+        report.indices.push(index);
+    }
+    report
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use gausmoke_core::Camera;
+
+    fn lattice() -> SpawnLattice {
+        SpawnLattice {
+            lo: Vec3::ZERO,
+            hi: Vec3::ONE,
+            resolution: [8, 8, 8],
+        }
+    }
+
+    /// Two cameras looking at the unit box's centre along -Z and along -X.
+    fn cameras() -> [Camera; 2] {
+        let target = Vec3::splat(0.5);
+        [Vec3::new(0.5, 0.5, 3.0), Vec3::new(3.0, 0.5, 0.5)]
+            .map(|eye| Camera::look_at(eye, target, Vec3::Y, 64, 64, 0.9).unwrap())
+    }
+
+    /// An image that is black except a bright disc around the projection of `point`.
+    fn spot_image(camera: &Camera, point: Vec3, radius: f32) -> Vec<f32> {
+        let centre = camera.project(point).unwrap();
+        let mut image = vec![0.0; 64 * 64 * 3];
+        for y in 0..64 {
+            for x in 0..64 {
+                let d = (centre - gausmoke_core::glam::Vec2::new(x as f32 + 0.5, y as f32 + 0.5))
+                    .length();
+                if d < radius {
+                    image[(y * 64 + x) * 3..(y * 64 + x) * 3 + 3].fill(0.8);
+                }
+            }
+        }
+        image
+    }
+
+    /// `n` Gaussians: the first on the top face, the second visible, the rest invisible.
+    fn gaussians(n: usize) -> HostGaussians {
+        let mut g = HostGaussians {
+            means: vec![0.3; 3 * n],
+            rotations: [1.0, 0.0, 0.0, 0.0].repeat(n),
+            log_scales: vec![(0.05f32).ln(); 3 * n],
+            raw_densities: vec![-12.0; n],
+            colors: vec![0.6; 3 * n],
+        };
+        g.means[1] = 1.0;
+        g.raw_densities[1] = 3.0;
+        // Give the invisible ones distinct, increasing opacities.
+        for i in 2..n {
+            g.raw_densities[i] = -14.0 + 0.01 * i as f32;
+        }
+        g
+    }
+
+    fn options(fraction: f32) -> RespawnOptions {
+        RespawnOptions {
+            fraction,
+            threshold: 0.05,
+            std: 0.03,
+            background: [0.0; 3],
+            seed: 7,
+        }
+    }
+
+    #[test]
+    fn gaussians_go_where_every_view_misses_smoke_face_ones_first() {
+        let cameras = cameras();
+        let smoke = Vec3::new(0.3, 0.7, 0.6);
+        let observed: Vec<Vec<f32>> = cameras.iter().map(|c| spot_image(c, smoke, 4.0)).collect();
+        let rendered = vec![0.0; 64 * 64 * 3];
+        let views: Vec<DeficitView> = cameras
+            .iter()
+            .zip(&observed)
+            .map(|(camera, observed)| DeficitView {
+                camera,
+                observed,
+                rendered: &rendered,
+            })
+            .collect();
+        let mut g = gaussians(100);
+        let before = g.clone();
+        let report = respawn(&mut g, &views, &lattice(), &options(0.05));
+
+        assert_eq!(report.indices.len(), 5);
+        assert_eq!(report.from_box_faces, 1);
+        assert_eq!(
+            report.indices[0], 0,
+            "the Gaussian on the top face goes first"
+        );
+        assert!(
+            !report.indices.contains(&1),
+            "a visible Gaussian is never recycled"
+        );
+        // Then the least visible: rows 2, 3, 4, 5 have the lowest densities.
+        assert_eq!(&report.indices[1..], &[2, 3, 4, 5]);
+        assert!(report.deficit_cells > 0);
+        for &index in &report.indices {
+            let p = Vec3::from_slice(&g.means[3 * index..3 * index + 3]);
+            // Only cells near the smoke's point project into the spot in both views.
+            assert!(
+                (p - smoke).length() < 0.25,
+                "recycled Gaussian {index} at {p:?}, smoke at {smoke:?}"
+            );
+            let opacity = peak_opacity(&g, index);
+            assert!(opacity > INVISIBLE_OPACITY && opacity <= 0.5 + 1e-4);
+            // The mean colour of the visible Gaussians (there is one: 0.6 grey).
+            assert_eq!(&g.colors[3 * index..3 * index + 3], &[0.6; 3]);
+        }
+        // Rows not recycled are untouched.
+        for i in (6..100).chain([1]) {
+            assert_eq!(g.means[3 * i..3 * i + 3], before.means[3 * i..3 * i + 3]);
+            assert_eq!(g.raw_densities[i], before.raw_densities[i]);
+        }
+    }
+
+    #[test]
+    fn nothing_moves_without_a_deficit_or_a_budget() {
+        let cameras = cameras();
+        let smoke = Vec3::new(0.3, 0.7, 0.6);
+        let image = spot_image(&cameras[0], smoke, 4.0);
+        // The render already shows the smoke: no deficit anywhere.
+        let views = [DeficitView {
+            camera: &cameras[0],
+            observed: &image,
+            rendered: &image,
+        }];
+        let mut g = gaussians(100);
+        let before = g.clone();
+        assert!(
+            respawn(&mut g, &views, &lattice(), &options(0.05))
+                .indices
+                .is_empty()
+        );
+        // A deficit, but a budget of zero (the paper's method).
+        let dark = vec![0.0; 64 * 64 * 3];
+        let views = [DeficitView {
+            camera: &cameras[0],
+            observed: &image,
+            rendered: &dark,
+        }];
+        assert!(
+            respawn(&mut g, &views, &lattice(), &options(0.0))
+                .indices
+                .is_empty()
+        );
+        assert_eq!(g, before);
+    }
+
+    #[test]
+    fn a_deficit_seen_by_one_view_only_is_not_smoke() {
+        // The second view shows nothing there: the visual hull excludes the point.
+        let cameras = cameras();
+        let smoke = Vec3::new(0.3, 0.7, 0.6);
+        let observed = spot_image(&cameras[0], smoke, 4.0);
+        let dark = vec![0.0; 64 * 64 * 3];
+        let views = [
+            DeficitView {
+                camera: &cameras[0],
+                observed: &observed,
+                rendered: &dark,
+            },
+            DeficitView {
+                camera: &cameras[1],
+                observed: &dark,
+                rendered: &dark,
+            },
+        ];
+        let mut g = gaussians(100);
+        let report = respawn(&mut g, &views, &lattice(), &options(0.05));
+        assert_eq!(report.deficit_cells, 0);
+        assert!(report.indices.is_empty());
+    }
+
+    #[test]
+    fn softplus_round_trips() {
+        for sigma in [1e-4f32, 0.01, 0.5, 3.0, 30.0] {
+            let back = softplus(inverse_softplus(sigma));
+            assert!(
+                (back - sigma).abs() <= 1e-4 * sigma.max(1.0),
+                "{sigma} {back}"
+            );
+        }
+    }
+}
