@@ -63,6 +63,14 @@ pub struct ReproduceArgs {
     /// get `-r<fraction>` keys.
     #[arg(long)]
     respawn: Option<f32>,
+    /// Override a configuration value of every variant (`gausmoke-train --set` syntax,
+    /// repeatable); needs --tag.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    overrides: Vec<String>,
+    /// Appended to the run keys (`-<tag>`) of runs with --set, so they do not overwrite the
+    /// preset's.
+    #[arg(long)]
+    tag: Option<String>,
     /// Folder holding `RESULTS.md` and `results/` (default: the workspace's `docs`).
     #[arg(long)]
     docs: Option<PathBuf>,
@@ -113,13 +121,18 @@ struct Variant {
     config: TrainConfig,
 }
 
-fn variants(args: &ReproduceArgs) -> Vec<Variant> {
+fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
     let mut suffix = if args.quick { "-quick" } else { "" }.to_string();
     if let Some(frames) = args.frames {
         suffix += &format!("-f{frames}");
     }
     if let Some(fraction) = args.respawn {
         suffix += &format!("-r{fraction}");
+    }
+    match (&args.tag, args.overrides.is_empty()) {
+        (Some(tag), _) => suffix += &format!("-{tag}"),
+        (None, false) => bail!("--set changes the preset: name the runs with --tag"),
+        (None, true) => {}
     }
     let group_suffix = suffix.clone();
     if let Some(seed) = args.seed {
@@ -144,17 +157,24 @@ fn variants(args: &ReproduceArgs) -> Vec<Variant> {
     if let Some(fraction) = args.respawn {
         base.respawn_fraction = fraction;
     }
+    base = base.with_overrides(&args.overrides)?;
+    let overrides = args.overrides.join(", ");
     let keyed = |target: &str, ablation: &str, label: &str, config: TrainConfig| Variant {
         key: format!("{target}{suffix}{ablation}"),
         group: format!("{target}{group_suffix}{ablation}"),
-        label: if config.respawn_fraction > 0.0 {
-            format!("{label}, respawn {}", config.respawn_fraction)
-        } else {
-            label.to_string()
+        label: {
+            let mut label = label.to_string();
+            if config.respawn_fraction > 0.0 {
+                label += &format!(", respawn {}", config.respawn_fraction);
+            }
+            if !overrides.is_empty() {
+                label += &format!(", {overrides}");
+            }
+            label
         },
         config,
     };
-    match args.target {
+    Ok(match args.target {
         Target::ScalarReal => vec![keyed("scalar-real", "", "full method", base)],
         Target::Synthetic => {
             let mut list = vec![keyed("synthetic", "", "full method", base.clone())];
@@ -189,7 +209,7 @@ fn variants(args: &ReproduceArgs) -> Vec<Variant> {
             }
             list
         }
-    }
+    })
 }
 
 /// Starts the peak-resident-memory count again (Linux: writing 5 to `/proc/self/clear_refs`
@@ -259,6 +279,16 @@ fn command_line(args: &ReproduceArgs) -> String {
     if let Some(fraction) = args.respawn {
         line += &format!(" --respawn {fraction}");
     }
+    for entry in &args.overrides {
+        if entry.contains(' ') {
+            line += &format!(" --set \"{entry}\"");
+        } else {
+            line += &format!(" --set {entry}");
+        }
+    }
+    if let Some(tag) = &args.tag {
+        line += &format!(" --tag {tag}");
+    }
     if args.no_ablations {
         line += " --no-ablations";
     }
@@ -307,7 +337,7 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
     let docs = args.docs.clone().unwrap_or_else(|| root.join("docs"));
     let results_dir = docs.join("results");
     std::fs::create_dir_all(&results_dir)?;
-    for variant in variants(&args) {
+    for variant in variants(&args)? {
         let run_dir = args.out.join(&variant.key);
         eprintln!(
             "== {} ({}) -> {}",
@@ -587,6 +617,8 @@ mod tests {
             lpips_weights: None,
             seed: None,
             respawn: None,
+            overrides: Vec::new(),
+            tag: None,
             docs: Some(docs.clone()),
         };
         run(args).unwrap();

@@ -72,7 +72,7 @@ pub fn write_ply(path: &Path, gaussians: &HostGaussians) -> Result<(), TrainErro
             push(0.0);
         }
         let raw = gaussians.raw_densities[i];
-        let sigma = if raw > 20.0 { raw } else { raw.exp().ln_1p() };
+        let sigma = gausmoke_render::math::softplus(raw);
         let mean_log_scale = (0..3).map(|a| gaussians.log_scales[3 * i + a]).sum::<f32>() / 3.0;
         let alpha = (1.0
             - (-sigma * (2.0 * std::f32::consts::PI).sqrt() * mean_log_scale.exp()).exp())

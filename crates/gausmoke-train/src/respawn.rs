@@ -27,6 +27,7 @@
 
 use gausmoke_core::Camera;
 use gausmoke_core::glam::Vec3;
+use gausmoke_render::math::softplus;
 use gausmoke_render::scenes::{HostGaussians, SplitMix64};
 
 /// Opacity below which a Gaussian cannot change an 8-bit pixel.
@@ -94,10 +95,6 @@ fn peak_opacity(gaussians: &HostGaussians, index: usize) -> f32 {
         .cloned()
         .fold(f32::NEG_INFINITY, f32::max);
     1.0 - (-sigma * SQRT_TAU * max_log_std.exp()).exp()
-}
-
-fn softplus(x: f32) -> f32 {
-    if x > 20.0 { x } else { x.exp().ln_1p() }
 }
 
 /// The raw density whose softplus is `sigma > 0`.
