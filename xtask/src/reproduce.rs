@@ -7,6 +7,7 @@
 //! only measured numbers. The prose around the block is written by people.
 
 use std::fmt::Write as _;
+use std::ops::Not as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -228,7 +229,8 @@ fn peak_memory_mib() -> Option<f64> {
     Some(kib / 1024.0)
 }
 
-fn machine() -> String {
+/// The CPU, and for GPU devices the NVIDIA adapter and driver where `nvidia-smi` exists.
+fn machine(device: &str) -> String {
     let cpu = std::fs::read_to_string("/proc/cpuinfo")
         .ok()
         .and_then(|info| {
@@ -239,7 +241,25 @@ fn machine() -> String {
         })
         .unwrap_or_else(|| "unknown CPU".into());
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    format!("{cpu}, {threads} threads")
+    let gpu = ["flex", "ndarray"]
+        .contains(&device)
+        .not()
+        .then(|| {
+            std::process::Command::new("nvidia-smi")
+                .args(["--query-gpu=name,driver_version", "--format=csv,noheader"])
+                .output()
+                .ok()
+                .filter(|o| o.status.success())
+                .and_then(|o| String::from_utf8(o.stdout).ok())
+                .and_then(|s| s.lines().next().map(|l| l.trim().to_string()))
+        })
+        .flatten()
+        .map(|line| match line.split_once(", ") {
+            Some((name, driver)) => format!("{name} (driver {driver}), "),
+            None => format!("{line}, "),
+        })
+        .unwrap_or_default();
+    format!("{gpu}{cpu}, {threads} threads")
 }
 
 fn utc_now() -> String {
@@ -381,7 +401,7 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             "command": command_line(&args),
             "data": data.display().to_string(),
             "device": args.device,
-            "machine": machine(),
+            "machine": machine(&args.device),
             "date": utc_now(),
             "frames": frames,
             "gaussians": gaussians,

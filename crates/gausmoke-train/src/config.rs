@@ -132,6 +132,10 @@ pub struct TrainConfig {
     pub seed: u64,
     /// Write renders, exports and velocity slices every this many frames (1 = all).
     pub output_every: usize,
+    /// Wait for the device at both ends of every timed phase, so the per-phase times in
+    /// `metrics.json` charge GPU work to the phase that queued it. Slows GPU runs; changes
+    /// nothing on the CPU backends, which run eagerly.
+    pub sync_phase_timings: bool,
 }
 
 impl Default for TrainConfig {
@@ -171,6 +175,7 @@ impl Default for TrainConfig {
             respawn_threshold: 0.05,
             seed: 2026,
             output_every: 1,
+            sync_phase_timings: false,
         }
     }
 }

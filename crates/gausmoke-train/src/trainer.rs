@@ -188,6 +188,15 @@ impl Trainer {
             phase_times: Vec::new(),
         };
         profile::set_enabled(true);
+        profile::set_sync_hook(trainer.config.sync_phase_timings.then(|| {
+            let device = trainer.device.clone();
+            let hook: profile::SyncHook = std::sync::Arc::new(move || {
+                // A failed wait only blurs the phase boundaries; the work itself reports
+                // its own errors.
+                let _ = device.sync();
+            });
+            hook
+        }));
         let _ = profile::take();
         if let Some(dir) = existing.filter(|_| resume) {
             trainer.restore(&dir)?;
