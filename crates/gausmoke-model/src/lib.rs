@@ -21,6 +21,8 @@ pub mod interp;
 pub mod losses;
 pub mod penalty;
 pub mod projection;
+#[cfg(feature = "cube")]
+mod projection_kernel;
 mod projection_op;
 pub mod unet;
 

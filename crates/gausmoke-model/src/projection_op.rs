@@ -81,12 +81,14 @@ impl ProjectionBackend for burn::backend::Flex {
     }
 }
 
-/// On the GPU backends the solve runs on the host for now (one read-back and one upload of the
-/// velocity grid per projection): a cubecl PCG is future work.
+/// On the GPU backends the solve stays on the device (`projection_kernel`): the same PCG in
+/// f32, with no read-back of the velocity grid.
 #[cfg(feature = "cube")]
 impl ProjectionBackend for burn_cubecl::CubeBackend {
     fn project_velocity(velocity: FloatTensor<Self>, spec: ProjectionSpec) -> FloatTensor<Self> {
-        host_project::<Self>(velocity, spec)
+        let (projected, report) = crate::projection_kernel::project_velocity(velocity, &spec);
+        tracing::debug!(?report, "velocity projection (device)");
+        projected
     }
 }
 
