@@ -194,16 +194,10 @@ pub fn divergence_transpose_kernel(
     }
 }
 
-/// Per-cube sums of `a * b` over `len` entries into `partials[CUBE_POS]`.
-#[cube(launch)]
-pub fn dot_partials_kernel(a: &[f32], b: &[f32], partials: &mut [f32], len: u32) {
-    let mut sums = Shared::<[f32]>::new_slice(CELL_BLOCK);
-    let index = ABSOLUTE_POS as u32;
-    let mut product = 0.0f32;
-    if index < len {
-        product = a[index as usize] * b[index as usize];
-    }
-    sums[UNIT_POS as usize] = product;
+/// Tree sum of one value per unit into `sums[0]` (every unit must call it: it synchronises
+/// the cube; `CUBE_DIM` is a power of two).
+#[cube]
+fn sum_over_cube(sums: &mut Shared<[f32]>) {
     sync_cube();
     let mut stride = CUBE_DIM / 2;
     while stride > 0 {
@@ -214,6 +208,19 @@ pub fn dot_partials_kernel(a: &[f32], b: &[f32], partials: &mut [f32], len: u32)
         sync_cube();
         stride /= 2;
     }
+}
+
+/// Per-cube sums of `a * b` over `len` entries into `partials[CUBE_POS]`.
+#[cube(launch)]
+pub fn dot_partials_kernel(a: &[f32], b: &[f32], partials: &mut [f32], len: u32) {
+    let mut sums = Shared::<[f32]>::new_slice(CELL_BLOCK);
+    let index = ABSOLUTE_POS as u32;
+    let mut product = 0.0f32;
+    if index < len {
+        product = a[index as usize] * b[index as usize];
+    }
+    sums[UNIT_POS as usize] = product;
+    sum_over_cube(&mut sums);
     if UNIT_POS == 0 {
         partials[CUBE_POS] = sums[0];
     }
@@ -230,16 +237,7 @@ pub fn finish_sum_kernel(partials: &[f32], scalars: &mut [f32], count: u32, slot
         index += CUBE_DIM;
     }
     sums[UNIT_POS as usize] = total;
-    sync_cube();
-    let mut stride = CUBE_DIM / 2;
-    while stride > 0 {
-        if UNIT_POS < stride {
-            let other = sums[(UNIT_POS + stride) as usize];
-            sums[UNIT_POS as usize] += other;
-        }
-        sync_cube();
-        stride /= 2;
-    }
+    sum_over_cube(&mut sums);
     if UNIT_POS == 0 {
         scalars[slot as usize] = sums[0];
     }
