@@ -67,14 +67,7 @@ fn host_projection(values: &[f32], grid: &GridSpec, options: &ProjectionOptions)
 
 /// RMS of the discrete divergence of a velocity grid (host, f64).
 fn divergence_rms(values: &[f32], grid: &GridSpec) -> f64 {
-    let c = grid.cell_size();
-    let operator = Divergence {
-        resolution: grid.resolution(),
-        cell: [c.x as f64, c.y as f64, c.z as f64],
-    };
-    let u: Vec<f64> = values.iter().map(|&v| v as f64).collect();
-    let mut divergence = vec![0.0; grid.num_cells()];
-    operator.apply(&u, &mut divergence);
+    let divergence = Divergence::on_grid(grid).of_velocity(values);
     (divergence.iter().map(|d| d * d).sum::<f64>() / divergence.len() as f64).sqrt()
 }
 

@@ -59,6 +59,23 @@ pub struct Divergence {
 }
 
 impl Divergence {
+    /// The operator on `grid`'s cells.
+    pub fn on_grid(grid: &crate::grid::GridSpec) -> Self {
+        let cell = grid.cell_size();
+        Self {
+            resolution: grid.resolution(),
+            cell: [cell.x as f64, cell.y as f64, cell.z as f64],
+        }
+    }
+
+    /// `D u` per cell (1 / frame) of a velocity grid `[nx, ny, nz, 3]`, flat, in f64.
+    pub fn of_velocity(&self, velocity: &[f32]) -> Vec<f64> {
+        let u: Vec<f64> = velocity.iter().map(|&v| v as f64).collect();
+        let mut divergence = vec![0.0; self.resolution.iter().product()];
+        self.apply(&u, &mut divergence);
+        divergence
+    }
+
     fn stride(&self, axis: usize) -> usize {
         let [_, ny, nz] = self.resolution;
         [ny * nz, nz, 1][axis]

@@ -20,14 +20,7 @@ fn random_field(cells: usize, seed: u64) -> Vec<f32> {
 }
 
 fn divergence_rms(g: &GridSpec, u: &[f32]) -> f64 {
-    let c = g.cell_size();
-    let op = Divergence {
-        resolution: g.resolution(),
-        cell: [c.x as f64, c.y as f64, c.z as f64],
-    };
-    let u64: Vec<f64> = u.iter().map(|&v| v as f64).collect();
-    let mut d = vec![0.0; g.num_cells()];
-    op.apply(&u64, &mut d);
+    let d = Divergence::on_grid(g).of_velocity(u);
     (d.iter().map(|v| v * v).sum::<f64>() / d.len() as f64).sqrt()
 }
 
@@ -70,11 +63,7 @@ fn gradient_fields_project_to_zero_and_solenoidal_fields_stay() {
         ..Default::default()
     };
     // A discrete gradient D^T phi is in the range of D^T, so Pi removes it exactly.
-    let c = g.cell_size();
-    let op = Divergence {
-        resolution: g.resolution(),
-        cell: [c.x as f64, c.y as f64, c.z as f64],
-    };
+    let op = Divergence::on_grid(&g);
     let centres = g.cell_centres();
     let phi: Vec<f64> = centres
         .chunks(3)
@@ -182,11 +171,7 @@ mod penalty {
         let [nx, ny, nz] = g.resolution();
         let u = random_field(g.num_cells(), 3);
         let p = random_field(g.num_cells(), 4)[..g.num_cells()].to_vec();
-        let c = g.cell_size();
-        let op = Divergence {
-            resolution: g.resolution(),
-            cell: [c.x as f64, c.y as f64, c.z as f64],
-        };
+        let op = Divergence::on_grid(&g);
         let u64: Vec<f64> = u.iter().map(|&v| v as f64).collect();
         let mut expected = vec![0.0; g.num_cells()];
         op.apply(&u64, &mut expected);

@@ -116,14 +116,7 @@ pub fn ssim(rendered: &[f32], reference: &[f32], width: usize, height: usize) ->
 /// frame), with the same face-averaged discrete divergence the projection makes zero; in
 /// 1/frame. This is the paper's Table 3 quantity on our grid.
 pub fn mean_abs_divergence(grid: &GridSpec, velocity: &[f32]) -> f64 {
-    let cell = grid.cell_size();
-    let operator = Divergence {
-        resolution: grid.resolution(),
-        cell: [cell.x as f64, cell.y as f64, cell.z as f64],
-    };
-    let u: Vec<f64> = velocity.iter().map(|&v| v as f64).collect();
-    let mut divergence = vec![0.0; grid.num_cells()];
-    operator.apply(&u, &mut divergence);
+    let divergence = Divergence::on_grid(grid).of_velocity(velocity);
     divergence.iter().map(|d| d.abs()).sum::<f64>() / divergence.len().max(1) as f64
 }
 
