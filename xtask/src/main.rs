@@ -7,6 +7,7 @@
 //!   `cargo run --release -p xtask -- bench render`.
 //! * `reproduce scalar-real|synthetic [--quick]`: train, evaluate, and record the results in
 //!   `docs/results/` and `docs/RESULTS.md`.
+//! * `results`: rebuild the generated tables of `docs/RESULTS.md` from `docs/results/`.
 
 mod bench;
 mod reproduce;
@@ -39,6 +40,9 @@ enum Task {
     /// Train, evaluate and record the paper's experiments (writes docs/results/*.json and
     /// the tables of docs/RESULTS.md).
     Reproduce(reproduce::ReproduceArgs),
+    /// Rebuild the generated tables of docs/RESULTS.md from docs/results/*.json, without
+    /// training.
+    Results,
 }
 
 /// Root of the workspace (xtask lives one level below it).
@@ -64,5 +68,6 @@ fn main() -> Result<()> {
         }
         Task::Bench { which } => bench::run(which),
         Task::Reproduce(args) => reproduce::run(args),
+        Task::Results => reproduce::write_results_md(&workspace_root().join("docs")),
     }
 }

@@ -81,6 +81,13 @@ pub struct ReproduceArgs {
 const PAPER_SCALAR_REAL: &str = "34.83 dB PSNR, 0.955 SSIM, 0.0168 LPIPS; 0.8 h training on an \
                                  RTX 3090; 114 FPS rendering; 42 MB";
 
+/// The paper's Table 3 (ablations; PSNR, SSIM, LPIPS, divergence; the table does not name
+/// its scene).
+const PAPER_ABLATIONS: &str = "full model 37.98 dB, 0.975, 0.0336, div 0.085; w/o L_div, L_adv \
+                               30.12 dB, 0.925, 0.0810, div 0.402; w/o volumetric rendering \
+                               30.45 dB, 0.932, 0.0825, div 0.127; w/o L_refine 33.87 dB, 0.964, \
+                               0.0418, div 0.098";
+
 fn quick_scalar_real() -> TrainConfig {
     TrainConfig {
         gaussians: 8000,
@@ -180,37 +187,69 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
         Target::Synthetic => {
             let mut list = vec![keyed("synthetic", "", "full method", base.clone())];
             if !args.no_ablations {
-                list.push(keyed(
-                    "synthetic",
-                    "-no-physics",
-                    "w/o physical losses",
-                    TrainConfig {
-                        physics_losses: false,
-                        ..base.clone()
-                    },
-                ));
-                list.push(keyed(
-                    "synthetic",
-                    "-no-refinement",
-                    "w/o refinement",
-                    TrainConfig {
-                        refinement: false,
-                        ..base.clone()
-                    },
-                ));
-                list.push(keyed(
-                    "synthetic",
-                    "-no-volumetric",
-                    "w/o volumetric rendering",
-                    TrainConfig {
-                        volumetric: false,
-                        ..base
-                    },
-                ));
+                for ablation in Ablation::ALL {
+                    let config = ablation.apply(base.clone());
+                    list.push(keyed(
+                        "synthetic",
+                        ablation.suffix(),
+                        ablation.label(),
+                        config,
+                    ));
+                }
             }
             list
         }
     })
+}
+
+/// The paper's Table 3 ablations, named by the part of the method each switches off.
+#[derive(Debug, Clone, Copy)]
+enum Ablation {
+    Physics,
+    Refinement,
+    Volumetric,
+}
+
+impl Ablation {
+    const ALL: [Ablation; 3] = [
+        Ablation::Physics,
+        Ablation::Refinement,
+        Ablation::Volumetric,
+    ];
+
+    /// Appended to the full method's run key and group.
+    fn suffix(self) -> &'static str {
+        match self {
+            Ablation::Physics => "-no-physics",
+            Ablation::Refinement => "-no-refinement",
+            Ablation::Volumetric => "-no-volumetric",
+        }
+    }
+
+    fn label(self) -> &'static str {
+        match self {
+            Ablation::Physics => "w/o physical losses",
+            Ablation::Refinement => "w/o refinement",
+            Ablation::Volumetric => "w/o volumetric rendering",
+        }
+    }
+
+    fn apply(self, config: TrainConfig) -> TrainConfig {
+        match self {
+            Ablation::Physics => TrainConfig {
+                physics_losses: false,
+                ..config
+            },
+            Ablation::Refinement => TrainConfig {
+                refinement: false,
+                ..config
+            },
+            Ablation::Volumetric => TrainConfig {
+                volumetric: false,
+                ..config
+            },
+        }
+    }
 }
 
 /// Starts the peak-resident-memory count again (Linux: writing 5 to `/proc/self/clear_refs`
@@ -455,15 +494,61 @@ fn mean_std(values: &[f64]) -> (f64, f64) {
     (mean, var.sqrt())
 }
 
-/// For every group of runs that differ only in their seed (two or more), the mean and
-/// standard deviation of the held-out metrics.
-fn write_seed_summary(block: &mut String, records: &[Value]) -> Result<()> {
+/// The seed of a record's Gaussians' initialisation.
+fn seed_of(record: &Value) -> u64 {
+    record["seed"]
+        .as_u64()
+        .or(record["config"]["seed"].as_u64())
+        .unwrap_or(2026)
+}
+
+/// A metric summarised over seeds.
+struct SeedMetric {
+    /// Its name in the records.
+    name: &'static str,
+    higher_is_better: bool,
+    format: fn(f64) -> String,
+}
+
+const SEED_METRICS: [SeedMetric; 4] = [
+    SeedMetric {
+        name: "test_psnr",
+        higher_is_better: true,
+        format: |v| format!("{v:.2}"),
+    },
+    SeedMetric {
+        name: "velocity_relative_error",
+        higher_is_better: false,
+        format: |v| format!("{v:.3}"),
+    },
+    SeedMetric {
+        name: "density_relative_error",
+        higher_is_better: false,
+        format: |v| format!("{v:.3}"),
+    },
+    SeedMetric {
+        name: "mean_abs_divergence",
+        higher_is_better: false,
+        format: |v| format!("{v:.2e}"),
+    },
+];
+
+/// Runs grouped by what they share apart from the seed (records written before groups existed
+/// are their own group).
+fn seed_groups(records: &[Value]) -> std::collections::BTreeMap<&str, Vec<&Value>> {
     let mut groups: std::collections::BTreeMap<&str, Vec<&Value>> = Default::default();
     for r in records {
-        // Records written before groups existed are their own group.
         let group = r["group"].as_str().or(r["key"].as_str()).unwrap_or("?");
         groups.entry(group).or_default().push(r);
     }
+    groups
+}
+
+/// For every group of runs that differ only in their seed (two or more), the mean and
+/// standard deviation of the held-out metrics; then, for every ablation, its per-seed
+/// differences from the full method run with the same seed.
+fn write_seed_summary(block: &mut String, records: &[Value]) -> Result<()> {
+    let groups = seed_groups(records);
     let repeated: Vec<_> = groups.iter().filter(|(_, runs)| runs.len() >= 2).collect();
     if repeated.is_empty() {
         return Ok(());
@@ -474,32 +559,117 @@ fn write_seed_summary(block: &mut String, records: &[Value]) -> Result<()> {
     )?;
     writeln!(
         block,
-        "| group | variant | seeds | held-out PSNR (dB) | SSIM | velocity rel. error | density rel. error |"
+        "| group | variant | seeds | held-out PSNR (dB) | SSIM | velocity rel. error | density rel. error | mean abs div u (1/frame) |"
     )?;
-    writeln!(block, "|---|---|---|---:|---:|---:|---:|")?;
-    for (group, runs) in repeated {
-        let column = |name: &str, digits: usize| {
+    writeln!(block, "|---|---|---|---:|---:|---:|---:|---:|")?;
+    for (group, runs) in &repeated {
+        let column = |name: &str, format: fn(f64) -> String| {
             let values: Vec<f64> = runs.iter().filter_map(|r| r[name].as_f64()).collect();
             if values.len() < 2 {
                 return "n/a".to_string();
             }
             let (mean, std) = mean_std(&values);
-            format!("{mean:.digits$} +- {std:.digits$}")
+            format!("{} +- {}", format(mean), format(std))
         };
-        let seeds: Vec<String> = runs
-            .iter()
-            .map(|r| r["seed"].as_u64().unwrap_or(2026).to_string())
-            .collect();
+        let seeds: Vec<String> = runs.iter().map(|r| seed_of(r).to_string()).collect();
         writeln!(
             block,
-            "| `{group}` | {} | {} | {} | {} | {} | {} |",
+            "| `{group}` | {} | {} | {} | {} | {} | {} | {} |",
             runs[0]["variant"].as_str().unwrap_or("?"),
             seeds.join(", "),
-            column("test_psnr", 2),
-            column("test_ssim", 4),
-            column("velocity_relative_error", 3),
-            column("density_relative_error", 3),
+            column("test_psnr", SEED_METRICS[0].format),
+            column("test_ssim", |v| format!("{v:.4}")),
+            column("velocity_relative_error", SEED_METRICS[1].format),
+            column("density_relative_error", SEED_METRICS[2].format),
+            column("mean_abs_divergence", SEED_METRICS[3].format),
         )?;
+    }
+    write_paired_ablations(block, &groups)
+}
+
+/// Each ablation against the full method with the same seed: the mean +- standard deviation
+/// of the per-seed difference (full minus ablation) and in how many seeds the full method
+/// is the better of the two. Pairing removes the spread that the initialisation puts into
+/// both runs alike.
+fn write_paired_ablations(
+    block: &mut String,
+    groups: &std::collections::BTreeMap<&str, Vec<&Value>>,
+) -> Result<()> {
+    let mut rows = Vec::new();
+    for (group, runs) in groups {
+        let Some(ablation) = Ablation::ALL
+            .into_iter()
+            .find(|a| group.ends_with(a.suffix()))
+        else {
+            continue;
+        };
+        let full_group = &group[..group.len() - ablation.suffix().len()];
+        let Some(full_runs) = groups.get(full_group) else {
+            continue;
+        };
+        let pairs: Vec<(&Value, &Value)> = runs
+            .iter()
+            .filter_map(|r| {
+                full_runs
+                    .iter()
+                    .find(|f| seed_of(f) == seed_of(r))
+                    .map(|f| (*f, *r))
+            })
+            .collect();
+        if pairs.len() < 2 {
+            continue;
+        }
+        let mut row = format!(
+            "| `{full_group}` | {} | {} |",
+            ablation.label(),
+            pairs.len()
+        );
+        for SeedMetric {
+            name,
+            higher_is_better,
+            format,
+        } in SEED_METRICS
+        {
+            let differences: Vec<f64> = pairs
+                .iter()
+                .filter_map(|(full, ablated)| Some(full[name].as_f64()? - ablated[name].as_f64()?))
+                .collect();
+            if differences.len() < 2 {
+                row += " n/a |";
+                continue;
+            }
+            let (mean, std) = mean_std(&differences);
+            let full_better = differences
+                .iter()
+                .filter(|&&d| if higher_is_better { d > 0.0 } else { d < 0.0 })
+                .count();
+            row += &format!(
+                " {}{} +- {} ({}/{}) |",
+                if mean >= 0.0 { "+" } else { "" },
+                format(mean),
+                format(std),
+                full_better,
+                differences.len()
+            );
+        }
+        rows.push(row);
+    }
+    if rows.is_empty() {
+        return Ok(());
+    }
+    writeln!(
+        block,
+        "\nAblations paired by seed (full method minus ablation, mean +- sample standard deviation \
+         over seeds; in brackets, the seeds in which the full method is better: higher PSNR, \
+         lower errors and divergence):\n"
+    )?;
+    writeln!(
+        block,
+        "| full-method group | ablation | seeds | PSNR (dB) | velocity rel. error | density rel. error | mean abs div u (1/frame) |"
+    )?;
+    writeln!(block, "|---|---|---:|---:|---:|---:|---:|")?;
+    for row in rows {
+        writeln!(block, "{row}")?;
     }
     Ok(())
 }
@@ -557,6 +727,7 @@ pub fn write_results_md(docs: &Path) -> Result<()> {
         block,
         "\nPaper, ScalarFlow real capture (Table 1/2): {PAPER_SCALAR_REAL}.\n"
     )?;
+    writeln!(block, "Paper, ablations (Table 3): {PAPER_ABLATIONS}.\n")?;
     writeln!(
         block,
         "Per-phase wall time (s) of each run's optimisation (calls in brackets; nested phases are inside \"backward (all ops)\"):\n"
@@ -614,6 +785,42 @@ pub fn write_results_md(docs: &Path) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn ablations_are_paired_with_the_full_method_of_the_same_seed() {
+        let record = |group: &str, seed: u64, psnr: f64, divergence: f64| {
+            json!({
+                "key": format!("{group}-s{seed}"),
+                "group": group,
+                "seed": seed,
+                "variant": "v",
+                "test_psnr": psnr,
+                "test_ssim": 0.9,
+                "velocity_relative_error": 0.5,
+                "density_relative_error": 0.5,
+                "mean_abs_divergence": divergence,
+            })
+        };
+        let records = vec![
+            record("synthetic-quick", 1, 40.0, 0.01),
+            record("synthetic-quick", 2, 44.0, 0.01),
+            // No ablation ran with seed 3: it is left out of the pairs.
+            record("synthetic-quick", 3, 10.0, 0.01),
+            record("synthetic-quick-no-physics", 1, 39.0, 0.1),
+            record("synthetic-quick-no-physics", 2, 42.0, 0.2),
+        ];
+        let mut block = String::new();
+        write_seed_summary(&mut block, &records).unwrap();
+        // PSNR differences 1 and 2 dB: mean 1.5, sample sd 0.71, the full method better in
+        // both; divergence differences -0.09 and -0.19: lower with the full method in both.
+        assert!(
+            block.contains(
+                "| `synthetic-quick` | w/o physical losses | 2 | +1.50 +- 0.71 (2/2) \
+                 | +0.000 +- 0.000 (0/2) | +0.000 +- 0.000 (0/2) | -1.40e-1 +- 7.07e-2 (2/2) |"
+            ),
+            "{block}"
+        );
+    }
 
     /// The slice of `reproduce scalar-real --quick` that CI runs: two frames of the real
     /// capture, recorded into a temporary docs folder (the repository's results stay as they
