@@ -65,6 +65,19 @@ fn host_projection(values: &[f32], grid: &GridSpec, options: &ProjectionOptions)
     projected
 }
 
+fn device_projection(
+    values: &[f32],
+    grid: &GridSpec,
+    device: &Device,
+    options: ProjectionOptions,
+) -> Vec<f32> {
+    to_vec(project_velocity(
+        grid,
+        tensor(values, grid, device),
+        options,
+    ))
+}
+
 /// RMS of the discrete divergence of a velocity grid (host, f64).
 fn divergence_rms(values: &[f32], grid: &GridSpec) -> f64 {
     let divergence = Divergence::on_grid(grid).of_velocity(values);
@@ -82,11 +95,7 @@ fn device_projection_matches_the_host_solver() {
     let options = ProjectionOptions::default();
     let input = velocity(&grid, 3);
     let expected = host_projection(&input, &grid, &options);
-    let actual = to_vec(project_velocity(
-        &grid,
-        tensor(&input, &grid, &device),
-        options,
-    ));
+    let actual = device_projection(&input, &grid, &device, options);
     let scale = max_abs(&input);
     assert_close(
         &format!("projected velocity on {backend}"),
@@ -119,11 +128,7 @@ fn truncated_device_solve_follows_the_host_iterations() {
     let input = velocity(&grid, 5);
     let expected = host_projection(&input, &grid, &options);
     let converged = host_projection(&input, &grid, &ProjectionOptions::default());
-    let actual = to_vec(project_velocity(
-        &grid,
-        tensor(&input, &grid, &device),
-        options,
-    ));
+    let actual = device_projection(&input, &grid, &device, options);
     let scale = max_abs(&input);
     let distance = expected
         .iter()
@@ -176,19 +181,11 @@ fn device_projection_leaves_a_divergence_free_field() {
     let (backend, device) = device();
     let options = ProjectionOptions::default();
     let zero = vec![0.0f32; 3 * grid.num_cells()];
-    let actual = to_vec(project_velocity(
-        &grid,
-        tensor(&zero, &grid, &device),
-        options,
-    ));
+    let actual = device_projection(&zero, &grid, &device, options);
     assert_close(&format!("Pi(0) on {backend}"), &actual, &zero, 0.0, 0.0);
     // A projected field is a fixed point (to the solver's tolerance).
     let projected = host_projection(&velocity(&grid, 9), &grid, &options);
-    let again = to_vec(project_velocity(
-        &grid,
-        tensor(&projected, &grid, &device),
-        options,
-    ));
+    let again = device_projection(&projected, &grid, &device, options);
     assert_close(
         &format!("Pi(Pi(u)) on {backend}"),
         &again,
@@ -205,11 +202,7 @@ fn device_projection_leaves_a_divergence_free_field() {
         .map(|(u, w)| u + 1e-3 * w)
         .collect();
     let expected = host_projection(&nudged, &grid, &options);
-    let actual = to_vec(project_velocity(
-        &grid,
-        tensor(&nudged, &grid, &device),
-        options,
-    ));
+    let actual = device_projection(&nudged, &grid, &device, options);
     assert!(divergence_rms(&nudged, &grid) > 1e-4);
     assert!(divergence_rms(&actual, &grid) < 1e-2 * divergence_rms(&nudged, &grid));
     assert_close(

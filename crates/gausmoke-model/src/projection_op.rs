@@ -27,10 +27,10 @@ pub struct ProjectionSpec {
 
 impl ProjectionSpec {
     pub fn new(grid: &GridSpec, options: ProjectionOptions) -> Self {
-        let c = grid.cell_size();
+        let Divergence { resolution, cell } = Divergence::on_grid(grid);
         Self {
-            resolution: grid.resolution(),
-            cell: [c.x as f64, c.y as f64, c.z as f64],
+            resolution,
+            cell,
             options,
         }
     }
