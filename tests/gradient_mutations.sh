@@ -21,8 +21,8 @@ PY
   echo "$label: goldens_failed=$g fd_failed=$f"
   cp "$backup" $file
 }
-C=crates/gausmoke-render/src/cpu.rs
-M=crates/gausmoke-render/src/math.rs
+C=gausmoke-render/src/cpu.rs
+M=gausmoke-render/src/math.rs
 run $C "let mut grad_alpha = -grad_final_t * final_t / one_minus;" "let mut grad_alpha = 0.0;" "transmittance-output term of dL/dalpha"
 run $C "(transmittance_before * splat.color[c] - behind[c] / one_minus)" "(transmittance_before * splat.color[c])" "occlusion-of-behind term of dL/dalpha"
 run $C "g.sigma += grad_optical_depth * op.sample.integral;" "" "density gradient"

@@ -19,7 +19,7 @@ const CONVOLUTIONS: [(&str, [usize; 4]); 5] = [
 ];
 
 fn golden_path() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/goldens/lpips_alexnet.safetensors")
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/goldens/lpips_alexnet.safetensors")
 }
 
 fn floats(file: &SafeTensors, name: &str) -> Vec<f32> {

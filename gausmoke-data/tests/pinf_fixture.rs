@@ -328,7 +328,7 @@ fn bad_options_are_refused() {
 }
 
 fn real_video() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/datasets/scalar_real/train00.mp4")
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/datasets/scalar_real/train00.mp4")
 }
 
 /// A one-camera info.json pointing at `video` (copied into the temp folder).

@@ -8,7 +8,7 @@ use gausmoke_data::glam::Vec3;
 use gausmoke_data::{Dataset, LoadOptions, Split, load_pinf, video};
 
 fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/datasets/scalar_real")
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/datasets/scalar_real")
 }
 
 const NAMES: [&str; 5] = ["train00", "train01", "train02", "train03", "train04"];
