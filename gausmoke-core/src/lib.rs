@@ -8,11 +8,16 @@
 //!   centre at `(i + 0.5, j + 0.5)`. Intrinsics `fx, fy, cx, cy` are in pixels.
 //! * **Images**: f32 linear values in `[0, 1]`, `[height, width, channels]` on the host.
 //!
-//! This crate has no tensor dependency so the data loaders can use it without pulling a
-//! deep-learning framework.
+//! Also the pieces every crate uses: a seeded generator ([`SplitMix64`]) and the per-phase
+//! wall times of training, measured from `tracing` spans ([`phases`]). This crate has no
+//! tensor dependency so the data loaders can use it without pulling a deep-learning framework.
 
 mod camera;
-pub mod profile;
+pub mod phases;
+mod rng;
 
 pub use camera::{Camera, CameraError, Intrinsics};
 pub use glam;
+pub use rng::SplitMix64;
+/// Re-exported for [`phase!`].
+pub use tracing;

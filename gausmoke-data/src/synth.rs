@@ -26,8 +26,8 @@
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
-use gausmoke_core::Camera;
 use gausmoke_core::glam::{Mat4, Vec3};
+use gausmoke_core::{Camera, SplitMix64};
 use rayon::prelude::*;
 use serde_json::json;
 
@@ -214,23 +214,9 @@ impl Grid {
     }
 }
 
-/// SplitMix64: a tiny seeded generator (no external RNG dependency; reproducible).
-struct Rng(u64);
-
-impl Rng {
-    fn next_f32(&mut self) -> f32 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^= z >> 31;
-        (z >> 40) as f32 / (1u64 << 24) as f32
-    }
-
-    /// Uniform in [-1, 1).
-    fn signed(&mut self) -> f32 {
-        2.0 * self.next_f32() - 1.0
-    }
+/// Uniform in `[-1, 1)`.
+fn signed(rng: &mut SplitMix64) -> f32 {
+    2.0 * rng.uniform() - 1.0
 }
 
 /// State of the smoke solver (grid units: cells, velocities in cells per frame).
@@ -238,7 +224,7 @@ pub struct Solver {
     cfg: SynthConfig,
     pub density: Grid,
     pub velocity: [Grid; 3],
-    rng: Rng,
+    rng: SplitMix64,
 }
 
 impl Solver {
@@ -249,7 +235,7 @@ impl Solver {
             cfg: cfg.clone(),
             density: Grid::zeros(n),
             velocity: [Grid::zeros(n), Grid::zeros(n), Grid::zeros(n)],
-            rng: Rng(cfg.seed),
+            rng: SplitMix64::new(cfg.seed),
         })
     }
 
@@ -283,11 +269,11 @@ impl Solver {
                         continue;
                     }
                     let i = self.density.idx(x, y, z);
-                    let amount = 1.0 + self.cfg.noise * self.rng.signed();
+                    let amount = 1.0 + self.cfg.noise * signed(&mut self.rng);
                     self.density.data[i] = self.density.data[i].max(amount);
                     self.velocity[1].data[i] = self.cfg.inflow_speed;
-                    self.velocity[0].data[i] += self.cfg.noise * dt * self.rng.signed();
-                    self.velocity[2].data[i] += self.cfg.noise * dt * self.rng.signed();
+                    self.velocity[0].data[i] += self.cfg.noise * dt * signed(&mut self.rng);
+                    self.velocity[2].data[i] += self.cfg.noise * dt * signed(&mut self.rng);
                 }
             }
         }

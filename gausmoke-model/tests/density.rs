@@ -1,10 +1,15 @@
 //! Density splatting to the grid: mass, finite differences of the backward, autodiff wiring.
 
+use gausmoke_core::SplitMix64;
 use gausmoke_core::glam::Vec3;
-use gausmoke_model::density::{GaussianSlices, SplatGrid, splat_backward, splat_forward};
+use gausmoke_model::density::SplatGrid;
+use gausmoke_model::density::host::{
+    splat_backward, splat_forward, splat_gradient_backward, splat_gradient_forward,
+};
 use gausmoke_model::{GridSpec, density_grid};
 use gausmoke_render::backends::cpu_devices;
-use gausmoke_render::scenes::{SplitMix64, smoke_plume};
+use gausmoke_render::procedural::smoke_plume;
+use gausmoke_render::{Gaussians, HostGaussians};
 
 /// P(chi^2 with 3 degrees of freedom <= 9): the mass of a 3D Gaussian inside its 3-sigma
 /// ellipsoid.
@@ -26,13 +31,8 @@ fn grid_integrates_to_the_gaussians_mass() {
         resolution: [96; 3],
         cutoff: 9.0,
     };
-    let slices = GaussianSlices {
-        means: &g.means,
-        quats: &g.rotations,
-        log_scales: &g.log_scales,
-        raw_densities: &g.raw_densities,
-    };
-    let sigma = splat_forward(&slices, &grid);
+    let slices = bundle([&g.means, &g.rotations, &g.log_scales, &g.raw_densities]);
+    let sigma = splat_forward(&slices.slices(), &grid);
     let cell_volume = (1.0f64 / 96.0).powi(3);
     let mass: f64 = sigma.iter().map(|&s| s as f64).sum::<f64>() * cell_volume;
     let expected: f64 = (0..g.len())
@@ -72,13 +72,8 @@ fn backward_matches_central_differences() {
     };
     let weights: Vec<f32> = (0..8000).map(|_| rng.range(-1.0, 1.0)).collect();
     let slices = |p: &[Vec<f32>; 4]| -> Vec<f32> {
-        let s = GaussianSlices {
-            means: &p[0],
-            quats: &p[1],
-            log_scales: &p[2],
-            raw_densities: &p[3],
-        };
-        splat_forward(&s, &grid)
+        let s = bundle([&p[0], &p[1], &p[2], &p[3]]);
+        splat_forward(&s.slices(), &grid)
     };
     let loss = |p: &[Vec<f32>; 4]| -> f64 {
         slices(p)
@@ -87,14 +82,9 @@ fn backward_matches_central_differences() {
             .map(|(a, b)| *a as f64 * *b as f64)
             .sum()
     };
-    let s = GaussianSlices {
-        means: &params[0],
-        quats: &params[1],
-        log_scales: &params[2],
-        raw_densities: &params[3],
-    };
-    let (gm, gq, gs, gd) = splat_backward(&s, &grid, &weights);
-    assert_matches_central_differences(&mut params, &loss, [gm, gq, gs, gd], 2e-3);
+    let s = bundle([&params[0], &params[1], &params[2], &params[3]]);
+    let g = splat_backward(&s.slices(), &grid, &weights);
+    assert_matches_central_differences(&mut params, &loss, geometry(g), 2e-3);
 }
 
 #[test]
@@ -117,23 +107,23 @@ fn autodiff_routes_the_hand_written_backward() {
             .try_into_vec_as::<f32>()
             .unwrap();
         // Same gradient straight from the host backward with dL/dsigma = 2 sigma.
-        let slices = GaussianSlices {
-            means: &host.means,
-            quats: &host.rotations,
-            log_scales: &host.log_scales,
-            raw_densities: &host.raw_densities,
-        };
+        let slices = bundle([
+            &host.means,
+            &host.rotations,
+            &host.log_scales,
+            &host.raw_densities,
+        ]);
         let spec = SplatGrid {
             lo: [0.0; 3],
             cell: [1.0 / 16.0; 3],
             resolution: [16; 3],
             cutoff: 9.0,
         };
-        let up: Vec<f32> = splat_forward(&slices, &spec)
+        let up: Vec<f32> = splat_forward(&slices.slices(), &spec)
             .iter()
             .map(|s| 2.0 * s)
             .collect();
-        let (gm, ..) = splat_backward(&slices, &spec, &up);
+        let gm = splat_backward(&slices.slices(), &spec, &up).means;
         let err = via_burn
             .iter()
             .zip(&gm)
@@ -155,12 +145,7 @@ fn analytic_gradient_matches_differences_of_the_density() {
     // grad sigma at cell centres against central differences of sigma on a finer shifted
     // sampling: evaluate sigma on two grids offset by +-h along each axis.
     let g = smoke_plume(5, Vec3::new(0.4, 0.4, 0.4), Vec3::new(0.6, 0.6, 0.6), 8);
-    let slices = GaussianSlices {
-        means: &g.means,
-        quats: &g.rotations,
-        log_scales: &g.log_scales,
-        raw_densities: &g.raw_densities,
-    };
+    let slices = bundle([&g.means, &g.rotations, &g.log_scales, &g.raw_densities]);
     let n = 12;
     let cell = 1.0 / n as f32;
     let grid = SplatGrid {
@@ -169,7 +154,7 @@ fn analytic_gradient_matches_differences_of_the_density() {
         resolution: [n; 3],
         cutoff: 1e6,
     };
-    let analytic = gausmoke_model::density::splat_gradient_forward(&slices, &grid);
+    let analytic = splat_gradient_forward(&slices.slices(), &grid);
     let h = 1e-3f32;
     let scale = analytic.iter().fold(0.0f32, |m, v| m.max(v.abs()));
     assert!(scale > 1.0, "vacuous: {scale}");
@@ -177,7 +162,7 @@ fn analytic_gradient_matches_differences_of_the_density() {
         let shifted = |d: f32| {
             let mut lo = [0.0f32; 3];
             lo[a] = d;
-            splat_forward(&slices, &SplatGrid { lo, ..grid })
+            splat_forward(&slices.slices(), &SplatGrid { lo, ..grid })
         };
         let (plus, minus) = (shifted(h), shifted(-h));
         for c in 0..n * n * n {
@@ -209,26 +194,33 @@ fn gradient_backward_matches_central_differences() {
     };
     let weights: Vec<f32> = (0..3 * 4096).map(|_| rng.range(-1.0, 1.0)).collect();
     let loss = |p: &[Vec<f32>; 4]| -> f64 {
-        let s = GaussianSlices {
-            means: &p[0],
-            quats: &p[1],
-            log_scales: &p[2],
-            raw_densities: &p[3],
-        };
-        gausmoke_model::density::splat_gradient_forward(&s, &grid)
+        let s = bundle([&p[0], &p[1], &p[2], &p[3]]);
+        splat_gradient_forward(&s.slices(), &grid)
             .iter()
             .zip(&weights)
             .map(|(a, b)| *a as f64 * *b as f64)
             .sum()
     };
-    let s = GaussianSlices {
-        means: &params[0],
-        quats: &params[1],
-        log_scales: &params[2],
-        raw_densities: &params[3],
-    };
-    let (gm, gq, gs, gd) = gausmoke_model::density::splat_gradient_backward(&s, &grid, &weights);
-    assert_matches_central_differences(&mut params, &loss, [gm, gq, gs, gd], 3e-3);
+    let s = bundle([&params[0], &params[1], &params[2], &params[3]]);
+    let g = splat_gradient_backward(&s.slices(), &grid, &weights);
+    assert_matches_central_differences(&mut params, &loss, geometry(g), 3e-3);
+}
+
+/// Gaussians with the given means, quaternions, log-scales and raw densities (colours zero:
+/// splatting does not read them).
+fn bundle([means, rotations, log_scales, raw_densities]: [&Vec<f32>; 4]) -> HostGaussians {
+    Gaussians {
+        means: means.clone(),
+        rotations: rotations.clone(),
+        log_scales: log_scales.clone(),
+        raw_densities: raw_densities.clone(),
+        colors: vec![0.0; means.len()],
+    }
+}
+
+/// The gradients of the attributes splatting reads.
+fn geometry(g: HostGaussians) -> [Vec<f32>; 4] {
+    [g.means, g.rotations, g.log_scales, g.raw_densities]
 }
 
 /// Central differences (h = 2e-3) of `loss` with respect to every parameter against the

@@ -1,12 +1,12 @@
 //! Interpolation, closed-form derivatives and advection against analytic fields.
 
 use burn::tensor::{Device, Tensor, TensorData};
+use gausmoke_core::SplitMix64;
 use gausmoke_core::glam::Vec3;
 use gausmoke_model::{
     GridError, GridSpec, Integrator, Interpolation, advect, grid_from_fn, sample_velocity,
 };
 use gausmoke_render::backends::cpu_devices;
-use gausmoke_render::scenes::SplitMix64;
 
 const GAUSSIAN: Interpolation = Interpolation::Gaussian {
     stencil: 4,

@@ -80,7 +80,7 @@ fn refine_loss_is_the_mean_squared_distance() {
 #[test]
 fn advection_loss_vanishes_for_the_true_transport_velocity() {
     use gausmoke_model::{advection_loss, density_gradient_grid, density_grid};
-    use gausmoke_render::scenes::smoke_plume;
+    use gausmoke_render::procedural::smoke_plume;
     for (_, device) in cpu_devices() {
         let ad = device.autodiff();
         let grid = GridSpec::new(Vec3::ZERO, Vec3::ONE, [24, 24, 24], 1).unwrap();

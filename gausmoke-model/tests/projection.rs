@@ -2,13 +2,13 @@
 //! wall-tangent divergence-free fields stay, self-adjoint backward.
 
 use burn::tensor::{Tensor, TensorData};
+use gausmoke_core::SplitMix64;
 use gausmoke_core::glam::Vec3;
 use gausmoke_model::projection::Divergence;
 use gausmoke_model::{
     GridSpec, ProjectionOptions, grid_from_fn, project_velocity, project_with_report,
 };
 use gausmoke_render::backends::cpu_devices;
-use gausmoke_render::scenes::SplitMix64;
 
 fn grid(n: [usize; 3]) -> GridSpec {
     GridSpec::new(Vec3::new(0.0, 0.0, 0.0), Vec3::new(1.0, 1.2, 0.8), n, 2).unwrap()

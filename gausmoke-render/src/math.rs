@@ -19,6 +19,8 @@
 
 use std::f32::consts::TAU;
 
+use crate::gaussians::Gaussian;
+
 /// Softplus with the same large-input cut-over as torch (`x > 20` returns `x`).
 #[inline]
 pub fn softplus(x: f32) -> f32 {
@@ -187,18 +189,7 @@ pub fn sample_vjp(
     }
 }
 
-/// The Gaussian parameters of one primitive in world space, read from the op's inputs.
-#[derive(Debug, Clone, Copy)]
-pub struct WorldGaussian {
-    pub mean: [f32; 3],
-    /// Raw (not normalised) quaternion `(w, x, y, z)`.
-    pub quat: [f32; 4],
-    pub log_scale: [f32; 3],
-    pub raw_density: f32,
-    pub color: [f32; 3],
-}
-
-/// Quantities of [`WorldGaussian::view`] that its gradient reuses.
+/// Quantities of [`Gaussian::view`] that its gradient reuses.
 #[derive(Debug, Clone, Copy)]
 pub struct ViewContext {
     pub unit_quat: [f32; 4],
@@ -210,13 +201,13 @@ pub struct ViewContext {
     pub offset: [f32; 3],
 }
 
-impl WorldGaussian {
+impl Gaussian {
     /// Transforms the Gaussian into the whitened view of a camera with world-to-camera
     /// rotation `world_to_cam` (row-major) centred at `origin`. The quaternion must be non-zero
     /// (checked by the caller).
     #[inline]
     pub fn view(&self, world_to_cam: &[[f32; 3]; 3], origin: [f32; 3]) -> (ViewSplat, ViewContext) {
-        let q = self.quat;
+        let q = self.rotation;
         let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
         let n = [q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm];
         let rot = quat_to_rotation(n);
@@ -261,29 +252,19 @@ impl WorldGaussian {
     }
 }
 
-/// Gradients of one Gaussian's parameters.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct WorldGaussianGrad {
-    pub mean: [f32; 3],
-    pub quat: [f32; 4],
-    pub log_scale: [f32; 3],
-    pub raw_density: f32,
-    pub color: [f32; 3],
-}
-
-/// Gradient of [`WorldGaussian::view`]: from the gradients of `L`, `m`, `sigma` and the colour
-/// back to the world-space parameters.
+/// Gradient of [`Gaussian::view`]: from the gradients of `L`, `m`, `sigma` and the colour
+/// back to the world-space parameters (a [`Gaussian`] of gradients).
 #[inline]
 pub fn view_vjp(
-    g: &WorldGaussian,
+    g: &Gaussian,
     ctx: &ViewContext,
     world_to_cam: &[[f32; 3]; 3],
     grad_whiten: &[[f32; 3]; 3],
     grad_center: [f32; 3],
     grad_sigma: f32,
     grad_color: [f32; 3],
-) -> WorldGaussianGrad {
-    let mut grad = WorldGaussianGrad {
+) -> Gaussian {
+    let mut grad = Gaussian {
         raw_density: grad_sigma * softplus_grad(g.raw_density),
         color: grad_color,
         ..Default::default()
@@ -316,7 +297,7 @@ pub fn view_vjp(
         [grad_axes[0][2], grad_axes[1][2], grad_axes[2][2]],
     ];
     let grad_unit = quat_to_rotation_vjp(ctx.unit_quat, grad_rot);
-    grad.quat = normalize_vjp(ctx.unit_quat, ctx.quat_norm, grad_unit);
+    grad.rotation = normalize_vjp(ctx.unit_quat, ctx.quat_norm, grad_unit);
     grad
 }
 
@@ -376,9 +357,9 @@ mod tests {
     fn whitened_integral_matches_appendix_b_closed_form() {
         // Camera at the origin looking down -Z, identity world-to-camera rotation.
         let identity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
-        let g = WorldGaussian {
+        let g = Gaussian {
             mean: [0.2, -0.1, -3.0],
-            quat: [0.9, 0.1, -0.3, 0.2],
+            rotation: [0.9, 0.1, -0.3, 0.2],
             log_scale: [-1.0, -0.5, -1.5],
             raw_density: 0.3,
             color: [1.0, 1.0, 1.0],

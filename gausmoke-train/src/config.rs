@@ -333,6 +333,21 @@ impl TrainConfig {
         }
     }
 
+    /// The velocity and density grid over the smoke box `[lo, hi]` (at least 4 cells per
+    /// axis: the interpolation stencil).
+    pub fn grid(
+        &self,
+        lo: gausmoke_core::glam::Vec3,
+        hi: gausmoke_core::glam::Vec3,
+    ) -> Result<gausmoke_model::GridSpec, TrainError> {
+        Ok(gausmoke_model::GridSpec::new(
+            lo,
+            hi,
+            [self.grid_resolution; 3],
+            4,
+        )?)
+    }
+
     /// Learning-rate factor for frame `frame` (x`lr_decay` every `lr_decay_every` frames).
     pub fn lr_factor(&self, frame: usize) -> f64 {
         self.lr_decay.powi((frame / self.lr_decay_every) as i32)

@@ -7,12 +7,13 @@ use std::path::Path;
 use burn::tensor::Device;
 use gausmoke_core::glam::Vec3;
 use gausmoke_model::GridSpec;
-use gausmoke_render::{GaussianTensors, render_volume};
+use gausmoke_render::render_volume;
 use serde::{Deserialize, Serialize};
 
-use crate::checkpoint::{read_arrays, take_array};
-use crate::scene::Scene;
-use crate::{TrainConfig, TrainError, metrics};
+use crate::arrays::{read_arrays, take_array};
+use crate::run_folder::RunFolder;
+use crate::sequence::Sequence;
+use crate::{TrainError, metrics};
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct FrameEval {
@@ -84,7 +85,7 @@ fn sample_grid(grid: &GridSpec, values: &[f32], channels: usize, p: Vec3, out: &
 
 /// Errors against the generator's ground truth for frame `t`.
 fn ground_truth_errors(
-    scene: &Scene,
+    scene: &Sequence,
     grid: &GridSpec,
     t: usize,
     density: &[f32],
@@ -151,53 +152,23 @@ pub fn evaluate(
     let lpips = lpips_weights
         .map(|path| crate::lpips::Lpips::load(path, device))
         .transpose()?;
-    let config = TrainConfig::from_toml_file(&run.join("config.toml"))?;
-    let run_json = run.join("run.json");
-    let text = std::fs::read_to_string(&run_json).map_err(|source| TrainError::Io {
-        path: run_json.clone(),
-        source,
-    })?;
-    let info: serde_json::Value = serde_json::from_str(&text).map_err(|e| TrainError::Config {
-        origin: run_json.display().to_string(),
-        reason: e.to_string(),
-    })?;
-    let data = info["data"].as_str().ok_or_else(|| TrainError::Config {
-        origin: run_json.display().to_string(),
-        reason: "field `data` (the data set path) is missing".into(),
-    })?;
-    let scene = Scene::open(Path::new(data), &config)?;
-    let grid = GridSpec::new(scene.lo, scene.hi, [config.grid_resolution; 3], 4)?;
+    let folder = RunFolder::at(run);
+    let config = folder.read_config()?;
+    let info = folder.read_run_info()?;
+    let scene = Sequence::open(&info.data, &config)?;
+    let grid = config.grid(scene.lo, scene.hi)?;
     let background = burn::tensor::Tensor::<1>::from_data(
         burn::tensor::TensorData::new(scene.background.to_vec(), [3]),
         device,
     );
-    let [nx, ny, nz] = grid.resolution();
     let mut frames = Vec::new();
     for t in 0..scene.frames() {
-        let path = run.join("frames").join(format!("frame_{t:03}.safetensors"));
-        if !path.is_file() {
+        let Some(state) = folder.read_frame_state(t, &grid)? else {
             break;
-        }
-        let mut arrays = read_arrays(&path)?;
-        let n = arrays
-            .get("raw_densities")
-            .map(|(shape, _)| shape[0])
-            .unwrap_or_default();
-        let means = take_array(&mut arrays, "means", &[n, 3], &path)?;
-        let rotations = take_array(&mut arrays, "rotations", &[n, 4], &path)?;
-        let log_scales = take_array(&mut arrays, "log_scales", &[n, 3], &path)?;
-        let raw_densities = take_array(&mut arrays, "raw_densities", &[n], &path)?;
-        let colors = take_array(&mut arrays, "colors", &[n, 3], &path)?;
-        let velocity = take_array(&mut arrays, "velocity", &[nx, ny, nz, 3], &path)?;
-        let density = take_array(&mut arrays, "density", &[nx, ny, nz], &path)?;
-        let gaussians = GaussianTensors::from_host(
-            &means,
-            &rotations,
-            &log_scales,
-            &raw_densities,
-            &colors,
-            device,
-        )?;
+        };
+        let velocity = &state.velocity;
+        let density = &state.density;
+        let gaussians = state.gaussians.to_tensors(device)?;
         let mut psnr = Vec::new();
         let mut ssim = Vec::new();
         let mut perceptual = Vec::new();
@@ -226,7 +197,7 @@ pub fn evaluate(
         let average = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
         // u^0 is zero by construction (Algorithm 1, line 1): velocity errors from frame 1.
         let truth = if t > 0 {
-            ground_truth_errors(&scene, &grid, t, &density, &velocity)?
+            ground_truth_errors(&scene, &grid, t, density, velocity)?
         } else {
             None
         };
@@ -235,14 +206,14 @@ pub fn evaluate(
             test_psnr: average(&psnr),
             test_ssim: average(&ssim),
             test_lpips: average(&perceptual),
-            mean_abs_divergence: metrics::mean_abs_divergence(&grid, &velocity),
+            mean_abs_divergence: metrics::mean_abs_divergence(&grid, velocity),
             velocity_rmse: truth.map(|e| e.0),
             velocity_relative_error: truth.map(|e| e.1),
             density_relative_error: truth.map(|e| e.2),
         });
     }
     if frames.is_empty() {
-        return Err(TrainError::Scene {
+        return Err(TrainError::Dataset {
             path: run.to_path_buf(),
             reason: "no frames/frame_000.safetensors: the run has not finished a frame".into(),
         });
@@ -263,11 +234,6 @@ pub fn evaluate(
         },
         frames,
     };
-    crate::export::write_atomic(
-        &run.join("eval.json"),
-        serde_json::to_string_pretty(&report)
-            .expect("plain JSON")
-            .as_bytes(),
-    )?;
+    folder.write_eval(&report)?;
     Ok(report)
 }

@@ -8,7 +8,7 @@ use std::path::Path;
 use gausmoke_model::GridSpec;
 
 use crate::TrainError;
-use crate::gaussians::HostGaussians;
+use gausmoke_render::HostGaussians;
 
 /// Zeroth-order spherical-harmonic constant: 3DGS stores colour as `(rgb - 0.5) / C0`.
 const SH_C0: f32 = 0.282_094_8;

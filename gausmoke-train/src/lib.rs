@@ -1,35 +1,44 @@
 //! GauSmoke training: the physics-optical joint optimisation of Algorithm 1 (paper Sec. 4.4)
-//! over a whole sequence, with checkpoints, evaluation and exports. The CLI
-//! (`gausmoke-train`) and the evcxr notebook use this same API:
+//! over a whole sequence ([`Trainer`]), run frame by frame with evaluation, outputs and
+//! checkpoints ([`Run`], [`RunFolder`]). The CLI (`gausmoke-train`) and the evcxr notebook use
+//! this same API:
 //!
 //! ```no_run
 //! # fn main() -> Result<(), gausmoke_train::TrainError> {
-//! use gausmoke_train::{TrainConfig, Trainer, scene::Scene};
+//! use gausmoke_train::{Run, TrainConfig, sequence::Sequence};
 //! let config = TrainConfig::quick_demo();
-//! let scene = Scene::open("my_scene".as_ref(), &config)?;
+//! let sequence = Sequence::open("my_scene".as_ref(), &config)?;
 //! let device = gausmoke_render::backends::device_by_name("flex").unwrap().autodiff();
-//! let mut trainer = Trainer::new(scene, config, device, "runs/demo".as_ref(), false)?;
-//! trainer.run()?;
+//! let mut run = Run::new(sequence, config, device, "runs/demo".as_ref(), false)?;
+//! run.run()?;
 //! # Ok(()) }
 //! ```
 
 use std::path::PathBuf;
 
+pub mod arrays;
 pub mod checkpoint;
 pub mod config;
 pub mod eval;
 pub mod export;
-pub mod gaussians;
+pub mod logging;
 pub mod lpips;
 pub mod metrics;
 pub mod respawn;
-pub mod scene;
+pub mod run;
+pub mod run_folder;
+pub mod sequence;
+pub mod state;
 pub mod trainer;
 pub mod visuals;
 
 pub use config::TrainConfig;
-pub use gaussians::{GaussianModel, HostGaussians};
-pub use trainer::{FrameReport, LossRow, Trainer};
+pub use gausmoke_model::GaussianModel;
+pub use gausmoke_render::HostGaussians;
+pub use run::Run;
+pub use run_folder::RunFolder;
+pub use state::{FrameReport, LossRow, Phase, TrainState};
+pub use trainer::{FrameOutcome, Trainer};
 
 /// What can go wrong in training, evaluation and export; each names the file or quantity.
 #[derive(Debug, thiserror::Error)]
@@ -44,7 +53,7 @@ pub enum TrainError {
     #[error(transparent)]
     Data(#[from] gausmoke_data::DataError),
     #[error("data set {path}: {reason}")]
-    Scene { path: PathBuf, reason: String },
+    Dataset { path: PathBuf, reason: String },
     #[error(transparent)]
     Render(#[from] gausmoke_render::RenderError),
     #[error(transparent)]
@@ -65,6 +74,8 @@ pub enum TrainError {
     },
     #[error("checkpoint {path}: {reason}")]
     Checkpoint { path: PathBuf, reason: String },
+    #[error("{path}: {reason}")]
+    Arrays { path: PathBuf, reason: String },
     #[error("writing {path}: {reason}")]
     Export { path: PathBuf, reason: String },
 }

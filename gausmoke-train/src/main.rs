@@ -16,8 +16,8 @@ use clap::{Args, Parser, Subcommand};
 use gausmoke_core::glam::Vec3;
 use gausmoke_data::synth::{self, SynthConfig};
 use gausmoke_data::{LoadOptions, inspect, load_dnerf, load_pinf};
-use gausmoke_render::{Camera, RasterOptions, backends, render_volume, scenes};
-use gausmoke_train::{TrainConfig, Trainer, eval, scene::Scene};
+use gausmoke_render::{Camera, RasterOptions, backends, procedural, render_volume};
+use gausmoke_train::{Run, TrainConfig, eval, sequence::Sequence};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -122,12 +122,7 @@ struct RenderArgs {
 }
 
 fn main() -> Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    gausmoke_train::logging::init();
     match Cli::parse().command {
         None => quickstart(),
         Some(Command::Train(args)) => train(args, None),
@@ -243,7 +238,7 @@ fn train(args: TrainArgs, base: Option<TrainConfig>) -> Result<()> {
         .map_err(anyhow::Error::msg)?
         .autodiff();
     let start = Instant::now();
-    let scene = Scene::open(&data, &config)
+    let scene = Sequence::open(&data, &config)
         .with_context(|| format!("loading the data set {}", data.display()))?;
     tracing::info!(
         data = %data.display(),
@@ -254,10 +249,9 @@ fn train(args: TrainArgs, base: Option<TrainConfig>) -> Result<()> {
         "data loaded"
     );
     tracing::info!(device = %args.device, "training on");
-    let mut trainer =
-        Trainer::new(scene, config, device, &args.out, args.resume)?.quiet(args.quiet);
-    let done_before = trainer.frame.map_or(0, |f| f + 1);
-    let reports = trainer.run()?;
+    let mut run = Run::new(scene, config, device, &args.out, args.resume)?.quiet(args.quiet);
+    let done_before = run.frame.map_or(0, |f| f + 1);
+    let reports = run.run()?;
     let last = reports.last().context("no frame was trained")?;
     println!(
         "trained {} of {} frames in {:.1} s; last frame: train L1 {:.4}, held-out PSNR {}, mean |div u| {:.2e}",
@@ -314,7 +308,7 @@ fn render_demo(args: RenderArgs) -> Result<()> {
     tracing::info!(device = %args.device, "rendering on");
     let lo = Vec3::new(-0.25, 0.0, -0.25);
     let hi = Vec3::new(0.25, 0.8, 0.25);
-    let gaussians = scenes::smoke_plume(args.gaussians, lo, hi, 2026);
+    let gaussians = procedural::smoke_plume(args.gaussians, lo, hi, 2026);
     let camera = Camera::look_at(
         Vec3::new(0.0, 0.4, 2.2),
         Vec3::new(0.0, 0.4, 0.0),

@@ -26,9 +26,10 @@
 //! deterministic in its seed, so a resumed run matches an uninterrupted one.
 
 use gausmoke_core::Camera;
+use gausmoke_core::SplitMix64;
 use gausmoke_core::glam::Vec3;
+use gausmoke_render::HostGaussians;
 use gausmoke_render::math::softplus;
-use gausmoke_render::scenes::{HostGaussians, SplitMix64};
 
 /// Opacity below which a Gaussian cannot change an 8-bit pixel.
 const INVISIBLE_OPACITY: f32 = 1.0 / 255.0;

@@ -9,10 +9,10 @@ use std::time::{Duration, Instant};
 
 use gausmoke_data::synth::{SynthConfig, generate};
 use gausmoke_render::backends::device_by_name;
-use gausmoke_train::checkpoint::read_arrays;
+use gausmoke_train::arrays::read_arrays;
 use gausmoke_train::metrics::mean_abs_error;
-use gausmoke_train::scene::Scene;
-use gausmoke_train::{TrainConfig, Trainer, eval};
+use gausmoke_train::sequence::Sequence;
+use gausmoke_train::{Run, TrainConfig, eval};
 
 /// Small enough for CI in a debug build, large enough that the plume moves and is fitted.
 fn test_config() -> TrainConfig {
@@ -42,7 +42,7 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
     let config = test_config();
-    let scene = Scene::open(&data, &config).unwrap();
+    let scene = Sequence::open(&data, &config).unwrap();
     assert_eq!(scene.frames(), 4);
     assert_eq!(
         scene.test[0].len(),
@@ -51,7 +51,7 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
     );
     let device = device_by_name("flex").unwrap().autodiff();
     let run = dir.path().join("run");
-    let mut trainer = Trainer::new(scene.clone(), config.clone(), device.clone(), &run, false)
+    let mut training = Run::new(scene.clone(), config.clone(), device.clone(), &run, false)
         .unwrap()
         .quiet(true);
 
@@ -59,13 +59,14 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
     let initial: Vec<f64> = (0..scene.frames())
         .map(|t| {
             let observation = &scene.test[t][0];
-            let render = &trainer
+            let render = &training
+                .trainer
                 .render_host(std::slice::from_ref(observation))
                 .unwrap()[0];
             mean_abs_error(render, observation.image.data())
         })
         .collect();
-    let reports = trainer.run().unwrap().to_vec();
+    let reports = training.run().unwrap().to_vec();
     assert_eq!(reports.len(), 4);
     let trained: Vec<f64> = reports.iter().map(|r| r.test_l1.unwrap()).collect();
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
@@ -375,20 +376,20 @@ fn the_ablations_train_and_fit_the_held_out_view() {
             },
         ),
     ] {
-        let scene = Scene::open(&data, &config).unwrap();
+        let scene = Sequence::open(&data, &config).unwrap();
         let device = device_by_name("flex").unwrap().autodiff();
-        let mut trainer =
-            Trainer::new(scene.clone(), config, device, &dir.path().join(name), false)
-                .unwrap()
-                .quiet(true);
+        let mut training = Run::new(scene.clone(), config, device, &dir.path().join(name), false)
+            .unwrap()
+            .quiet(true);
         let observation = &scene.test[0][0];
         let before = mean_abs_error(
-            &trainer
+            &training
+                .trainer
                 .render_host(std::slice::from_ref(observation))
                 .unwrap()[0],
             observation.image.data(),
         );
-        let reports = trainer.run().unwrap().to_vec();
+        let reports = training.run().unwrap().to_vec();
         let after = reports[0].test_l1.unwrap();
         eprintln!(
             "{name}: held-out L1 {before:.4} -> {after:.4}; {:?}",

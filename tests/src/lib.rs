@@ -112,6 +112,7 @@ impl Golden {
                 None | Some(0.0) => AlphaModel::BeerLambert,
                 Some(_) => AlphaModel::SplatOpacity,
             },
+            ..RasterOptions::default()
         }
     }
 }
@@ -177,6 +178,18 @@ pub struct RenderTolerance {
 /// Renders a golden case on `device` under autodiff and checks the image, the transmittance
 /// and the gradients of every input of the golden's weighted loss.
 pub fn check_render_golden(golden: &Golden, backend: &str, device: &Device, tol: &RenderTolerance) {
+    check_render_golden_with(golden, &golden.options(), backend, device, tol);
+}
+
+/// [`check_render_golden`] with `options` in place of the golden's own (which must agree with
+/// them on everything the torch reference computes, e.g. to force a GPU atomics path).
+pub fn check_render_golden_with(
+    golden: &Golden,
+    options: &RasterOptions,
+    backend: &str,
+    device: &Device,
+    tol: &RenderTolerance,
+) {
     let device = device.clone().autodiff();
     let gaussians = GaussianTensors {
         means: tensor::<2>(golden, "means", &device).require_grad(),
@@ -186,7 +199,7 @@ pub fn check_render_golden(golden: &Golden, backend: &str, device: &Device, tol:
         colors: tensor::<2>(golden, "colors", &device).require_grad(),
     };
     let background = tensor::<1>(golden, "background", &device).require_grad();
-    let out = render_volume(&gaussians, &golden.camera(), &background, &golden.options())
+    let out = render_volume(&gaussians, &golden.camera(), &background, options)
         .expect("golden inputs are valid");
     let what = |s: &str| format!("{} on {backend}: {s}", golden.name);
     assert_close(

@@ -12,11 +12,11 @@
 //! in the same order on both paths, but every term carries the device's exp).
 
 use burn::tensor::{Device, Tensor, TensorData};
+use gausmoke_core::SplitMix64;
 use gausmoke_core::glam::Vec3;
-use gausmoke_model::{GridSpec, density_gradient_grid, density_grid};
-use gausmoke_render::GaussianTensors;
+use gausmoke_model::{DensityField, GridSpec, SplatOptions, density_field};
 use gausmoke_render::backends::{cpu_devices, gpu_devices};
-use gausmoke_render::scenes::SplitMix64;
+use gausmoke_render::{FloatAtomics, GaussianTensors};
 use gausmoke_tests::{assert_close, to_vec};
 
 struct Scene {
@@ -81,17 +81,22 @@ fn run(
     spatial_gradient: bool,
     weight: &[f32],
     device: &Device,
+    float_atomics: FloatAtomics,
 ) -> (Vec<f32>, [Vec<f32>; 4]) {
     let ad = device.clone().autodiff();
     let g = gaussians(scene, &ad);
     let [nx, ny, nz] = grid.resolution();
+    let options = SplatOptions {
+        cutoff: 9.0,
+        float_atomics,
+    };
     let grads = if spatial_gradient {
-        let field = density_gradient_grid(&g, grid, 9.0);
+        let field: Tensor<4> = density_field(&g, grid, &options, DensityField::SpatialGradient);
         let w = Tensor::<4>::from_data(TensorData::new(weight.to_vec(), [nx, ny, nz, 3]), &ad);
         let values = to_vec(field.clone());
         ((field * w).sum().backward(), values)
     } else {
-        let field = density_grid(&g, grid, 9.0);
+        let field: Tensor<3> = density_field(&g, grid, &options, DensityField::Density);
         let w = Tensor::<3>::from_data(TensorData::new(weight.to_vec(), [nx, ny, nz]), &ad);
         let values = to_vec(field.clone());
         ((field * w).sum().backward(), values)
@@ -123,17 +128,23 @@ fn compare(spatial_gradient: bool) {
     let weight: Vec<f32> = (0..grid.num_cells() * channels)
         .map(|_| rng.uniform() * 2.0 - 1.0)
         .collect();
-    let (cpu_values, cpu_grads) = run(&scene, &grid, spatial_gradient, &weight, &cpu);
+    let (cpu_values, cpu_grads) = run(
+        &scene,
+        &grid,
+        spatial_gradient,
+        &weight,
+        &cpu,
+        FloatAtomics::Native,
+    );
     let what = if spatial_gradient {
         "grad sigma"
     } else {
         "sigma"
     };
-    for force_cas in [false, true] {
-        gausmoke_render::kernels::set_force_compare_and_swap(force_cas);
+    for atomics in [FloatAtomics::Native, FloatAtomics::CompareAndSwap] {
         for (backend, device) in &gpu {
-            let label = format!("{what} on {backend} (compare-and-swap forced: {force_cas})");
-            let (values, grads) = run(&scene, &grid, spatial_gradient, &weight, device);
+            let label = format!("{what} on {backend} ({atomics:?} float atomics)");
+            let (values, grads) = run(&scene, &grid, spatial_gradient, &weight, device, atomics);
             let scale = cpu_values.iter().fold(0.0f32, |m, v| m.max(v.abs()));
             assert!(scale > 1.0, "the scene must put real density on the grid");
             assert_close(&label, &values, &cpu_values, 2e-5 * scale, 0.0);
@@ -154,7 +165,6 @@ fn compare(spatial_gradient: bool) {
             }
         }
     }
-    gausmoke_render::kernels::set_force_compare_and_swap(false);
 }
 
 #[test]

@@ -9,11 +9,11 @@
 //! 2e-5 of the largest input); the 5-iteration solve by 4e-7 (bound 1e-5).
 
 use burn::tensor::{Device, Tensor, TensorData};
+use gausmoke_core::SplitMix64;
 use gausmoke_core::glam::Vec3;
 use gausmoke_model::projection::Divergence;
 use gausmoke_model::{GridSpec, ProjectionOptions, project_velocity, project_with_report};
 use gausmoke_render::backends::gpu_devices;
-use gausmoke_render::scenes::SplitMix64;
 use gausmoke_tests::{assert_close, to_vec};
 
 /// Non-cubic, with unequal cell sizes per axis: a wrong stride, axis or cell size in the

@@ -4,8 +4,8 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use gausmoke_core::glam::{Mat4, Vec3};
 use gausmoke_render::{
-    Camera, CameraError, GaussianTensors, Intrinsics, RasterOptions, RenderError,
-    backends::all_devices, render_volume, scenes::smoke_plume,
+    Camera, CameraError, GaussianSlices, GaussianTensors, Gaussians, Intrinsics, RasterOptions,
+    RenderError, backends::all_devices, procedural::smoke_plume, render_volume,
 };
 
 fn camera() -> Camera {
@@ -155,16 +155,33 @@ fn mismatched_shapes_are_named() {
                 ..
             }
         ));
-        let err = GaussianTensors::from_host(
+        let err = host(
             &[0.0; 5],
             &[1.0, 0.0, 0.0, 0.0],
             &[0.0; 3],
             &[1.0],
             &[0.5; 3],
-            &device,
         )
+        .to_tensors(&device)
         .expect_err("5 values are not [1, 3]");
         assert!(matches!(err, RenderError::Shape { name: "means", .. }));
+    }
+}
+
+/// Borrowed host arrays of Gaussians, attribute by attribute.
+fn host<'a>(
+    means: &'a [f32],
+    rotations: &'a [f32],
+    log_scales: &'a [f32],
+    raw_densities: &'a [f32],
+    colors: &'a [f32],
+) -> GaussianSlices<'a> {
+    Gaussians {
+        means,
+        rotations,
+        log_scales,
+        raw_densities,
+        colors,
     }
 }
 
@@ -242,7 +259,7 @@ fn bad_cameras_cannot_be_built() {
 #[test]
 fn empty_scene_renders_the_background() {
     for (_, device) in all_devices() {
-        let g = GaussianTensors::from_host(&[], &[], &[], &[], &[], &device).unwrap();
+        let g = host(&[], &[], &[], &[], &[]).to_tensors(&device).unwrap();
         let bg = Tensor::from_data(TensorData::new(vec![0.2f32, 0.4, 0.6], [3]), &device);
         let out = render_volume(&g, &camera(), &bg, &RasterOptions::default()).unwrap();
         let rgb = out.rgb.into_data().try_into_vec_as::<f32>().unwrap();
@@ -263,14 +280,14 @@ fn empty_scene_renders_the_background() {
 fn gaussians_behind_the_camera_contribute_nothing() {
     for (_, device) in all_devices() {
         // A dense Gaussian 1 unit behind the camera (camera at z = 2 looking down -Z).
-        let g = GaussianTensors::from_host(
+        let g = host(
             &[0.0, 0.3, 3.0],
             &[1.0, 0.0, 0.0, 0.0],
             &[-1.0, -1.0, -1.0],
             &[10.0],
             &[1.0, 1.0, 1.0],
-            &device,
         )
+        .to_tensors(&device)
         .unwrap();
         let out = render_volume(&g, &camera(), &black(&device), &RasterOptions::default()).unwrap();
         let t = out

@@ -12,10 +12,12 @@
 //! Gradients: the CPU bounds relaxed by 4x.
 
 use burn::tensor::{Device, Tensor, TensorData};
+use gausmoke_core::SplitMix64;
 use gausmoke_render::backends::{cpu_devices, gpu_devices};
-use gausmoke_render::scenes::SplitMix64;
-use gausmoke_render::{Camera, GaussianTensors, Intrinsics, RasterOptions, render_volume};
-use gausmoke_tests::{Golden, RenderTolerance, assert_close, check_render_golden, to_vec};
+use gausmoke_render::{Camera, FloatAtomics, Gaussians, Intrinsics, RasterOptions, render_volume};
+use gausmoke_tests::{
+    Golden, RenderTolerance, assert_close, check_render_golden, check_render_golden_with, to_vec,
+};
 
 const GPU_TOLERANCE: RenderTolerance = RenderTolerance {
     forward_atol: 2e-5,
@@ -46,13 +48,15 @@ fn kernels_match_torch_goldens() {
 #[test]
 fn compare_and_swap_fallback_matches_torch_goldens() {
     // The fallback for devices without f32 atomic add, forced on a device that has them.
-    gausmoke_render::kernels::set_force_compare_and_swap(true);
     let goldens = Golden::load_all("render_");
     let (backend, device) = gpu().remove(0);
     for golden in &goldens {
-        check_render_golden(golden, backend, &device, &GPU_TOLERANCE);
+        let options = RasterOptions {
+            float_atomics: FloatAtomics::CompareAndSwap,
+            ..golden.options()
+        };
+        check_render_golden_with(golden, &options, backend, &device, &GPU_TOLERANCE);
     }
-    gausmoke_render::kernels::set_force_compare_and_swap(false);
 }
 
 /// `n` random Gaussians in a unit-ish box in front of a camera, mixed sizes, densities and
@@ -120,15 +124,10 @@ fn render_with_grads(
     device: &Device,
 ) -> Rendered {
     let device = device.clone().autodiff();
-    let [m, q, s, d, c] = scene;
-    let g = GaussianTensors::from_host(m, q, s, d, c, &device).unwrap();
-    let g = GaussianTensors {
-        means: g.means.require_grad(),
-        rotations: g.rotations.require_grad(),
-        log_scales: g.log_scales.require_grad(),
-        raw_densities: g.raw_densities.require_grad(),
-        colors: g.colors.require_grad(),
-    };
+    let g = Gaussians::from_array(scene.clone())
+        .to_tensors(&device)
+        .unwrap()
+        .require_grad();
     let background = Tensor::<1>::from_data(TensorData::new(vec![0.1f32, 0.2, 0.3], [3]), &device)
         .require_grad();
     let out = render_volume(&g, camera, &background, options).unwrap();

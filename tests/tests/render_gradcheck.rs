@@ -10,7 +10,12 @@
 use gausmoke_core::glam::Vec3;
 use gausmoke_render::Camera;
 use gausmoke_render::RasterOptions;
-use gausmoke_render::cpu::{self, OUTPUT_CHANNELS, SceneRef};
+use gausmoke_render::cpu::{self, IMAGE_CHANNELS};
+use gausmoke_render::{Gaussians, HostGaussians};
+
+/// Channels per pixel of the op's output before the walked-list length left the image: the
+/// random weights below are drawn for that layout, so the inputs stay what they were.
+const DRAWN_CHANNELS: usize = 5;
 
 /// Deterministic pseudo-random numbers in [0, 1) (no RNG dependency for one test).
 struct Lcg(u64);
@@ -28,35 +33,31 @@ impl Lcg {
 }
 
 struct Params {
-    means: Vec<f32>,
-    quats: Vec<f32>,
-    log_scales: Vec<f32>,
-    raw_densities: Vec<f32>,
-    colors: Vec<f32>,
+    gaussians: HostGaussians,
     background: [f32; 3],
 }
 
 impl Params {
-    fn scene(&self) -> SceneRef<'_> {
-        SceneRef {
-            means: &self.means,
-            quats: &self.quats,
-            log_scales: &self.log_scales,
-            raw_densities: &self.raw_densities,
-            colors: &self.colors,
-            background: self.background,
-        }
+    fn field(&mut self, which: usize) -> &mut Vec<f32> {
+        self.gaussians
+            .as_mut()
+            .into_array()
+            .into_iter()
+            .nth(which)
+            .unwrap()
     }
 
-    fn field(&mut self, which: usize) -> &mut Vec<f32> {
-        match which {
-            0 => &mut self.means,
-            1 => &mut self.quats,
-            2 => &mut self.log_scales,
-            3 => &mut self.raw_densities,
-            _ => &mut self.colors,
-        }
+    fn forward(&self, camera: &Camera, options: &RasterOptions) -> Vec<f32> {
+        cpu::forward(&self.gaussians.slices(), self.background, camera, options).image
     }
+}
+
+fn random_gaussians(rng: &mut Lcg, n: usize, ranges: [(f32, f32); 5]) -> HostGaussians {
+    let mut columns = [3, 4, 3, 1, 3].into_iter().zip(ranges);
+    Gaussians::default().map(|_, ()| {
+        let (width, (lo, hi)) = columns.next().unwrap();
+        (0..width * n).map(|_| rng.range(lo, hi)).collect()
+    })
 }
 
 fn smooth_options() -> RasterOptions {
@@ -69,13 +70,10 @@ fn smooth_options() -> RasterOptions {
 }
 
 fn weighted_loss(image: &[f32], weights: &[f32]) -> f64 {
-    // Channel 4 (walked-list length) is bookkeeping, not an output with a gradient.
     image
         .iter()
         .zip(weights)
-        .enumerate()
-        .filter(|(i, _)| i % OUTPUT_CHANNELS != 4)
-        .map(|(_, (v, w))| *v as f64 * *w as f64)
+        .map(|(v, w)| *v as f64 * *w as f64)
         .sum()
 }
 
@@ -84,35 +82,46 @@ fn backward_matches_central_differences() {
     let mut rng = Lcg(42);
     let n = 5;
     let mut params = Params {
-        means: (0..3 * n).map(|_| rng.range(-0.4, 0.4)).collect(),
-        quats: (0..4 * n).map(|_| rng.range(-1.0, 1.0)).collect(),
-        log_scales: (0..3 * n).map(|_| rng.range(-1.8, -0.9)).collect(),
-        raw_densities: (0..n).map(|_| rng.range(-0.5, 1.0)).collect(),
-        colors: (0..3 * n).map(|_| rng.range(0.0, 1.0)).collect(),
+        gaussians: random_gaussians(
+            &mut rng,
+            n,
+            [
+                (-0.4, 0.4),
+                (-1.0, 1.0),
+                (-1.8, -0.9),
+                (-0.5, 1.0),
+                (0.0, 1.0),
+            ],
+        ),
         background: [0.2, 0.3, 0.4],
     };
     let camera = Camera::look_at(Vec3::new(0.4, 0.6, 3.0), Vec3::ZERO, Vec3::Y, 20, 16, 0.9)
         .expect("valid camera");
     let options = smooth_options();
-    let pixels = 20 * 16 * OUTPUT_CHANNELS;
-    let weights: Vec<f32> = (0..pixels).map(|_| rng.range(-1.0, 1.0)).collect();
+    let weights: Vec<f32> = (0..20 * 16 * DRAWN_CHANNELS)
+        .map(|_| rng.range(-1.0, 1.0))
+        .enumerate()
+        .filter(|(i, _)| i % DRAWN_CHANNELS < IMAGE_CHANNELS)
+        .map(|(_, w)| w)
+        .collect();
 
-    let output = cpu::forward(&params.scene(), &camera, &options);
+    let rendered = cpu::forward(
+        &params.gaussians.slices(),
+        params.background,
+        &camera,
+        &options,
+    );
+    let output = rendered.image.clone();
     assert!(output.iter().all(|v| v.is_finite()), "every pixel written");
-    let mut grad_output = weights.clone();
-    for (i, g) in grad_output.iter_mut().enumerate() {
-        if i % OUTPUT_CHANNELS == 4 {
-            *g = 0.0;
-        }
-    }
-    let grads = cpu::backward(&params.scene(), &camera, &options, &output, &grad_output);
-    let analytic = [
-        grads.means.clone(),
-        grads.quats.clone(),
-        grads.log_scales.clone(),
-        grads.raw_densities.clone(),
-        grads.colors.clone(),
-    ];
+    let (grads, grad_background) = cpu::backward(
+        &params.gaussians.slices(),
+        params.background,
+        &camera,
+        &options,
+        &rendered,
+        &weights,
+    );
+    let analytic = grads.into_array();
     let names = ["means", "quats", "log_scales", "raw_densities", "colors"];
 
     let step = 5e-3f32;
@@ -126,9 +135,9 @@ fn backward_matches_central_differences() {
         for (i, &a) in analytic[which].iter().enumerate() {
             let original = params.field(which)[i];
             params.field(which)[i] = original + step;
-            let plus = weighted_loss(&cpu::forward(&params.scene(), &camera, &options), &weights);
+            let plus = weighted_loss(&params.forward(&camera, &options), &weights);
             params.field(which)[i] = original - step;
-            let minus = weighted_loss(&cpu::forward(&params.scene(), &camera, &options), &weights);
+            let minus = weighted_loss(&params.forward(&camera, &options), &weights);
             params.field(which)[i] = original;
             let numeric = (plus - minus) / (2.0 * step as f64);
             let a = a as f64;
@@ -143,19 +152,15 @@ fn backward_matches_central_differences() {
         }
     }
     // Background: the loss is linear in it, so compare exactly.
-    for c in 0..3 {
+    for (c, &analytic) in grad_background.iter().enumerate() {
         let mut fd_params = params_clone(&params);
         fd_params.background[c] += 1.0;
-        let plus = weighted_loss(
-            &cpu::forward(&fd_params.scene(), &camera, &options),
-            &weights,
-        );
+        let plus = weighted_loss(&fd_params.forward(&camera, &options), &weights);
         let base = weighted_loss(&output, &weights);
         let numeric = plus - base;
         assert!(
-            (numeric - grads.background[c] as f64).abs() < 1e-3 * numeric.abs().max(1.0),
-            "background[{c}]: analytic {} vs numeric {numeric}",
-            grads.background[c]
+            (numeric - analytic as f64).abs() < 1e-3 * numeric.abs().max(1.0),
+            "background[{c}]: analytic {analytic} vs numeric {numeric}"
         );
     }
     eprintln!("worst finite-difference error relative to gradient scale: {worst:.2e}");
@@ -163,11 +168,7 @@ fn backward_matches_central_differences() {
 
 fn params_clone(p: &Params) -> Params {
     Params {
-        means: p.means.clone(),
-        quats: p.quats.clone(),
-        log_scales: p.log_scales.clone(),
-        raw_densities: p.raw_densities.clone(),
-        colors: p.colors.clone(),
+        gaussians: p.gaussians.clone(),
         background: p.background,
     }
 }
@@ -177,20 +178,43 @@ fn backward_is_deterministic() {
     let mut rng = Lcg(7);
     let n = 200;
     let params = Params {
-        means: (0..3 * n).map(|_| rng.range(-0.6, 0.6)).collect(),
-        quats: (0..4 * n).map(|_| rng.range(-1.0, 1.0)).collect(),
-        log_scales: (0..3 * n).map(|_| rng.range(-3.0, -1.5)).collect(),
-        raw_densities: (0..n).map(|_| rng.range(-1.0, 2.0)).collect(),
-        colors: (0..3 * n).map(|_| rng.range(0.0, 1.0)).collect(),
+        gaussians: random_gaussians(
+            &mut rng,
+            n,
+            [
+                (-0.6, 0.6),
+                (-1.0, 1.0),
+                (-3.0, -1.5),
+                (-1.0, 2.0),
+                (0.0, 1.0),
+            ],
+        ),
         background: [0.0; 3],
     };
     let camera =
         Camera::look_at(Vec3::new(0.0, 0.0, 3.0), Vec3::ZERO, Vec3::Y, 64, 48, 0.9).unwrap();
     let options = RasterOptions::default();
-    let output = cpu::forward(&params.scene(), &camera, &options);
-    let grad_output: Vec<f32> = (0..output.len()).map(|_| rng.range(-1.0, 1.0)).collect();
-    let a = cpu::backward(&params.scene(), &camera, &options, &output, &grad_output);
-    let b = cpu::backward(&params.scene(), &camera, &options, &output, &grad_output);
+    let slices = params.gaussians.slices();
+    let rendered = cpu::forward(&slices, params.background, &camera, &options);
+    let grad_output: Vec<f32> = (0..rendered.image.len())
+        .map(|_| rng.range(-1.0, 1.0))
+        .collect();
+    let a = cpu::backward(
+        &slices,
+        params.background,
+        &camera,
+        &options,
+        &rendered,
+        &grad_output,
+    );
+    let b = cpu::backward(
+        &slices,
+        params.background,
+        &camera,
+        &options,
+        &rendered,
+        &grad_output,
+    );
     assert_eq!(
         a, b,
         "two backward passes on the same input must agree bit for bit"

@@ -1,6 +1,6 @@
 //! `cargo xtask bench render`: the renderer's CPU timings next to the torch reference.
 //!
-//! Scenes: `scenes::smoke_plume` inside the ScalarReal smoke box, seen from the ScalarReal
+//! Scenes: `procedural::smoke_plume` inside the ScalarReal smoke box, seen from the ScalarReal
 //! held-out camera `train02` (pose and field of view from its info.json) at the paper's
 //! 270x480. Forward = render and read the image back; forward+backward = render under
 //! autodiff, backward of `sum(rgb) + sum(T)`, read a gradient back. Median of `--reps` runs
@@ -14,7 +14,8 @@ use anyhow::{Context, Result, bail};
 use burn::tensor::{Device, Tensor, TensorData};
 use clap::{Args, Subcommand};
 use gausmoke_core::glam::{Mat4, Vec3};
-use gausmoke_render::scenes::{HostGaussians, smoke_plume};
+use gausmoke_render::HostGaussians;
+use gausmoke_render::procedural::smoke_plume;
 use gausmoke_render::{Camera, Intrinsics, RasterOptions, backends, render_volume};
 use safetensors::{Dtype, tensor::TensorView};
 
@@ -422,7 +423,7 @@ fn physics(args: PhysicsArgs) -> Result<()> {
     })?;
 
     // Projection of a random (divergent) field to the default tolerance.
-    let mut rng = gausmoke_render::scenes::SplitMix64::new(3);
+    let mut rng = gausmoke_core::SplitMix64::new(3);
     let field: Vec<f32> = (0..3 * n * n * n).map(|_| rng.range(-1.0, 1.0)).collect();
     let options = ProjectionOptions::default();
     let mut report = None;

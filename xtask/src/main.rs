@@ -54,6 +54,7 @@ pub fn workspace_root() -> PathBuf {
 }
 
 fn main() -> Result<()> {
+    gausmoke_train::logging::init();
     match Cli::parse().task {
         Task::Goldens { check } => {
             let python = venv::reference_python()?;

@@ -15,7 +15,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use gausmoke_data::synth::{SynthConfig, generate};
 use gausmoke_render::backends;
-use gausmoke_train::{TrainConfig, Trainer, eval, scene::Scene};
+use gausmoke_train::{Run, TrainConfig, eval, sequence::Sequence};
 use serde_json::{Value, json};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -405,11 +405,11 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             run_dir.display()
         );
         reset_peak_memory();
-        let scene = Scene::open(&data, &variant.config)
+        let scene = Sequence::open(&data, &variant.config)
             .with_context(|| format!("loading {}", data.display()))?;
         let frames = scene.frames();
         let start = Instant::now();
-        let mut trainer = Trainer::new(
+        let mut trainer = Run::new(
             scene,
             variant.config.clone(),
             device.clone().autodiff(),
@@ -418,7 +418,7 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
         )?;
         trainer.run()?;
         let wall_seconds = start.elapsed().as_secs_f64();
-        let gaussians = trainer.state.gaussians.len();
+        let gaussians = trainer.trainer.state.gaussians.len();
         drop(trainer);
         let report = eval::evaluate(&run_dir, &device, args.lpips_weights.as_deref())?;
         let metrics: Value = serde_json::from_str(

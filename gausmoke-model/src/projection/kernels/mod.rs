@@ -1,4 +1,4 @@
-//! The exact projection `Pi` ([`crate::projection`]) on the device, for the cube backends.
+//! The exact projection `Pi` ([`super`]) on the device, for the cube backends.
 //!
 //! The same Jacobi-preconditioned conjugate gradients on `D D^T p = D u` as the host solver,
 //! with the same discrete operators, but in f32 and without leaving the GPU: the velocity grid
@@ -20,13 +20,17 @@ use burn::tensor::DType;
 use burn_cubecl::ops::numeric::{empty_device_contiguous_dtype, zeros_client};
 use burn_cubecl::tensor::CubeTensor;
 use cubecl::prelude::*;
-use gausmoke_render::kernels::{buffer, contiguous_f32};
+use gausmoke_render::kernels::buffers::{buffer, contiguous_f32};
 
-use crate::projection::{ProjectionOptions, ProjectionReport};
-use crate::projection_op::ProjectionSpec;
+use super::host::{ProjectionOptions, ProjectionReport, ProjectionSpec};
+use cg::{
+    CELL_BLOCK, direction_kernel, dot_partials_kernel, finish_sum_kernel, step_kernel,
+    subtract_kernel,
+};
+use operators::{divergence_kernel, divergence_transpose_kernel, precondition_kernel};
 
-/// Units per cube of every kernel here (one unit per cell).
-pub const CELL_BLOCK: usize = 256;
+mod cg;
+mod operators;
 
 /// Iterations between two convergence tests (each one is a device-to-host read).
 pub const CHECK_EVERY: usize = 10;
@@ -64,301 +68,6 @@ impl Slot {
     fn count(max_iterations: usize) -> usize {
         Self::rz(max_iterations + 1)
     }
-}
-
-/// Coordinate of flat cell `cell` along `axis` (x slowest, as [`crate::grid`]).
-#[cube]
-fn axis_coordinate(cell: u32, axis: u32, ny: u32, nz: u32) -> u32 {
-    let mut coordinate = cell % nz;
-    if axis == 0 {
-        coordinate = cell / (ny * nz);
-    } else if axis == 1 {
-        coordinate = (cell / nz) % ny;
-    }
-    coordinate
-}
-
-/// Flat-index step to the next cell along `axis`.
-#[cube]
-fn axis_stride(axis: u32, ny: u32, nz: u32) -> u32 {
-    let mut stride = 1u32;
-    if axis == 0 {
-        stride = ny * nz;
-    } else if axis == 1 {
-        stride = nz;
-    }
-    stride
-}
-
-/// Number of cells along `axis`.
-#[cube]
-fn axis_cells(axis: u32, nx: u32, ny: u32, nz: u32) -> u32 {
-    let mut cells = nz;
-    if axis == 0 {
-        cells = nx;
-    } else if axis == 1 {
-        cells = ny;
-    }
-    cells
-}
-
-/// Jacobi preconditioner `1 / (D D^T)_cc` of one cell (as `Divergence::normal_diagonal`).
-#[cube]
-fn inverse_diagonal(cell: u32, inverse_cell: &[f32], nx: u32, ny: u32, nz: u32) -> f32 {
-    let mut diagonal = 0.0f32;
-    let mut axis = 0u32;
-    while axis < 3 {
-        let i = axis_coordinate(cell, axis, ny, nz);
-        let n = axis_cells(axis, nx, ny, nz);
-        let mut interior = 0.0f32;
-        if i + 1 < n {
-            interior += 1.0;
-        }
-        if i > 0 {
-            interior += 1.0;
-        }
-        let mut own = 0.0f32;
-        if interior == 1.0 {
-            own = 0.25;
-        }
-        let h_inv = inverse_cell[axis as usize];
-        diagonal += (0.25 * interior + own) * h_inv * h_inv;
-        axis += 1;
-    }
-    1.0 / diagonal.max(1e-30)
-}
-
-/// `(D u)_c`: face velocity = mean of its two cells, zero on the walls, over the cell size.
-#[cube(launch)]
-pub fn divergence_kernel(
-    velocity: &[f32],
-    divergence: &mut [f32],
-    inverse_cell: &[f32],
-    nx: u32,
-    ny: u32,
-    nz: u32,
-) {
-    let cell = ABSOLUTE_POS as u32;
-    if cell >= nx * ny * nz {
-        terminate!();
-    }
-    let mut total = 0.0f32;
-    let mut axis = 0u32;
-    while axis < 3 {
-        let i = axis_coordinate(cell, axis, ny, nz);
-        let n = axis_cells(axis, nx, ny, nz);
-        let stride = axis_stride(axis, ny, nz);
-        let own = velocity[(3 * cell + axis) as usize];
-        let mut flux = 0.0f32;
-        if i + 1 < n {
-            flux += 0.5 * (own + velocity[(3 * (cell + stride) + axis) as usize]);
-        }
-        if i > 0 {
-            flux -= 0.5 * (own + velocity[(3 * (cell - stride) + axis) as usize]);
-        }
-        total += flux * inverse_cell[axis as usize];
-        axis += 1;
-    }
-    divergence[cell as usize] = total;
-}
-
-/// `(D^T p)_c`, three components per cell (`-D^T` is the discrete gradient).
-#[cube(launch)]
-pub fn divergence_transpose_kernel(
-    pressure: &[f32],
-    output: &mut [f32],
-    inverse_cell: &[f32],
-    nx: u32,
-    ny: u32,
-    nz: u32,
-) {
-    let cell = ABSOLUTE_POS as u32;
-    if cell >= nx * ny * nz {
-        terminate!();
-    }
-    let own = pressure[cell as usize];
-    let mut axis = 0u32;
-    while axis < 3 {
-        let i = axis_coordinate(cell, axis, ny, nz);
-        let n = axis_cells(axis, nx, ny, nz);
-        let stride = axis_stride(axis, ny, nz);
-        let mut value = 0.0f32;
-        if i + 1 < n {
-            value += 0.5 * (own - pressure[(cell + stride) as usize]);
-        }
-        if i > 0 {
-            value -= 0.5 * (own - pressure[(cell - stride) as usize]);
-        }
-        output[(3 * cell + axis) as usize] = value * inverse_cell[axis as usize];
-        axis += 1;
-    }
-}
-
-/// Tree sum of one value per unit into `sums[0]` (every unit must call it: it synchronises
-/// the cube; `CUBE_DIM` is a power of two).
-#[cube]
-fn sum_over_cube(sums: &mut Shared<[f32]>) {
-    sync_cube();
-    let mut stride = CUBE_DIM / 2;
-    while stride > 0 {
-        if UNIT_POS < stride {
-            let other = sums[(UNIT_POS + stride) as usize];
-            sums[UNIT_POS as usize] += other;
-        }
-        sync_cube();
-        stride /= 2;
-    }
-}
-
-/// Per-cube sums of `a * b` over `len` entries into `partials[CUBE_POS]`.
-#[cube(launch)]
-pub fn dot_partials_kernel(a: &[f32], b: &[f32], partials: &mut [f32], len: u32) {
-    let mut sums = Shared::<[f32]>::new_slice(CELL_BLOCK);
-    let index = ABSOLUTE_POS as u32;
-    let mut product = 0.0f32;
-    if index < len {
-        product = a[index as usize] * b[index as usize];
-    }
-    sums[UNIT_POS as usize] = product;
-    sum_over_cube(&mut sums);
-    if UNIT_POS == 0 {
-        partials[CUBE_POS] = sums[0];
-    }
-}
-
-/// Sums `count` partial sums in a fixed order (one cube) into `scalars[slot]`.
-#[cube(launch)]
-pub fn finish_sum_kernel(partials: &[f32], scalars: &mut [f32], count: u32, slot: u32) {
-    let mut sums = Shared::<[f32]>::new_slice(CELL_BLOCK);
-    let mut total = 0.0f32;
-    let mut index = UNIT_POS;
-    while index < count {
-        total += partials[index as usize];
-        index += CUBE_DIM;
-    }
-    sums[UNIT_POS as usize] = total;
-    sum_over_cube(&mut sums);
-    if UNIT_POS == 0 {
-        scalars[slot as usize] = sums[0];
-    }
-}
-
-/// Start of CG from `p = 0`: `z = M^-1 r` and `d = z`.
-#[cube(launch)]
-pub fn precondition_kernel(
-    residual: &[f32],
-    preconditioned: &mut [f32],
-    direction: &mut [f32],
-    inverse_cell: &[f32],
-    nx: u32,
-    ny: u32,
-    nz: u32,
-) {
-    let cell = ABSOLUTE_POS as u32;
-    if cell >= nx * ny * nz {
-        terminate!();
-    }
-    let z = residual[cell as usize] * inverse_diagonal(cell, inverse_cell, nx, ny, nz);
-    preconditioned[cell as usize] = z;
-    direction[cell as usize] = z;
-}
-
-/// Whether a residual `|r|^2` meets the stopping rule: under `tolerance^2 |b|^2` (the
-/// requested relative residual) or `floor^2 |u|^2` (what f32 can resolve; see
-/// [`F32_RESOLVABLE`]). The host's [`converged`] applies the same rule in the same arithmetic.
-#[cube]
-fn has_converged(
-    residual_squared: f32,
-    scalars: &[f32],
-    tolerance_squared: f32,
-    floor_squared: f32,
-) -> bool {
-    let relative = tolerance_squared * scalars[0];
-    let absolute = floor_squared * scalars[1];
-    residual_squared <= relative.max(absolute)
-}
-
-/// Step of iteration `k`: `a = (r.z) / (d.A d)` read from the scalar buffer, then
-/// `p += a d`, `r -= a A d`, `z = M^-1 r`.
-///
-/// No step is taken once the solve has converged (`|r_k|^2` at `residual_slot` under
-/// `tolerance^2 |b|^2` or `floor^2 |u|^2`, see [`has_converged`]): the iterations the host launches
-/// before its next convergence test are then no-ops, and the result is the first converged
-/// iterate. Nor when the curvature is not positive and finite (the direction lies in the
-/// operator's null space).
-#[cube(launch)]
-#[allow(clippy::too_many_arguments)]
-pub fn step_kernel(
-    pressure: &mut [f32],
-    residual: &mut [f32],
-    preconditioned: &mut [f32],
-    direction: &[f32],
-    operator_direction: &[f32],
-    scalars: &[f32],
-    inverse_cell: &[f32],
-    residual_slot: u32,
-    rz_slot: u32,
-    curvature_slot: u32,
-    tolerance_squared: f32,
-    floor_squared: f32,
-    nx: u32,
-    ny: u32,
-    nz: u32,
-) {
-    let cell = ABSOLUTE_POS as u32;
-    if cell >= nx * ny * nz {
-        terminate!();
-    }
-    let converged = has_converged(
-        scalars[residual_slot as usize],
-        scalars,
-        tolerance_squared,
-        floor_squared,
-    );
-    let curvature = scalars[curvature_slot as usize];
-    let mut step = 0.0f32;
-    if !converged && curvature > 0.0 && curvature < f32::MAX {
-        step = scalars[rz_slot as usize] / curvature;
-    }
-    let c = cell as usize;
-    pressure[c] += step * direction[c];
-    let r = residual[c] - step * operator_direction[c];
-    residual[c] = r;
-    preconditioned[c] = r * inverse_diagonal(cell, inverse_cell, nx, ny, nz);
-}
-
-/// New direction of iteration `k`: `d = z + b d`, `b = (r.z)_{k+1} / (r.z)_k` (zero when the
-/// old product is zero).
-#[cube(launch)]
-pub fn direction_kernel(
-    preconditioned: &[f32],
-    direction: &mut [f32],
-    scalars: &[f32],
-    rz_slot: u32,
-    next_rz_slot: u32,
-    cells: u32,
-) {
-    let cell = ABSOLUTE_POS as u32;
-    if cell >= cells {
-        terminate!();
-    }
-    let previous = scalars[rz_slot as usize];
-    let mut beta = 0.0f32;
-    if previous != 0.0 {
-        beta = scalars[next_rz_slot as usize] / previous;
-    }
-    let c = cell as usize;
-    direction[c] = preconditioned[c] + beta * direction[c];
-}
-
-/// `u - D^T p`, the projected velocity.
-#[cube(launch)]
-pub fn subtract_kernel(velocity: &[f32], gradient: &[f32], output: &mut [f32], len: u32) {
-    let index = ABSOLUTE_POS as u32;
-    if index >= len {
-        terminate!();
-    }
-    output[index as usize] = velocity[index as usize] - gradient[index as usize];
 }
 
 /// Device buffers and launch shapes of one solve.
@@ -661,7 +370,7 @@ pub fn project_velocity(
 /// Multiple of f32's epsilon under which `|r| / (|D| |u|)` is round-off.
 const F32_RESOLVABLE: f64 = 8.0 * f32::EPSILON as f64;
 
-/// The solve's stopping rule, in the f32 form the step kernel tests ([`has_converged`]).
+/// The solve's stopping rule, in the f32 form the step kernel tests (`cg::has_converged`).
 #[derive(Debug, Clone, Copy)]
 struct StoppingRule {
     tolerance_squared: f32,

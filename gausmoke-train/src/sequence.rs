@@ -17,9 +17,9 @@ pub struct Observation {
     pub image: Image,
 }
 
-/// The sequence to reconstruct.
+/// The sequence to reconstruct: per frame, what the training and held-out cameras saw.
 #[derive(Debug, Clone)]
-pub struct Scene {
+pub struct Sequence {
     /// The data set's path as given.
     pub path: PathBuf,
     /// `train[t]`: training observations at frame `t`.
@@ -36,7 +36,7 @@ pub struct Scene {
     pub ground_truth_density_scale: Option<f32>,
 }
 
-impl Scene {
+impl Sequence {
     pub fn frames(&self) -> usize {
         self.train.len()
     }
@@ -54,7 +54,7 @@ impl Scene {
         } else if path.join("transforms_train.json").is_file() {
             load_dnerf(path, &options)?
         } else {
-            return Err(TrainError::Scene {
+            return Err(TrainError::Dataset {
                 path: path.to_path_buf(),
                 reason: "neither info.json (PINF/HyFluid) nor transforms_train.json (D-NeRF) \
                          found"
@@ -69,7 +69,7 @@ impl Scene {
         dataset: &Dataset,
         config: &TrainConfig,
     ) -> Result<Self, TrainError> {
-        let fail = |reason: String| TrainError::Scene {
+        let fail = |reason: String| TrainError::Dataset {
             path: path.to_path_buf(),
             reason,
         };

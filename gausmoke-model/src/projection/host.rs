@@ -50,6 +50,32 @@ pub struct ProjectionReport {
     pub divergence_rms_after: f64,
 }
 
+/// What the op needs to know about the grid (plain data, so it can cross the dispatch).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProjectionSpec {
+    pub resolution: [usize; 3],
+    pub cell: [f64; 3],
+    pub options: ProjectionOptions,
+}
+
+impl ProjectionSpec {
+    pub fn new(grid: &crate::grid::GridSpec, options: ProjectionOptions) -> Self {
+        let Divergence { resolution, cell } = Divergence::on_grid(grid);
+        Self {
+            resolution,
+            cell,
+            options,
+        }
+    }
+
+    pub fn operator(&self) -> Divergence {
+        Divergence {
+            resolution: self.resolution,
+            cell: self.cell,
+        }
+    }
+}
+
 /// The discrete operators on one grid.
 #[derive(Debug, Clone, Copy)]
 pub struct Divergence {

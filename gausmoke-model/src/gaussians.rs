@@ -1,16 +1,14 @@
-//! The Gaussians as a trainable burn module, their initialisation inside the smoke box, and
-//! host copies for exports.
+//! The Gaussians as a trainable burn module, and their initialisation inside the smoke box.
 
 use burn::module::{Module, Param};
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, Tensor};
+use gausmoke_core::SplitMix64;
 use gausmoke_core::glam::Vec3;
-use gausmoke_render::GaussianTensors;
-pub use gausmoke_render::scenes::HostGaussians;
-use gausmoke_render::scenes::SplitMix64;
+use gausmoke_render::{Gaussian, GaussianTensors, Gaussians, HostGaussians};
 
-/// Trainable Gaussian parameters, in the renderer's parameterisation (see
-/// [`GaussianTensors`]): world-space centres, quaternions (w first), log standard
-/// deviations, raw densities (`sigma = softplus(raw)`), linear RGB colours.
+/// Trainable Gaussian parameters, in the renderer's parameterisation (see [`Gaussians`]):
+/// world-space centres, quaternions (w first), log standard deviations, raw densities
+/// (`sigma = softplus(raw)`), linear RGB colours.
 #[derive(Module, Debug)]
 pub struct GaussianModel {
     pub means: Param<Tensor<2>>,
@@ -18,12 +16,6 @@ pub struct GaussianModel {
     pub log_scales: Param<Tensor<2>>,
     pub raw_densities: Param<Tensor<1>>,
     pub colors: Param<Tensor<2>>,
-}
-
-fn to_vec<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data()
-        .try_into_vec_as::<f32>()
-        .expect("float tensors read back as f32")
 }
 
 impl GaussianModel {
@@ -35,42 +27,38 @@ impl GaussianModel {
         let extent = hi - lo;
         let spacing = (extent.x * extent.y * extent.z / count as f32).cbrt();
         let log_std = (0.5 * spacing).ln();
-        let mut host = HostGaussians {
-            means: Vec::with_capacity(count * 3),
-            rotations: Vec::with_capacity(count * 4),
-            log_scales: vec![log_std; count * 3],
-            // softplus(-2) = 0.13 per world unit: a 0.5-unit box starts mostly transparent.
-            raw_densities: vec![-2.0; count],
-            colors: vec![0.5; count * 3],
-        };
+        let mut host = HostGaussians::with_capacity(count);
         for _ in 0..count {
-            for axis in 0..3 {
-                host.means.push(rng.range(lo[axis], hi[axis]));
-            }
+            let mean = [0, 1, 2].map(|axis| rng.range(lo[axis], hi[axis]));
             let q = [rng.normal(), rng.normal(), rng.normal(), rng.normal()];
             let norm = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-6);
-            host.rotations.extend(q.iter().map(|v| v / norm));
+            host.push(&Gaussian {
+                mean,
+                rotation: q.map(|v| v / norm),
+                log_scale: [log_std; 3],
+                // softplus(-2) = 0.13 per world unit: a 0.5-unit box starts mostly transparent.
+                raw_density: -2.0,
+                color: [0.5; 3],
+            });
         }
         Self::from_host(&host, device)
     }
 
     pub fn from_host(host: &HostGaussians, device: &Device) -> Self {
-        let n = host.len();
-        let t2 = |v: &[f32], cols: usize| {
-            Param::from_tensor(Tensor::<2>::from_data(
-                TensorData::new(v.to_vec(), [n, cols]),
-                device,
-            ))
-        };
+        Self::from_tensors(
+            host.to_tensors(device)
+                .expect("host Gaussians hold N rows of every attribute"),
+        )
+    }
+
+    /// New parameters holding `tensors`.
+    pub fn from_tensors(tensors: GaussianTensors) -> Self {
         Self {
-            means: t2(&host.means, 3),
-            rotations: t2(&host.rotations, 4),
-            log_scales: t2(&host.log_scales, 3),
-            raw_densities: Param::from_tensor(Tensor::<1>::from_data(
-                TensorData::new(host.raw_densities.clone(), [n]),
-                device,
-            )),
-            colors: t2(&host.colors, 3),
+            means: Param::from_tensor(tensors.means),
+            rotations: Param::from_tensor(tensors.rotations),
+            log_scales: Param::from_tensor(tensors.log_scales),
+            raw_densities: Param::from_tensor(tensors.raw_densities),
+            colors: Param::from_tensor(tensors.colors),
         }
     }
 
@@ -84,7 +72,7 @@ impl GaussianModel {
 
     /// The renderer's view of the parameters (tracked for autodiff).
     pub fn tensors(&self) -> GaussianTensors {
-        GaussianTensors {
+        Gaussians {
             means: self.means.val(),
             rotations: self.rotations.val(),
             log_scales: self.log_scales.val(),
@@ -95,19 +83,25 @@ impl GaussianModel {
 
     /// The same Gaussians with their centres replaced (e.g. by advected ones).
     pub fn tensors_at(&self, means: Tensor<2>) -> GaussianTensors {
-        GaussianTensors {
+        Gaussians {
             means,
             ..self.tensors()
         }
     }
 
     pub fn to_host(&self) -> HostGaussians {
-        HostGaussians {
-            means: to_vec(self.means.val()),
-            rotations: to_vec(self.rotations.val()),
-            log_scales: to_vec(self.log_scales.val()),
-            raw_densities: to_vec(self.raw_densities.val()),
-            colors: to_vec(self.colors.val()),
+        self.tensors().to_host()
+    }
+
+    /// The ids of the parameters, attribute by attribute (what per-attribute optimiser steps
+    /// select).
+    pub fn param_ids(&self) -> Gaussians<burn::module::ParamId> {
+        Gaussians {
+            means: self.means.id,
+            rotations: self.rotations.id,
+            log_scales: self.log_scales.id,
+            raw_densities: self.raw_densities.id,
+            colors: self.colors.id,
         }
     }
 
@@ -125,17 +119,19 @@ impl GaussianModel {
     pub fn with_host_values(self, host: &HostGaussians) -> Self {
         assert_eq!(host.len(), self.len(), "recycling keeps the Gaussian count");
         let device = self.means.val().device();
-        let fresh = Self::from_host(host, &device);
+        let fresh = host
+            .to_tensors(&device)
+            .expect("host Gaussians hold N rows of every attribute");
         let keep = |id, tensor: Tensor<2>| Param::initialized(id, tensor.require_grad());
         Self {
-            means: keep(self.means.id, fresh.means.val()),
-            rotations: keep(self.rotations.id, fresh.rotations.val()),
-            log_scales: keep(self.log_scales.id, fresh.log_scales.val()),
+            means: keep(self.means.id, fresh.means),
+            rotations: keep(self.rotations.id, fresh.rotations),
+            log_scales: keep(self.log_scales.id, fresh.log_scales),
             raw_densities: Param::initialized(
                 self.raw_densities.id,
-                fresh.raw_densities.val().require_grad(),
+                fresh.raw_densities.require_grad(),
             ),
-            colors: keep(self.colors.id, fresh.colors.val()),
+            colors: keep(self.colors.id, fresh.colors),
         }
     }
 

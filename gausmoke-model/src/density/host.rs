@@ -2,19 +2,49 @@
 //! `sigma_grid(x) = sum_i sigma_i k_i(x)`, `k_i(x) = exp(-|S^-1 R^T (x - mu_i)|^2 / 2)`,
 //! evaluated only inside each Gaussian's `cutoff` support (`|.|^2 <= 9`: 3 sigma).
 //!
-//! Host implementation over flat slices (shared by the CPU backends), with the backward
-//! pass to means, quaternions, log-scales and raw densities. It reuses the renderer's
-//! whitening (`L = S^-1 R^T`, computed with an identity "camera" at the origin) and its chain
-//! rule [`gausmoke_render::math::view_vjp`], so both ops differentiate the same
-//! parameterisation.
+//! Host implementation over flat slices (shared by the CPU backends, and the twin the kernels
+//! are tested against), with the backward pass to means, quaternions, log-scales and raw
+//! densities. It uses the renderer's whitening of a Gaussian (`L = S^-1 R^T`, in the world
+//! frame: no rotation, origin at zero) and its chain rule [`gausmoke_render::math::view_vjp`],
+//! so both ops differentiate the same parameterisation.
 
 // Small fixed loops index several 3-vectors and matrices at once; an index reads best.
 #![allow(clippy::needless_range_loop)]
 
-use gausmoke_render::math::{ViewSplat, WorldGaussian, dot3, view_vjp};
+use gausmoke_render::math::{ViewSplat, dot3, view_vjp};
+use gausmoke_render::{Gaussian, GaussianSlices, HostGaussians};
 use rayon::prelude::*;
 
-const IDENTITY: [[f32; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+/// The world frame as a viewer: no rotation (the origin is at zero).
+const WORLD: [[f32; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+
+/// Which of the two fields an op evaluates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DensityField {
+    /// `sigma_grid`, `[nx, ny, nz]`.
+    Density,
+    /// `grad sigma_grid`, `[nx, ny, nz, 3]` (per world unit).
+    SpatialGradient,
+}
+
+impl DensityField {
+    /// Values per cell.
+    pub fn channels(self) -> usize {
+        match self {
+            DensityField::Density => 1,
+            DensityField::SpatialGradient => 3,
+        }
+    }
+
+    /// The field's tensor shape on `grid`.
+    pub fn shape(self, grid: &SplatGrid) -> Vec<usize> {
+        let mut shape = grid.resolution.to_vec();
+        if self == DensityField::SpatialGradient {
+            shape.push(3);
+        }
+        shape
+    }
+}
 
 /// Grid geometry for the op: `resolution` cells over a box starting at `lo`, cell `cell`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -27,7 +57,7 @@ pub struct SplatGrid {
 }
 
 impl SplatGrid {
-    fn cells(&self) -> usize {
+    pub fn cells(&self) -> usize {
         self.resolution.iter().product()
     }
 
@@ -55,49 +85,11 @@ impl SplatGrid {
     }
 }
 
-/// Flat parameters of `N` Gaussians (as in the renderer's op, colours not needed).
-#[derive(Debug, Clone, Copy)]
-pub struct GaussianSlices<'a> {
-    pub means: &'a [f32],
-    pub quats: &'a [f32],
-    pub log_scales: &'a [f32],
-    pub raw_densities: &'a [f32],
-}
-
-impl GaussianSlices<'_> {
-    fn len(&self) -> usize {
-        self.raw_densities.len()
-    }
-
-    fn gaussian(&self, i: usize) -> WorldGaussian {
-        WorldGaussian {
-            mean: [
-                self.means[3 * i],
-                self.means[3 * i + 1],
-                self.means[3 * i + 2],
-            ],
-            quat: [
-                self.quats[4 * i],
-                self.quats[4 * i + 1],
-                self.quats[4 * i + 2],
-                self.quats[4 * i + 3],
-            ],
-            log_scale: [
-                self.log_scales[3 * i],
-                self.log_scales[3 * i + 1],
-                self.log_scales[3 * i + 2],
-            ],
-            raw_density: self.raw_densities[i],
-            color: [0.0; 3],
-        }
-    }
-}
-
 /// Calls `visit(flat_cell, whitened_offset)` for every cell centre inside the support of the
 /// Gaussian whose whitening (camera at the origin) is `splat`.
 fn for_each_cell(
     grid: &SplatGrid,
-    g: &WorldGaussian,
+    g: &Gaussian,
     splat: &ViewSplat,
     mut visit: impl FnMut(usize, [f32; 3], [f32; 3]),
 ) {
@@ -149,8 +141,8 @@ fn accumulate_field(
         .map(|start| {
             let mut acc = vec![0.0f32; len];
             for i in start..(start + chunk).min(n) {
-                let g = gaussians.gaussian(i);
-                let (splat, _) = g.view(&IDENTITY, [0.0; 3]);
+                let g = gaussians.get(i);
+                let (splat, _) = g.view(&WORLD, [0.0; 3]);
                 for_each_cell(grid, &g, &splat, |c, _, m| {
                     cell_value(&splat, m, &mut acc[channels * c..channels * (c + 1)]);
                 });
@@ -194,17 +186,17 @@ impl WhitenedGrad {
 
 /// Per Gaussian in parallel: `cell_grad(splat, cell, p, m, grad)` accumulates the cell's
 /// contribution, then [`view_vjp`] chains it back to the world-space parameters. Returns the
-/// gradients `(means, quats, log_scales, raw_densities)`.
+/// gradient of every attribute (zero for the colours, which splatting does not read).
 fn gaussian_gradients(
     gaussians: &GaussianSlices,
     grid: &SplatGrid,
     cell_grad: impl Fn(&ViewSplat, usize, [f32; 3], [f32; 3], &mut WhitenedGrad) + Sync,
-) -> (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>) {
+) -> HostGaussians {
     let grads: Vec<_> = (0..gaussians.len())
         .into_par_iter()
         .map(|i| {
-            let g = gaussians.gaussian(i);
-            let (splat, ctx) = g.view(&IDENTITY, [0.0; 3]);
+            let g = gaussians.get(i);
+            let (splat, ctx) = g.view(&WORLD, [0.0; 3]);
             let mut acc = WhitenedGrad::default();
             for_each_cell(grid, &g, &splat, |c, p, m| {
                 cell_grad(&splat, c, p, m, &mut acc)
@@ -212,7 +204,7 @@ fn gaussian_gradients(
             view_vjp(
                 &g,
                 &ctx,
-                &IDENTITY,
+                &WORLD,
                 &acc.whiten,
                 acc.center,
                 acc.sigma,
@@ -220,12 +212,11 @@ fn gaussian_gradients(
             )
         })
         .collect();
-    (
-        grads.iter().flat_map(|g| g.mean).collect(),
-        grads.iter().flat_map(|g| g.quat).collect(),
-        grads.iter().flat_map(|g| g.log_scale).collect(),
-        grads.iter().map(|g| g.raw_density).collect(),
-    )
+    let mut out = HostGaussians::with_capacity(grads.len());
+    for g in &grads {
+        out.push(g);
+    }
+    out
 }
 
 /// `sigma_grid`, `[nx * ny * nz]` in the grid's flat order.
@@ -235,12 +226,12 @@ pub fn splat_forward(gaussians: &GaussianSlices, grid: &SplatGrid) -> Vec<f32> {
     })
 }
 
-/// Gradients `(means, quats, log_scales, raw_densities)` given `dLoss/dsigma_grid`.
+/// Gradients of every attribute given `dLoss/dsigma_grid`.
 pub fn splat_backward(
     gaussians: &GaussianSlices,
     grid: &SplatGrid,
     grad_grid: &[f32],
-) -> (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>) {
+) -> HostGaussians {
     assert_eq!(
         grad_grid.len(),
         grid.cells(),
@@ -268,7 +259,7 @@ pub fn splat_gradient_forward(gaussians: &GaussianSlices, grid: &SplatGrid) -> V
     })
 }
 
-/// Gradients `(means, quats, log_scales, raw_densities)` of [`splat_gradient_forward`]
+/// Gradients of every attribute of [`splat_gradient_forward`]
 /// given `dLoss/d(grad sigma)` (`[cells * 3]`).
 ///
 /// Per cell and Gaussian the output is `f = -sigma k m.(L g)` for upstream `g`; with
@@ -278,7 +269,7 @@ pub fn splat_gradient_backward(
     gaussians: &GaussianSlices,
     grid: &SplatGrid,
     grad_field: &[f32],
-) -> (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>) {
+) -> HostGaussians {
     assert_eq!(
         grad_field.len(),
         3 * grid.cells(),

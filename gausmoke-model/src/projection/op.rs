@@ -1,4 +1,4 @@
-//! [`crate::projection`] as a burn backend extension: forward projects the velocity grid, and
+//! The exact projection as a burn backend extension: forward projects the velocity grid, and
 //! the `Autodiff` backward projects the incoming gradient (`Pi` is self-adjoint).
 
 // NdArray is deprecated in burn 0.22; see gausmoke-render's ops.rs. The macro names it too.
@@ -12,36 +12,9 @@ use burn::backend::autodiff::{
 };
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, TensorMetadata, backend_extension};
-use burn::tensor::{Tensor, TensorData, read_sync};
+use burn::tensor::{TensorData, read_sync};
 
-use crate::grid::GridSpec;
-use crate::projection::{Divergence, ProjectionOptions, ProjectionReport, project};
-
-/// What the op needs to know about the grid (plain data, so it can cross the dispatch).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ProjectionSpec {
-    pub resolution: [usize; 3],
-    pub cell: [f64; 3],
-    pub options: ProjectionOptions,
-}
-
-impl ProjectionSpec {
-    pub fn new(grid: &GridSpec, options: ProjectionOptions) -> Self {
-        let Divergence { resolution, cell } = Divergence::on_grid(grid);
-        Self {
-            resolution,
-            cell,
-            options,
-        }
-    }
-
-    fn operator(&self) -> Divergence {
-        Divergence {
-            resolution: self.resolution,
-            cell: self.cell,
-        }
-    }
-}
+use super::host::{ProjectionSpec, project};
 
 #[backend_extension(
     Cube: cfg(feature = "cube"),
@@ -81,12 +54,12 @@ impl ProjectionBackend for burn::backend::Flex {
     }
 }
 
-/// On the GPU backends the solve stays on the device (`projection_kernel`): the same PCG in
+/// On the GPU backends the solve stays on the device (`kernels`): the same PCG in
 /// f32, with no read-back of the velocity grid.
 #[cfg(feature = "cube")]
 impl ProjectionBackend for burn_cubecl::CubeBackend {
     fn project_velocity(velocity: FloatTensor<Self>, spec: ProjectionSpec) -> FloatTensor<Self> {
-        let (projected, report) = crate::projection_kernel::project_velocity(velocity, &spec);
+        let (projected, report) = super::kernels::project_velocity(velocity, &spec);
         tracing::debug!(?report, "velocity projection (device)");
         projected
     }
@@ -101,7 +74,7 @@ impl<B: Backend + ProjectionBackend> Backward<B, 1> for ProjectBackward {
     fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
         let grad = grads.consume::<B>(&ops.node);
         if let [Some(parent)] = ops.parents {
-            let _timed = gausmoke_core::profile::scope("projection backward");
+            let _phase = gausmoke_core::phase!("projection backward");
             grads.register::<B>(parent.id, B::project_velocity(grad, ops.state));
         }
     }
@@ -111,7 +84,7 @@ impl<B: Backend + ProjectionBackend, C: CheckpointStrategy> ProjectionBackend fo
     fn project_velocity(velocity: FloatTensor<Self>, spec: ProjectionSpec) -> FloatTensor<Self> {
         let node = velocity.node();
         let output = {
-            let _timed = gausmoke_core::profile::scope("projection");
+            let _phase = gausmoke_core::phase!("projection");
             B::project_velocity(velocity.into_primitive(), spec)
         };
         match ProjectBackward
@@ -123,32 +96,4 @@ impl<B: Backend + ProjectionBackend, C: CheckpointStrategy> ProjectionBackend fo
             OpsKind::UnTracked(prep) => prep.finish(output),
         }
     }
-}
-
-/// `Pi(u)`: the divergence-free, wall-tangent part of the velocity grid `[nx, ny, nz, 3]`.
-/// Differentiable: its gradient is `Pi` of the incoming gradient.
-pub fn project_velocity(
-    grid: &GridSpec,
-    velocity: Tensor<4>,
-    options: ProjectionOptions,
-) -> Tensor<4> {
-    use burn::backend::Dispatch;
-    grid.assert_velocity_shape(velocity.dims());
-    Tensor::from_dispatch(<Dispatch as ProjectionBackend>::project_velocity(
-        velocity.into_dispatch(),
-        ProjectionSpec::new(grid, options),
-    ))
-}
-
-/// Projects on the host and returns the solver report (for diagnostics and the CLI).
-pub fn project_with_report(
-    grid: &GridSpec,
-    velocity: &mut [f32],
-    options: &ProjectionOptions,
-) -> ProjectionReport {
-    project(
-        &ProjectionSpec::new(grid, *options).operator(),
-        velocity,
-        options,
-    )
 }

@@ -1,0 +1,142 @@
+//! The conjugate-gradient steps of the projection's solve as kernels: fixed-order dot
+//! products (per-cube trees, then one cube over the partial sums) and the per-cell updates.
+//! Every CG scalar lives in the device buffer `scalars` (see `Slot`).
+
+use cubecl::prelude::*;
+use gausmoke_render::kernels::reduce::tree_sum;
+
+use super::operators::inverse_diagonal;
+
+/// Units per cube of every kernel here (one unit per cell).
+pub const CELL_BLOCK: usize = 256;
+
+/// Per-cube sums of `a * b` over `len` entries into `partials[CUBE_POS]`.
+#[cube(launch)]
+pub fn dot_partials_kernel(a: &[f32], b: &[f32], partials: &mut [f32], len: u32) {
+    let mut sums = Shared::<[f32]>::new_slice(CELL_BLOCK);
+    let index = ABSOLUTE_POS as u32;
+    let mut product = 0.0f32;
+    if index < len {
+        product = a[index as usize] * b[index as usize];
+    }
+    sums[UNIT_POS as usize] = product;
+    tree_sum(&mut sums);
+    if UNIT_POS == 0 {
+        partials[CUBE_POS] = sums[0];
+    }
+}
+
+/// Sums `count` partial sums in a fixed order (one cube) into `scalars[slot]`.
+#[cube(launch)]
+pub fn finish_sum_kernel(partials: &[f32], scalars: &mut [f32], count: u32, slot: u32) {
+    let mut sums = Shared::<[f32]>::new_slice(CELL_BLOCK);
+    let mut total = 0.0f32;
+    let mut index = UNIT_POS;
+    while index < count {
+        total += partials[index as usize];
+        index += CUBE_DIM;
+    }
+    sums[UNIT_POS as usize] = total;
+    tree_sum(&mut sums);
+    if UNIT_POS == 0 {
+        scalars[slot as usize] = sums[0];
+    }
+}
+
+/// Whether a residual `|r|^2` meets the stopping rule: under `tolerance^2 |b|^2` (the
+/// requested relative residual) or `floor^2 |u|^2` (what f32 can resolve; see
+/// `F32_RESOLVABLE`). The host's `StoppingRule::met` applies the same rule in the same arithmetic.
+#[cube]
+fn has_converged(
+    residual_squared: f32,
+    scalars: &[f32],
+    tolerance_squared: f32,
+    floor_squared: f32,
+) -> bool {
+    let relative = tolerance_squared * scalars[0];
+    let absolute = floor_squared * scalars[1];
+    residual_squared <= relative.max(absolute)
+}
+
+/// Step of iteration `k`: `a = (r.z) / (d.A d)` read from the scalar buffer, then
+/// `p += a d`, `r -= a A d`, `z = M^-1 r`.
+///
+/// No step is taken once the solve has converged (`|r_k|^2` at `residual_slot` under
+/// `tolerance^2 |b|^2` or `floor^2 |u|^2`, see [`has_converged`]): the iterations the host launches
+/// before its next convergence test are then no-ops, and the result is the first converged
+/// iterate. Nor when the curvature is not positive and finite (the direction lies in the
+/// operator's null space).
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+pub fn step_kernel(
+    pressure: &mut [f32],
+    residual: &mut [f32],
+    preconditioned: &mut [f32],
+    direction: &[f32],
+    operator_direction: &[f32],
+    scalars: &[f32],
+    inverse_cell: &[f32],
+    residual_slot: u32,
+    rz_slot: u32,
+    curvature_slot: u32,
+    tolerance_squared: f32,
+    floor_squared: f32,
+    nx: u32,
+    ny: u32,
+    nz: u32,
+) {
+    let cell = ABSOLUTE_POS as u32;
+    if cell >= nx * ny * nz {
+        terminate!();
+    }
+    let converged = has_converged(
+        scalars[residual_slot as usize],
+        scalars,
+        tolerance_squared,
+        floor_squared,
+    );
+    let curvature = scalars[curvature_slot as usize];
+    let mut step = 0.0f32;
+    if !converged && curvature > 0.0 && curvature < f32::MAX {
+        step = scalars[rz_slot as usize] / curvature;
+    }
+    let c = cell as usize;
+    pressure[c] += step * direction[c];
+    let r = residual[c] - step * operator_direction[c];
+    residual[c] = r;
+    preconditioned[c] = r * inverse_diagonal(cell, inverse_cell, nx, ny, nz);
+}
+
+/// New direction of iteration `k`: `d = z + b d`, `b = (r.z)_{k+1} / (r.z)_k` (zero when the
+/// old product is zero).
+#[cube(launch)]
+pub fn direction_kernel(
+    preconditioned: &[f32],
+    direction: &mut [f32],
+    scalars: &[f32],
+    rz_slot: u32,
+    next_rz_slot: u32,
+    cells: u32,
+) {
+    let cell = ABSOLUTE_POS as u32;
+    if cell >= cells {
+        terminate!();
+    }
+    let previous = scalars[rz_slot as usize];
+    let mut beta = 0.0f32;
+    if previous != 0.0 {
+        beta = scalars[next_rz_slot as usize] / previous;
+    }
+    let c = cell as usize;
+    direction[c] = preconditioned[c] + beta * direction[c];
+}
+
+/// `u - D^T p`, the projected velocity.
+#[cube(launch)]
+pub fn subtract_kernel(velocity: &[f32], gradient: &[f32], output: &mut [f32], len: u32) {
+    let index = ABSOLUTE_POS as u32;
+    if index >= len {
+        terminate!();
+    }
+    output[index as usize] = velocity[index as usize] - gradient[index as usize];
+}

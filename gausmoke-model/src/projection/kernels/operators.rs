@@ -1,0 +1,152 @@
+//! The grid operators of the projection as kernels, one unit per cell: the divergence `D`,
+//! its transpose, and the Jacobi preconditioner (as `projection::host::Divergence`).
+
+use cubecl::prelude::*;
+
+/// Coordinate of flat cell `cell` along `axis` (x slowest, as [`crate::grid`]).
+#[cube]
+fn axis_coordinate(cell: u32, axis: u32, ny: u32, nz: u32) -> u32 {
+    let mut coordinate = cell % nz;
+    if axis == 0 {
+        coordinate = cell / (ny * nz);
+    } else if axis == 1 {
+        coordinate = (cell / nz) % ny;
+    }
+    coordinate
+}
+
+/// Flat-index step to the next cell along `axis`.
+#[cube]
+fn axis_stride(axis: u32, ny: u32, nz: u32) -> u32 {
+    let mut stride = 1u32;
+    if axis == 0 {
+        stride = ny * nz;
+    } else if axis == 1 {
+        stride = nz;
+    }
+    stride
+}
+
+/// Number of cells along `axis`.
+#[cube]
+fn axis_cells(axis: u32, nx: u32, ny: u32, nz: u32) -> u32 {
+    let mut cells = nz;
+    if axis == 0 {
+        cells = nx;
+    } else if axis == 1 {
+        cells = ny;
+    }
+    cells
+}
+
+/// Jacobi preconditioner `1 / (D D^T)_cc` of one cell (as `Divergence::normal_diagonal`).
+#[cube]
+pub fn inverse_diagonal(cell: u32, inverse_cell: &[f32], nx: u32, ny: u32, nz: u32) -> f32 {
+    let mut diagonal = 0.0f32;
+    let mut axis = 0u32;
+    while axis < 3 {
+        let i = axis_coordinate(cell, axis, ny, nz);
+        let n = axis_cells(axis, nx, ny, nz);
+        let mut interior = 0.0f32;
+        if i + 1 < n {
+            interior += 1.0;
+        }
+        if i > 0 {
+            interior += 1.0;
+        }
+        let mut own = 0.0f32;
+        if interior == 1.0 {
+            own = 0.25;
+        }
+        let h_inv = inverse_cell[axis as usize];
+        diagonal += (0.25 * interior + own) * h_inv * h_inv;
+        axis += 1;
+    }
+    1.0 / diagonal.max(1e-30)
+}
+
+/// `(D u)_c`: face velocity = mean of its two cells, zero on the walls, over the cell size.
+#[cube(launch)]
+pub fn divergence_kernel(
+    velocity: &[f32],
+    divergence: &mut [f32],
+    inverse_cell: &[f32],
+    nx: u32,
+    ny: u32,
+    nz: u32,
+) {
+    let cell = ABSOLUTE_POS as u32;
+    if cell >= nx * ny * nz {
+        terminate!();
+    }
+    let mut total = 0.0f32;
+    let mut axis = 0u32;
+    while axis < 3 {
+        let i = axis_coordinate(cell, axis, ny, nz);
+        let n = axis_cells(axis, nx, ny, nz);
+        let stride = axis_stride(axis, ny, nz);
+        let own = velocity[(3 * cell + axis) as usize];
+        let mut flux = 0.0f32;
+        if i + 1 < n {
+            flux += 0.5 * (own + velocity[(3 * (cell + stride) + axis) as usize]);
+        }
+        if i > 0 {
+            flux -= 0.5 * (own + velocity[(3 * (cell - stride) + axis) as usize]);
+        }
+        total += flux * inverse_cell[axis as usize];
+        axis += 1;
+    }
+    divergence[cell as usize] = total;
+}
+
+/// `(D^T p)_c`, three components per cell (`-D^T` is the discrete gradient).
+#[cube(launch)]
+pub fn divergence_transpose_kernel(
+    pressure: &[f32],
+    output: &mut [f32],
+    inverse_cell: &[f32],
+    nx: u32,
+    ny: u32,
+    nz: u32,
+) {
+    let cell = ABSOLUTE_POS as u32;
+    if cell >= nx * ny * nz {
+        terminate!();
+    }
+    let own = pressure[cell as usize];
+    let mut axis = 0u32;
+    while axis < 3 {
+        let i = axis_coordinate(cell, axis, ny, nz);
+        let n = axis_cells(axis, nx, ny, nz);
+        let stride = axis_stride(axis, ny, nz);
+        let mut value = 0.0f32;
+        if i + 1 < n {
+            value += 0.5 * (own - pressure[(cell + stride) as usize]);
+        }
+        if i > 0 {
+            value -= 0.5 * (own - pressure[(cell - stride) as usize]);
+        }
+        output[(3 * cell + axis) as usize] = value * inverse_cell[axis as usize];
+        axis += 1;
+    }
+}
+
+/// Start of CG from `p = 0`: `z = M^-1 r` and `d = z`.
+#[cube(launch)]
+pub fn precondition_kernel(
+    residual: &[f32],
+    preconditioned: &mut [f32],
+    direction: &mut [f32],
+    inverse_cell: &[f32],
+    nx: u32,
+    ny: u32,
+    nz: u32,
+) {
+    let cell = ABSOLUTE_POS as u32;
+    if cell >= nx * ny * nz {
+        terminate!();
+    }
+    let z = residual[cell as usize] * inverse_diagonal(cell, inverse_cell, nx, ny, nz);
+    preconditioned[cell as usize] = z;
+    direction[cell as usize] = z;
+}

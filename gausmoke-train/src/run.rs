@@ -1,0 +1,312 @@
+//! A training run: the [`Trainer`] frame by frame, each frame evaluated on the held-out views,
+//! written to its [`RunFolder`] and checkpointed, so an interrupted run resumes where it
+//! stopped.
+
+use std::path::Path;
+use std::time::Instant;
+
+use burn::tensor::Device;
+use gausmoke_core::phases::{self, PhaseTime, PhaseTotals};
+
+use crate::checkpoint::{self, CheckpointMeta};
+use crate::run_folder::{FrameState, Metrics, PhaseSeconds, RunFolder, RunInfo, ViewRender};
+use crate::sequence::Sequence;
+use crate::state::{FrameReport, LossRow};
+use crate::trainer::{FrameOutcome, Trainer};
+use crate::{TrainConfig, TrainError, metrics};
+
+/// Algorithm 1 over a whole sequence, with its outputs.
+pub struct Run {
+    pub trainer: Trainer,
+    pub folder: RunFolder,
+    /// The last complete frame, `None` before frame 0 is fitted.
+    pub frame: Option<usize>,
+    pub losses: Vec<LossRow>,
+    pub reports: Vec<FrameReport>,
+    elapsed_before: f64,
+    session_start: Instant,
+    /// Wall time per phase in this session, from the `PhaseLayer` of the current subscriber
+    /// (empty without one).
+    phase_times: Vec<PhaseTime>,
+}
+
+impl Run {
+    /// Prepares a run in `out`. With `resume`, continues from the newest complete
+    /// checkpoint there (the configuration must match the one it was trained with);
+    /// without, refuses a folder that already holds a run, so no work is overwritten.
+    pub fn new(
+        sequence: Sequence,
+        config: TrainConfig,
+        device: Device,
+        out: &Path,
+        resume: bool,
+    ) -> Result<Self, TrainError> {
+        let trainer = Trainer::new(sequence, config, device)?;
+        let folder = RunFolder::at(out);
+        let existing = checkpoint::latest(out)?;
+        if existing.is_some() && !resume {
+            return Err(TrainError::Config {
+                origin: out.display().to_string(),
+                reason: "this folder already holds a run; pass --resume to continue it or \
+                         choose another --out"
+                    .into(),
+            });
+        }
+        folder.create()?;
+        if let Some(totals) = PhaseTotals::current() {
+            let _ = totals.take();
+            totals.set_sync(trainer.config.sync_phase_timings.then(|| {
+                let device = trainer.device.clone();
+                let hook: phases::SyncHook = std::sync::Arc::new(move || {
+                    // A failed wait only blurs the phase boundaries; the work itself reports
+                    // its own errors.
+                    let _ = device.sync();
+                });
+                hook
+            }));
+        }
+        let mut run = Self {
+            trainer,
+            folder,
+            frame: None,
+            losses: Vec::new(),
+            reports: Vec::new(),
+            elapsed_before: 0.0,
+            session_start: Instant::now(),
+            phase_times: Vec::new(),
+        };
+        if let Some(dir) = existing.filter(|_| resume) {
+            run.restore(&dir)?;
+        }
+        run.folder.write_config(&run.trainer.config)?;
+        let grid = &run.trainer.grid;
+        run.folder.write_run_info(&RunInfo {
+            data: run.trainer.sequence.path.clone(),
+            frames: run.trainer.sequence.frames(),
+            grid_resolution: grid.resolution(),
+            box_lo: grid.lo().to_array(),
+            box_hi: grid.hi().to_array(),
+            device: format!("{:?}", run.trainer.device),
+            version: env!("CARGO_PKG_VERSION").into(),
+        })?;
+        Ok(run)
+    }
+
+    /// Hides the progress bars (tests, notebooks).
+    pub fn quiet(mut self, quiet: bool) -> Self {
+        self.trainer = self.trainer.quiet(quiet);
+        self
+    }
+
+    fn restore(&mut self, dir: &Path) -> Result<(), TrainError> {
+        let fresh = self.trainer.fresh_state();
+        let (state, meta) = checkpoint::load(dir, fresh, &self.trainer.device)?;
+        if meta.config != self.trainer.config {
+            return Err(TrainError::Checkpoint {
+                path: dir.to_path_buf(),
+                reason: format!(
+                    "it was trained with a different configuration; resume with the same \
+                     --config/--set options (its configuration:\n{})",
+                    meta.config.to_toml()
+                ),
+            });
+        }
+        self.trainer.state = state;
+        self.frame = Some(meta.frame);
+        self.losses = meta.losses;
+        self.reports = meta.reports;
+        self.elapsed_before = meta.elapsed_seconds;
+        tracing::info!(checkpoint = %dir.display(), frame = meta.frame, "resumed");
+        Ok(())
+    }
+
+    fn elapsed(&self) -> f64 {
+        self.elapsed_before + self.session_start.elapsed().as_secs_f64()
+    }
+
+    /// Adds the phase times recorded since the last call.
+    fn collect_phase_times(&mut self) {
+        if let Some(totals) = PhaseTotals::current() {
+            for time in totals.take() {
+                phases::accumulate(&mut self.phase_times, time);
+            }
+        }
+    }
+
+    /// Trains every remaining frame, writes the summary outputs and returns the reports.
+    pub fn run(&mut self) -> Result<&[FrameReport], TrainError> {
+        let first = self.frame.map_or(0, |done| done + 1);
+        for t in first..self.trainer.sequence.frames() {
+            self.train_frame(t)?;
+        }
+        self.write_summary()?;
+        Ok(&self.reports)
+    }
+
+    /// Trains frame `t` (the next one), evaluates it, writes its outputs and checkpoints it.
+    pub fn train_frame(&mut self, t: usize) -> Result<&FrameReport, TrainError> {
+        let start = Instant::now();
+        let outcome = self.trainer.train_frame(t)?;
+        // The optimisation's phase times so far; the evaluation and outputs below render too,
+        // and their time goes to "outputs and evaluation" instead.
+        self.collect_phase_times();
+        let outputs_start = Instant::now();
+        self.finish_frame(outcome, start)?;
+        if let Some(totals) = PhaseTotals::current() {
+            let _ = totals.take();
+        }
+        phases::accumulate(
+            &mut self.phase_times,
+            PhaseTime {
+                name: "outputs and evaluation",
+                seconds: outputs_start.elapsed().as_secs_f64(),
+                calls: 1,
+            },
+        );
+        Ok(self.reports.last().expect("a frame was just reported"))
+    }
+
+    /// Evaluates the frame `outcome` reports, writes its outputs and checkpoints it.
+    fn finish_frame(&mut self, outcome: FrameOutcome, start: Instant) -> Result<(), TrainError> {
+        let t = outcome.frame;
+        let trainer = &self.trainer;
+        let grid = trainer.grid;
+        let state = FrameState {
+            gaussians: trainer.state.gaussians.to_host(),
+            velocity: trainer
+                .state
+                .velocity
+                .clone()
+                .into_data()
+                .try_into_vec_as::<f32>()
+                .expect("float tensors read back as f32"),
+            density: trainer.density_host(),
+        };
+        let test = &trainer.sequence.test[t];
+        let train = &trainer.sequence.train[t];
+        let test_renders = trainer.render_host(test)?;
+        let (mut l1, mut psnr, mut ssim) = (0.0, 0.0, 0.0);
+        for (observation, render) in test.iter().zip(&test_renders) {
+            let (w, h) = (
+                observation.image.width() as usize,
+                observation.image.height() as usize,
+            );
+            l1 += metrics::mean_abs_error(render, observation.image.data());
+            psnr += metrics::psnr(render, observation.image.data());
+            ssim += metrics::ssim(render, observation.image.data(), w, h);
+        }
+        let tests = test.len() as f64;
+        let speeds: Vec<f64> = state
+            .velocity
+            .chunks(3)
+            .map(|v| ((v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) as f64).sqrt())
+            .collect();
+        let projection = outcome.projection.unwrap_or_default();
+        let report = FrameReport {
+            frame: t,
+            train_l1: outcome.train_l1,
+            test_l1: (tests > 0.0).then_some(l1 / tests),
+            test_psnr: (tests > 0.0).then_some(psnr / tests),
+            test_ssim: (tests > 0.0).then_some(ssim / tests),
+            mean_abs_divergence: metrics::mean_abs_divergence(&grid, &state.velocity),
+            projection_iterations: projection.iterations,
+            projection_residual: projection.relative_residual,
+            divergence_rms_before: projection.divergence_rms_before,
+            divergence_rms_after: projection.divergence_rms_after,
+            clamped_to_box: outcome.clamped_to_box,
+            respawned: outcome.respawned,
+            mean_speed: speeds.iter().sum::<f64>() / speeds.len().max(1) as f64,
+            max_speed: speeds.iter().cloned().fold(0.0, f64::max),
+            seconds: start.elapsed().as_secs_f64(),
+        };
+
+        self.folder.write_frame_state(t, &grid, &state)?;
+        let frames = trainer.sequence.frames();
+        if t.is_multiple_of(trainer.config.output_every) || t + 1 == frames {
+            let train_renders = trainer.render_host(train)?;
+            let views: Vec<ViewRender> = train
+                .iter()
+                .zip(&train_renders)
+                .map(|(o, r)| (o, r, false))
+                .chain(test.iter().zip(&test_renders).map(|(o, r)| (o, r, true)))
+                .map(|(observation, render, held_out)| ViewRender {
+                    name: &observation.view,
+                    held_out,
+                    width: observation.image.width(),
+                    height: observation.image.height(),
+                    reference: observation.image.data(),
+                    render,
+                })
+                .collect();
+            self.folder.write_frame_outputs(t, &grid, &state, &views)?;
+        }
+
+        tracing::info!(
+            frame = t,
+            train_l1 = format!("{:.5}", report.train_l1),
+            test_psnr = format!("{:.2}", report.test_psnr.unwrap_or(f64::NAN)),
+            test_ssim = format!("{:.4}", report.test_ssim.unwrap_or(f64::NAN)),
+            mean_abs_div = format!("{:.3e}", report.mean_abs_divergence),
+            seconds = format!("{:.1}", report.seconds),
+            eta_seconds = format!("{:.0}", report.seconds * (frames - 1 - t) as f64),
+            "frame done"
+        );
+        self.losses.extend(outcome.losses);
+        self.reports.push(report);
+        self.frame = Some(t);
+        let meta = CheckpointMeta {
+            frame: t,
+            config: self.trainer.config.clone(),
+            losses: self.losses.clone(),
+            reports: self.reports.clone(),
+            elapsed_seconds: self.elapsed(),
+        };
+        checkpoint::save(self.folder.root(), &self.trainer.state, &meta)?;
+        self.folder.write_losses(&self.losses)
+    }
+
+    /// Loss and speed plots, the comparison GIF, `losses.csv` and `metrics.json`.
+    pub fn write_summary(&self) -> Result<(), TrainError> {
+        self.folder.write_losses(&self.losses)?;
+        self.folder.write_summary_pictures(
+            &self.losses,
+            &self.reports,
+            self.trainer.sequence.frames(),
+        )?;
+        let mean = |f: fn(&FrameReport) -> Option<f64>| {
+            let values: Vec<f64> = self
+                .reports
+                .iter()
+                .filter_map(f)
+                .filter(|v| v.is_finite())
+                .collect();
+            (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64)
+        };
+        self.folder.write_metrics(&Metrics {
+            frames: self.reports.len(),
+            gaussians: self.trainer.state.gaussians.len(),
+            grid_resolution: self.trainer.grid.resolution(),
+            test_l1_mean: mean(|r| r.test_l1),
+            test_psnr_mean: mean(|r| r.test_psnr),
+            test_ssim_mean: mean(|r| r.test_ssim),
+            mean_abs_divergence: mean(|r| Some(r.mean_abs_divergence)),
+            train_l1_mean: mean(|r| Some(r.train_l1)),
+            training_seconds: self.elapsed(),
+            device: format!("{:?}", self.trainer.device),
+            phase_seconds: self
+                .phase_times
+                .iter()
+                .map(|p| {
+                    (
+                        p.name.to_string(),
+                        PhaseSeconds {
+                            seconds: p.seconds,
+                            calls: p.calls,
+                        },
+                    )
+                })
+                .collect(),
+            per_frame: self.reports.clone(),
+        })
+    }
+}

@@ -1,0 +1,372 @@
+//! The run folder: every path a run writes and every file format in it, in one place. The
+//! trainer writes through it and `eval` reads through it, so the two cannot disagree on a key.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use gausmoke_model::GridSpec;
+use gausmoke_render::HostGaussians;
+use serde::{Deserialize, Serialize};
+
+use crate::arrays::{HostArrays, read_arrays, take_array, write_arrays};
+use crate::config::TrainConfig;
+use crate::export::{self, write_atomic};
+use crate::state::{FrameReport, LossRow};
+use crate::visuals::{self, Picture};
+use crate::{TrainError, checkpoint};
+
+/// `run.json`: what the run was trained on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunInfo {
+    /// The data set's path as given.
+    pub data: PathBuf,
+    pub frames: usize,
+    pub grid_resolution: [usize; 3],
+    pub box_lo: [f32; 3],
+    pub box_hi: [f32; 3],
+    pub device: String,
+    pub version: String,
+}
+
+/// Wall time of one phase (see `gausmoke_core::phases`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PhaseSeconds {
+    pub calls: u64,
+    pub seconds: f64,
+}
+
+/// `metrics.json`: per-frame reports and their means.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Metrics {
+    pub frames: usize,
+    pub gaussians: usize,
+    pub grid_resolution: [usize; 3],
+    pub test_l1_mean: Option<f64>,
+    pub test_psnr_mean: Option<f64>,
+    pub test_ssim_mean: Option<f64>,
+    pub mean_abs_divergence: Option<f64>,
+    pub train_l1_mean: Option<f64>,
+    pub training_seconds: f64,
+    pub device: String,
+    /// Wall time per phase in this session (a resumed run counts from the resume). Nested:
+    /// "backward (all ops)" includes the ops' own backward phases, "density splat" counts
+    /// every splatting call (U-Net input and physics losses).
+    pub phase_seconds: BTreeMap<String, PhaseSeconds>,
+    pub per_frame: Vec<FrameReport>,
+}
+
+/// What one frame leaves for evaluation: the Gaussians and the grids (`frames/frame_TTT`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameState {
+    pub gaussians: HostGaussians,
+    /// `[nx, ny, nz, 3]`, world units per frame.
+    pub velocity: Vec<f32>,
+    /// `[nx, ny, nz]`.
+    pub density: Vec<f32>,
+}
+
+/// A run folder on disk.
+#[derive(Debug, Clone)]
+pub struct RunFolder {
+    root: PathBuf,
+}
+
+fn frame_file(t: usize, extension: &str) -> String {
+    format!("frame_{t:03}.{extension}")
+}
+
+impl RunFolder {
+    /// The folder at `root` (nothing is read or created).
+    pub fn at(root: &Path) -> Self {
+        Self {
+            root: root.to_path_buf(),
+        }
+    }
+
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    pub fn config_path(&self) -> PathBuf {
+        self.root.join("config.toml")
+    }
+
+    pub fn run_info_path(&self) -> PathBuf {
+        self.root.join("run.json")
+    }
+
+    pub fn metrics_path(&self) -> PathBuf {
+        self.root.join("metrics.json")
+    }
+
+    pub fn eval_path(&self) -> PathBuf {
+        self.root.join("eval.json")
+    }
+
+    pub fn frame_state_path(&self, t: usize) -> PathBuf {
+        self.root.join("frames").join(frame_file(t, "safetensors"))
+    }
+
+    pub fn checkpoints(&self) -> PathBuf {
+        checkpoint::checkpoint_root(&self.root)
+    }
+
+    fn create_dir(dir: &Path) -> Result<(), TrainError> {
+        std::fs::create_dir_all(dir).map_err(|source| TrainError::Io {
+            path: dir.to_path_buf(),
+            source,
+        })
+    }
+
+    /// Creates the folder (and its parents).
+    pub fn create(&self) -> Result<(), TrainError> {
+        Self::create_dir(&self.root)
+    }
+
+    fn write_json(path: &Path, value: &impl Serialize) -> Result<(), TrainError> {
+        let text = serde_json::to_string_pretty(value).expect("plain JSON");
+        write_atomic(path, text.as_bytes())
+    }
+
+    fn read_json<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<T, TrainError> {
+        let text = std::fs::read_to_string(path).map_err(|source| TrainError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        serde_json::from_str(&text).map_err(|e| TrainError::Config {
+            origin: path.display().to_string(),
+            reason: e.to_string(),
+        })
+    }
+
+    pub fn write_config(&self, config: &TrainConfig) -> Result<(), TrainError> {
+        write_atomic(&self.config_path(), config.to_toml().as_bytes())
+    }
+
+    pub fn read_config(&self) -> Result<TrainConfig, TrainError> {
+        TrainConfig::from_toml_file(&self.config_path())
+    }
+
+    pub fn write_run_info(&self, info: &RunInfo) -> Result<(), TrainError> {
+        Self::write_json(&self.run_info_path(), info)
+    }
+
+    pub fn read_run_info(&self) -> Result<RunInfo, TrainError> {
+        Self::read_json(&self.run_info_path())
+    }
+
+    pub fn write_metrics(&self, metrics: &Metrics) -> Result<(), TrainError> {
+        Self::write_json(&self.metrics_path(), metrics)
+    }
+
+    pub fn write_eval(&self, report: &impl Serialize) -> Result<(), TrainError> {
+        Self::write_json(&self.eval_path(), report)
+    }
+
+    /// `frames/frame_TTT.safetensors`.
+    pub fn write_frame_state(
+        &self,
+        t: usize,
+        grid: &GridSpec,
+        state: &FrameState,
+    ) -> Result<(), TrainError> {
+        let [nx, ny, nz] = grid.resolution();
+        let n = state.gaussians.len();
+        let mut arrays: HostArrays = state
+            .gaussians
+            .clone()
+            .map(|attribute, values| (attribute.name.to_string(), (attribute.shape(n), values)))
+            .into_array()
+            .into_iter()
+            .collect();
+        arrays.insert(
+            "velocity".into(),
+            (vec![nx, ny, nz, 3], state.velocity.clone()),
+        );
+        arrays.insert("density".into(), (vec![nx, ny, nz], state.density.clone()));
+        let path = self.frame_state_path(t);
+        Self::create_dir(path.parent().expect("frames/ is inside the run"))?;
+        write_arrays(&path, &arrays)
+    }
+
+    /// Frame `t`'s state, `None` when the run has not finished that frame.
+    pub fn read_frame_state(
+        &self,
+        t: usize,
+        grid: &GridSpec,
+    ) -> Result<Option<FrameState>, TrainError> {
+        let path = self.frame_state_path(t);
+        if !path.is_file() {
+            return Ok(None);
+        }
+        let mut arrays = read_arrays(&path)?;
+        let n = arrays
+            .get("raw_densities")
+            .map(|(shape, _)| shape[0])
+            .unwrap_or_default();
+        let [nx, ny, nz] = grid.resolution();
+        let mut gaussians = HostGaussians::default();
+        for (attribute, values) in gaussians
+            .as_mut()
+            .map(|attribute, values| (attribute, values))
+            .into_array()
+        {
+            *values = take_array(&mut arrays, attribute.name, &attribute.shape(n), &path)?;
+        }
+        Ok(Some(FrameState {
+            gaussians,
+            velocity: take_array(&mut arrays, "velocity", &[nx, ny, nz, 3], &path)?,
+            density: take_array(&mut arrays, "density", &[nx, ny, nz], &path)?,
+        }))
+    }
+
+    /// Per-frame pictures and exports: renders of every view, the held-out comparison,
+    /// grid slices, `.ply`, `.vti` and `.npz`.
+    pub fn write_frame_outputs(
+        &self,
+        t: usize,
+        grid: &GridSpec,
+        state: &FrameState,
+        renders: &[ViewRender],
+    ) -> Result<(), TrainError> {
+        for view in renders {
+            let dir = self.root.join("renders").join(view.name);
+            Self::create_dir(&dir)?;
+            Picture::from_rgb(view.render, view.width, view.height)
+                .save_png(&dir.join(frame_file(t, "png")))?;
+        }
+        // Held-out (or first training) view: reference | render, for the GIF.
+        if let Some(view) = renders.iter().find(|v| v.held_out).or(renders.first()) {
+            let comparison = Picture::side_by_side(&[
+                &Picture::from_rgb(view.reference, view.width, view.height),
+                &Picture::from_rgb(view.render, view.width, view.height),
+            ]);
+            let dir = self.root.join("comparison");
+            Self::create_dir(&dir)?;
+            comparison.save_png(&dir.join(frame_file(t, "png")))?;
+        }
+        let [nx, ny, _] = grid.resolution();
+        let dir = self.root.join("slices");
+        Self::create_dir(&dir)?;
+        let scale = (256 / nx.max(ny)).max(1) as u32;
+        visuals::grid_slices(grid, &state.density, &state.velocity, scale)
+            .0
+            .save_png(&dir.join(frame_file(t, "png")))?;
+        let dir = self.root.join("exports");
+        Self::create_dir(&dir)?;
+        export::write_ply(&dir.join(format!("gaussians_{t:03}.ply")), &state.gaussians)?;
+        export::write_vti(
+            &dir.join(format!("grid_{t:03}.vti")),
+            grid,
+            &state.density,
+            &state.velocity,
+        )?;
+        export::write_npz(
+            &dir.join(format!("grid_{t:03}.npz")),
+            grid,
+            &state.density,
+            &state.velocity,
+        )
+    }
+
+    pub fn write_losses(&self, losses: &[LossRow]) -> Result<(), TrainError> {
+        let mut csv =
+            String::from("step,frame,phase,iteration,total,render,divergence,advection,refine\n");
+        for (step, r) in losses.iter().enumerate() {
+            csv += &format!(
+                "{step},{},{},{},{},{},{},{},{}\n",
+                r.frame,
+                r.phase.name(),
+                r.iteration,
+                r.total,
+                r.render,
+                r.divergence,
+                r.advection,
+                r.refine
+            );
+        }
+        write_atomic(&self.root.join("losses.csv"), csv.as_bytes())
+    }
+
+    /// Loss and speed plots, the comparison GIF and the folder's `README.txt`.
+    pub fn write_summary_pictures(
+        &self,
+        losses: &[LossRow],
+        reports: &[FrameReport],
+        frames: usize,
+    ) -> Result<(), TrainError> {
+        let column =
+            |f: fn(&LossRow) -> f32| -> Vec<f64> { losses.iter().map(|r| f(r) as f64).collect() };
+        visuals::line_plot(
+            &[
+                column(|r| r.total),
+                column(|r| r.render),
+                column(|r| r.divergence),
+                column(|r| r.advection),
+                column(|r| r.refine),
+            ],
+            900,
+            400,
+            true,
+        )
+        .save_png(&self.root.join("losses.png"))?;
+        visuals::line_plot(
+            &[
+                reports.iter().map(|r| r.mean_speed).collect(),
+                reports.iter().map(|r| r.max_speed).collect(),
+            ],
+            600,
+            300,
+            false,
+        )
+        .save_png(&self.root.join("speed.png"))?;
+        let mut pictures = Vec::new();
+        for t in 0..frames {
+            let path = self.root.join("comparison").join(frame_file(t, "png"));
+            if let Ok(image) = image::open(&path) {
+                let rgb = image.to_rgb8();
+                pictures.push(Picture {
+                    width: rgb.width(),
+                    height: rgb.height(),
+                    pixels: rgb.into_raw(),
+                });
+            }
+        }
+        if !pictures.is_empty() {
+            visuals::save_gif(&self.root.join("comparison.gif"), &pictures, 100)?;
+        }
+        write_atomic(&self.root.join("README.txt"), RUN_README.as_bytes())
+    }
+}
+
+/// One camera's render of a frame, for the pictures of [`RunFolder::write_frame_outputs`].
+pub struct ViewRender<'a> {
+    pub name: &'a str,
+    pub held_out: bool,
+    pub width: u32,
+    pub height: u32,
+    /// `[H, W, 3]`.
+    pub reference: &'a [f32],
+    pub render: &'a [f32],
+}
+
+/// What the files of a run folder are (written into it).
+const RUN_README: &str = "\
+GauSmoke-rs run folder
+config.toml        the configuration used (pass it back with --config to reproduce)
+run.json           data set, grid box and resolution, device
+metrics.json       per-frame and mean metrics: held-out PSNR/SSIM, mean |div u| (1/frame),
+                   projection solver iterations/residual, speeds, seconds per frame
+losses.csv         every optimisation step: frame, phase (init/advect/refine), loss terms
+losses.png         log-scale loss curves over steps: blue total, orange L_render,
+                   green L_div, red L_adv, purple L_refine
+speed.png          per frame: blue mean speed, orange max speed (world units per frame)
+renders/VIEW/      per-frame renders of every camera (train and held-out)
+comparison/        per frame: held-out reference | render; comparison.gif animates them
+slices/            per frame, middle z slice: density (grey) | speed (dark blue -> yellow)
+exports/           per frame: gaussians_TTT.ply (3DGS layout), grid_TTT.vti (ParaView),
+                   grid_TTT.npz (density [nx,ny,nz], velocity [nx,ny,nz,3], lo, hi)
+frames/            per frame: Gaussians, velocity and density grids (safetensors), read by
+                   `gausmoke-train eval`
+checkpoints/       the two newest complete frames; `--resume` continues from the newest
+";

@@ -1,0 +1,81 @@
+//! What training changes and what it reports: shared by the trainer, the run folder and the
+//! checkpoints.
+
+use burn::optim::ModuleOptimizer;
+use burn::tensor::Tensor;
+use gausmoke_model::{GaussianModel, VelocityUNet};
+use serde::{Deserialize, Serialize};
+
+/// Everything the optimisation changes; what a checkpoint stores.
+pub struct TrainState {
+    pub gaussians: GaussianModel,
+    /// The velocity grid `u` at the current frame, `[nx, ny, nz, 3]`, world units per frame.
+    pub velocity: Tensor<4>,
+    pub phi: VelocityUNet,
+    pub gaussian_optim: ModuleOptimizer,
+    pub phi_optim: ModuleOptimizer,
+}
+
+/// Which part of Algorithm 1 a step belongs to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Phase {
+    /// The static fit of frame 0.
+    Init,
+    /// The K joint iterations (lines 3-9).
+    Advect,
+    /// The K' refinement iterations (lines 11-13).
+    Refine,
+}
+
+impl Phase {
+    pub fn name(self) -> &'static str {
+        match self {
+            Phase::Init => "init",
+            Phase::Advect => "advect",
+            Phase::Refine => "refine",
+        }
+    }
+}
+
+/// One optimisation step's losses (the CSV row of `losses.csv`).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct LossRow {
+    pub frame: usize,
+    pub phase: Phase,
+    pub iteration: usize,
+    pub total: f32,
+    pub render: f32,
+    pub divergence: f32,
+    pub advection: f32,
+    pub refine: f32,
+}
+
+/// What happened at one frame (in `metrics.json`).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct FrameReport {
+    pub frame: usize,
+    /// Mean absolute error over the training views after the frame's last step.
+    pub train_l1: f64,
+    /// Mean absolute error, PSNR and SSIM on the held-out views (`None` without any).
+    pub test_l1: Option<f64>,
+    pub test_psnr: Option<f64>,
+    pub test_ssim: Option<f64>,
+    /// Mean |div u| over the grid cells after `Pi` (1/frame).
+    pub mean_abs_divergence: f64,
+    /// The projection's solve at this frame's last step: iterations, relative residual and
+    /// RMS divergence before and after.
+    pub projection_iterations: usize,
+    pub projection_residual: f64,
+    pub divergence_rms_before: f64,
+    pub divergence_rms_after: f64,
+    /// Gaussians whose advected centre left the box and was clamped back onto it.
+    pub clamped_to_box: usize,
+    /// Gaussians recycled before this frame's optimisation (`respawn_fraction`).
+    #[serde(default)]
+    pub respawned: usize,
+    /// Mean and largest speed of the velocity grid (world units per frame).
+    pub mean_speed: f64,
+    pub max_speed: f64,
+    pub seconds: f64,
+}
