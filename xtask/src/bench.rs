@@ -14,6 +14,7 @@ use anyhow::{Context, Result, bail};
 use burn::tensor::{Device, Tensor, TensorData};
 use clap::{Args, Subcommand};
 use gausmoke_core::glam::{Mat4, Vec3};
+use gausmoke_core::phases::{PhaseTime, PhaseTotals};
 use gausmoke_render::HostGaussians;
 use gausmoke_render::procedural::smoke_plume;
 use gausmoke_render::{Camera, Intrinsics, RasterOptions, backends, render_volume};
@@ -114,7 +115,7 @@ fn time_ours(
     camera: &Camera,
     device: &Device,
     reps: usize,
-) -> Result<(f64, f64)> {
+) -> Result<(f64, f64, Vec<PhaseTime>)> {
     let options = RasterOptions::default();
     let sync = |device: &Device| device.sync().map_err(|e| anyhow::anyhow!("{e:?}"));
     let tensors = scene.to_tensors(device)?;
@@ -128,19 +129,34 @@ fn time_ours(
     let ad_tensors = scene.to_tensors(&ad)?;
     let ad_background = Tensor::<1>::from_data(TensorData::new(vec![0.0f32; 3], [3]), &ad);
     let forward_backward = || -> Result<()> {
-        let mut tensors = ad_tensors.clone();
-        tensors.means = tensors.means.require_grad();
-        tensors.rotations = tensors.rotations.require_grad();
-        tensors.log_scales = tensors.log_scales.require_grad();
-        tensors.raw_densities = tensors.raw_densities.require_grad();
-        tensors.colors = tensors.colors.require_grad();
+        let tensors = ad_tensors.clone().require_grad();
         let out = render_volume(&tensors, camera, &ad_background, &options)?;
         let grads = (out.rgb.sum() + out.transmittance.sum()).backward();
         let grad = tensors.means.grad(&grads).context("means tracked")?;
         drop(grad);
         sync(&ad)
     };
-    Ok((time_ms(reps, forward)?, time_ms(reps, forward_backward)?))
+    let forward_ms = time_ms(reps, forward)?;
+    let forward_backward_ms = time_ms(reps, forward_backward)?;
+    let stages = stage_times(&ad, forward_backward)?;
+    Ok((forward_ms, forward_backward_ms, stages))
+}
+
+/// Wall time of every phase of one call of `work` (on a GPU, of every kernel stage: see
+/// `gausmoke_core::phases`), each phase waiting for the device at both ends so it is charged
+/// with its own work.
+fn stage_times(device: &Device, work: impl FnOnce() -> Result<()>) -> Result<Vec<PhaseTime>> {
+    let totals = PhaseTotals::current()
+        .context("no PhaseLayer in the subscriber (gausmoke_train::logging::init installs it)")?;
+    let waiting = device.clone();
+    totals.set_sync(Some(std::sync::Arc::new(move || {
+        let _ = waiting.sync();
+    })));
+    let _ = totals.take();
+    let result = work();
+    let times = totals.take();
+    totals.set_sync(None);
+    result.map(|()| times)
 }
 
 /// Image and every gradient of `sum(rgb * w) + sum(T)` on `device` and on `reference`.
@@ -153,12 +169,7 @@ fn check_against(
 ) -> Result<()> {
     let run = |device: &Device| -> Result<Vec<Vec<f32>>> {
         let ad = device.clone().autodiff();
-        let mut t = scene.to_tensors(&ad)?;
-        t.means = t.means.require_grad();
-        t.rotations = t.rotations.require_grad();
-        t.log_scales = t.log_scales.require_grad();
-        t.raw_densities = t.raw_densities.require_grad();
-        t.colors = t.colors.require_grad();
+        let t = scene.to_tensors(&ad)?.require_grad();
         let background = Tensor::<1>::from_data(TensorData::new(vec![0.1f32, 0.2, 0.3], [3]), &ad)
             .require_grad();
         let out = render_volume(&t, camera, &background, &RasterOptions::default())?;
@@ -316,12 +327,24 @@ fn render(args: RenderArgs) -> Result<()> {
                 let reference = backends::device_by_name(reference).map_err(anyhow::Error::msg)?;
                 check_against(&scene, &camera, &device, &reference, name)?;
             }
-            let (f, fb) = time_ours(&scene, &camera, &device, args.reps)?;
+            let (f, fb, stages) = time_ours(&scene, &camera, &device, args.reps)?;
             eprintln!("ours/{name}: {n} Gaussians: forward {f:.2} ms, forward+backward {fb:.2} ms");
+            let stages: serde_json::Map<String, serde_json::Value> = stages
+                .iter()
+                .map(|p| (p.name.to_string(), serde_json::json!(p.seconds * 1e3)))
+                .collect();
+            eprintln!(
+                "  stages of one forward+backward, each waiting for the device (ms): {}",
+                stages
+                    .iter()
+                    .map(|(name, ms)| format!("{name} {:.3}", ms.as_f64().unwrap_or(f64::NAN)))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
             rows.push(serde_json::json!({
                 "impl": format!("gausmoke-rs ({name})"), "gaussians": n,
                 "width": args.width, "height": args.height, "threads": threads,
-                "forward_ms": f, "forward_backward_ms": fb,
+                "forward_ms": f, "forward_backward_ms": fb, "stages_ms": stages,
             }));
         }
     }

@@ -16,6 +16,29 @@ use crate::cpu::IMAGE_CHANNELS;
 /// Threads per tile (one per pixel of a 16x16 tile) and splats per shared-memory batch.
 pub const TILE_THREADS: usize = 256;
 
+/// The tile of this cube and the pixel of this unit (one unit per pixel of a 16x16 tile).
+#[derive(CubeType, Clone, Copy)]
+pub struct TilePixel {
+    pub tile: usize,
+    pub px: u32,
+    pub py: u32,
+    /// Whether the pixel lies inside the image (edge tiles overhang it).
+    pub inside: bool,
+}
+
+#[cube]
+pub fn tile_pixel(width: u32, height: u32) -> TilePixel {
+    let tiles_x = (width + TILE_EDGE - 1) / TILE_EDGE;
+    let px = CUBE_POS_X * TILE_EDGE + UNIT_POS_X;
+    let py = CUBE_POS_Y * TILE_EDGE + UNIT_POS_Y;
+    TilePixel {
+        tile: (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize,
+        px,
+        py,
+        inside: px < width && py < height,
+    }
+}
+
 /// Copies list entries `first..first + TILE_THREADS` of the tile starting at `start` (those
 /// below `len`) into `batch`, one splat per unit, and their indices into `ids`.
 #[cube]
@@ -56,11 +79,8 @@ pub fn rasterize_kernel(
     width: u32,
     height: u32,
 ) {
-    let tiles_x = (width + TILE_EDGE - 1) / TILE_EDGE;
-    let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
-    let px = CUBE_POS_X * TILE_EDGE + UNIT_POS_X;
-    let py = CUBE_POS_Y * TILE_EDGE + UNIT_POS_Y;
-    let inside = px < width && py < height;
+    let here = tile_pixel(width, height);
+    let (tile, px, py, inside) = (here.tile, here.px, here.py, here.inside);
     let d = pixel_direction(view, px, py);
 
     let mut batch = Shared::<[f32]>::new_slice(TILE_THREADS * SPLAT_FLOATS);

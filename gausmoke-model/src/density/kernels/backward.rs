@@ -4,11 +4,9 @@
 //! `density::host::splat_backward` and `splat_gradient_backward`.
 
 use cubecl::prelude::*;
-use gausmoke_render::kernels::math::{
-    Mat3, Quat, Vec3, Whitening, softplus, softplus_grad, whiten, whiten_vjp, whitening_context,
-};
+use gausmoke_render::kernels::math::{Mat3, Vec3, Whitening, softplus_grad, whiten_vjp};
 
-use super::support::{GridParam, cell_centre, gaussian_support};
+use super::support::{GridParam, grid_gaussian};
 
 /// Gradient of one Gaussian's whitening and density, summed over the cells of its support.
 #[derive(CubeType)]
@@ -69,56 +67,42 @@ pub fn splat_field_backward_kernel(
     if i >= num_gaussians as usize {
         terminate!();
     }
-    let mean = Vec3::load(means, 3 * i);
-    let log_scale = Vec3::load(log_scales, 3 * i);
-    let context = whitening_context(&Quat::load(quats, 4 * i), &log_scale, &mean);
-    let world = Mat3::identity();
-    let whitening = whiten(&context, &world);
-    let sigma = softplus(raw_densities[i]);
-    let support = gaussian_support(grid, &mean, &log_scale, nx, ny, nz);
+    let g = grid_gaussian(means, quats, log_scales, raw_densities, grid, i, nx, ny, nz);
+    let l = &g.whitening.whiten;
     let cutoff = grid[GridParam::CUTOFF];
     let mut acc = WhiteningSum::zero();
-    let mut ci = support.x.start;
-    while ci < support.x.end {
-        let x0 = cell_centre(grid, 0usize, ci);
-        let mut cj = support.y.start;
-        while cj < support.y.end {
-            let x1 = cell_centre(grid, 1usize, cj);
-            let mut ck = support.z.start;
-            while ck < support.z.end {
-                let x = Vec3::new(x0, x1, cell_centre(grid, 2usize, ck));
-                let m = whitening.whiten.mul(&x).sub(&whitening.center);
-                let k2 = m.dot(&m);
-                if k2 <= cutoff {
-                    let kernel = (-0.5f32 * k2).exp();
-                    let cell = ((ci * ny + cj) * nz + ck) as usize;
-                    if spatial_gradient {
-                        // f = -sigma k m.(L g): see `density::host::splat_gradient_backward`.
-                        let up = Vec3::load(grad_field, 3 * cell);
-                        let v = whitening.whiten.mul(&up);
-                        let s = m.dot(&v);
-                        acc.sigma -= kernel * s;
-                        let sk = sigma * kernel;
-                        // Direct term: d f / d L = -sigma k m g^T.
-                        acc.add_outer(&m.scale(-sk), &up);
-                        acc.add_offset_grad(&m.scale(s).sub(&v).scale(sk), &x);
-                    } else {
-                        let up = grad_field[cell];
-                        acc.sigma += up * kernel;
-                        // d(sigma k)/dm = -sigma k m.
-                        acc.add_offset_grad(&m.scale(-up * sigma * kernel), &x);
-                    }
-                }
-                ck += 1;
+    let count = g.support.len();
+    let mut k = 0u32;
+    while k < count {
+        let cell = g.support.cell(grid, k, ny, nz);
+        let x = &cell.centre;
+        let m = l.mul(x).sub(&g.whitening.center);
+        let k2 = m.dot(&m);
+        if k2 <= cutoff {
+            let kernel = (-0.5f32 * k2).exp();
+            if spatial_gradient {
+                // f = -sigma k m.(L g): see `density::host::splat_gradient_backward`.
+                let up = Vec3::load(grad_field, 3 * cell.index);
+                let v = l.mul(&up);
+                let s = m.dot(&v);
+                acc.sigma -= kernel * s;
+                let sk = g.sigma * kernel;
+                // Direct term: d f / d L = -sigma k m g^T.
+                acc.add_outer(&m.scale(-sk), &up);
+                acc.add_offset_grad(&m.scale(s).sub(&v).scale(sk), x);
+            } else {
+                let up = grad_field[cell.index];
+                acc.sigma += up * kernel;
+                // d(sigma k)/dm = -sigma k m.
+                acc.add_offset_grad(&m.scale(-up * g.sigma * kernel), x);
             }
-            cj += 1;
         }
-        ci += 1;
+        k += 1;
     }
     grad_raw_densities[i] = acc.sigma * softplus_grad(raw_densities[i]);
     let grads = whiten_vjp(
-        &context,
-        &world,
+        &g.context,
+        &Mat3::identity(),
         &Whitening {
             whiten: acc.whiten,
             center: acc.center,

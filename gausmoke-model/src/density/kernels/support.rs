@@ -2,7 +2,9 @@
 //! the grid parameter buffer the density kernels read.
 
 use cubecl::prelude::*;
-use gausmoke_render::kernels::math::Vec3;
+use gausmoke_render::kernels::math::{
+    Mat3, Quat, Vec3, Whitening, WhiteningContext, softplus, whiten, whitening_context,
+};
 
 use crate::density::host::SplatGrid;
 
@@ -80,8 +82,75 @@ pub fn gaussian_support(
     }
 }
 
+/// One cell of a support: its flat index in the grid and its centre.
+#[derive(CubeType, Clone, Copy)]
+pub struct SupportCell {
+    pub index: usize,
+    pub centre: Vec3,
+}
+
+#[cube]
+impl GaussianSupport {
+    /// Number of cells in the box (empty axes give 0).
+    pub fn len(&self) -> u32 {
+        (self.x.end - self.x.start) * (self.y.end - self.y.start) * (self.z.end - self.z.start)
+    }
+
+    /// Cell `k` of the box, x slowest and z fastest (the order the host path visits).
+    pub fn cell(&self, grid: &[f32], k: u32, ny: u32, nz: u32) -> SupportCell {
+        let depth = self.z.end - self.z.start;
+        let height = self.y.end - self.y.start;
+        let ck = self.z.start + k % depth;
+        let cj = self.y.start + (k / depth) % height;
+        let ci = self.x.start + k / (depth * height);
+        SupportCell {
+            index: ((ci * ny + cj) * nz + ck) as usize,
+            centre: Vec3::new(
+                cell_centre(grid, 0usize, ci),
+                cell_centre(grid, 1usize, cj),
+                cell_centre(grid, 2usize, ck),
+            ),
+        }
+    }
+}
+
+/// Gaussian `i` as both density kernels see it: its world-space whitening (and what its
+/// gradient reuses), density and support.
+#[derive(CubeType)]
+pub struct GridGaussian {
+    pub context: WhiteningContext,
+    pub whitening: Whitening,
+    pub sigma: f32,
+    pub support: GaussianSupport,
+}
+
+#[cube]
+#[allow(clippy::too_many_arguments)]
+pub fn grid_gaussian(
+    means: &[f32],
+    quats: &[f32],
+    log_scales: &[f32],
+    raw_densities: &[f32],
+    grid: &[f32],
+    i: usize,
+    nx: u32,
+    ny: u32,
+    nz: u32,
+) -> GridGaussian {
+    let mean = Vec3::load(means, 3 * i);
+    let log_scale = Vec3::load(log_scales, 3 * i);
+    let context = whitening_context(&Quat::load(quats, 4 * i), &log_scale, &mean);
+    let whitening = whiten(&context, &Mat3::identity());
+    GridGaussian {
+        context,
+        whitening,
+        sigma: softplus(raw_densities[i]),
+        support: gaussian_support(grid, &mean, &log_scale, nx, ny, nz),
+    }
+}
+
 /// World coordinate along `axis` of the centre of cell `index`.
 #[cube]
-pub fn cell_centre(grid: &[f32], axis: usize, index: u32) -> f32 {
+fn cell_centre(grid: &[f32], axis: usize, index: u32) -> f32 {
     grid[GridParam::LO + axis] + (f32::cast_from(index) + 0.5) * grid[GridParam::CELL + axis]
 }

@@ -11,8 +11,7 @@ use cubecl::prelude::*;
 use crate::cpu::IMAGE_CHANNELS;
 use crate::kernels::atomics::GradientAdd;
 use crate::kernels::math::Vec3;
-use crate::kernels::project::TILE_EDGE;
-use crate::kernels::rasterize::{TILE_THREADS, stage_batch};
+use crate::kernels::rasterize::{TILE_THREADS, stage_batch, tile_pixel};
 use crate::kernels::splat::{SPLAT_FLOATS, Splat, ViewParam, pixel_direction, ray_hit};
 
 /// Adds `value` to the three floats of `cells` from `start` on.
@@ -38,11 +37,8 @@ pub fn rasterize_backward_kernel<A: GradientAdd>(
     width: u32,
     height: u32,
 ) {
-    let tiles_x = (width + TILE_EDGE - 1) / TILE_EDGE;
-    let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
-    let px = CUBE_POS_X * TILE_EDGE + UNIT_POS_X;
-    let py = CUBE_POS_Y * TILE_EDGE + UNIT_POS_Y;
-    let inside = px < width && py < height;
+    let here = tile_pixel(width, height);
+    let (tile, px, py, inside) = (here.tile, here.px, here.py, here.inside);
     let d = pixel_direction(view, px, py);
 
     let mut batch = Shared::<[f32]>::new_slice(TILE_THREADS * SPLAT_FLOATS);
