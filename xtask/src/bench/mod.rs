@@ -1,4 +1,5 @@
-//! `cargo xtask bench render`: the renderer's CPU timings next to the torch reference.
+//! `cargo xtask bench render|physics|train`: the renderer next to the torch reference, the
+//! physics ops, and a whole training iteration ([`train`]).
 //!
 //! Scenes: `procedural::smoke_plume` inside the ScalarReal smoke box, seen from the ScalarReal
 //! held-out camera `train02` (pose and field of view from its info.json) at the paper's
@@ -20,12 +21,16 @@ use gausmoke_render::procedural::smoke_plume;
 use gausmoke_render::{Camera, Intrinsics, RasterOptions, backends, render_volume};
 use safetensors::{Dtype, tensor::TensorView};
 
+mod train;
+
 #[derive(Debug, Subcommand)]
 pub enum Which {
     /// Volumetric Gaussian renderer on the CPU backends, and the torch reference.
     Render(RenderArgs),
     /// Physics ops: density splatting, projection solve, U-Net forward+backward.
     Physics(PhysicsArgs),
+    /// A training iteration phase by phase, optionally against another build.
+    Train(train::TrainArgs),
 }
 
 #[derive(Debug, Args)]
@@ -80,6 +85,7 @@ pub fn run(which: Which) -> Result<()> {
     match which {
         Which::Render(args) => render(args),
         Which::Physics(args) => physics(args),
+        Which::Train(args) => train::train(args),
     }
 }
 
