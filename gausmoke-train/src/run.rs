@@ -7,10 +7,11 @@ use std::time::Instant;
 
 use burn::tensor::Device;
 use gausmoke_core::phases::{self, PhaseTime, PhaseTotals};
+use gausmoke_model::GridSpec;
 
 use crate::checkpoint::{self, CheckpointMeta};
 use crate::run_folder::{FrameState, Metrics, PhaseSeconds, RunFolder, RunInfo, ViewRender};
-use crate::sequence::Sequence;
+use crate::sequence::{Observation, Sequence};
 use crate::state::{FrameReport, LossRow};
 use crate::trainer::{FrameOutcome, Trainer};
 use crate::{TrainConfig, TrainError, metrics};
@@ -185,40 +186,7 @@ impl Run {
         let test = &trainer.sequence.test[t];
         let train = &trainer.sequence.train[t];
         let test_renders = trainer.render_host(test)?;
-        let (mut l1, mut psnr, mut ssim) = (0.0, 0.0, 0.0);
-        for (observation, render) in test.iter().zip(&test_renders) {
-            let (w, h) = (
-                observation.image.width() as usize,
-                observation.image.height() as usize,
-            );
-            l1 += metrics::mean_abs_error(render, observation.image.data());
-            psnr += metrics::psnr(render, observation.image.data());
-            ssim += metrics::ssim(render, observation.image.data(), w, h);
-        }
-        let tests = test.len() as f64;
-        let speeds: Vec<f64> = state
-            .velocity
-            .chunks(3)
-            .map(|v| ((v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) as f64).sqrt())
-            .collect();
-        let projection = outcome.projection.unwrap_or_default();
-        let report = FrameReport {
-            frame: t,
-            train_l1: outcome.train_l1,
-            test_l1: (tests > 0.0).then_some(l1 / tests),
-            test_psnr: (tests > 0.0).then_some(psnr / tests),
-            test_ssim: (tests > 0.0).then_some(ssim / tests),
-            mean_abs_divergence: metrics::mean_abs_divergence(&grid, &state.velocity),
-            projection_iterations: projection.iterations,
-            projection_residual: projection.relative_residual,
-            divergence_rms_before: projection.divergence_rms_before,
-            divergence_rms_after: projection.divergence_rms_after,
-            clamped_to_box: outcome.clamped_to_box,
-            respawned: outcome.respawned,
-            mean_speed: speeds.iter().sum::<f64>() / speeds.len().max(1) as f64,
-            max_speed: speeds.iter().cloned().fold(0.0, f64::max),
-            seconds: start.elapsed().as_secs_f64(),
-        };
+        let report = frame_report(&outcome, &state, test, &test_renders, &grid, start);
 
         self.folder.write_frame_state(t, &grid, &state)?;
         let frames = trainer.sequence.frames();
@@ -308,5 +276,51 @@ impl Run {
                 .collect(),
             per_frame: self.reports.clone(),
         })
+    }
+}
+
+/// What frame `outcome` achieved: the held-out views' errors against their renders
+/// `test_renders`, the velocity's divergence and speed, and the outcome's own figures.
+fn frame_report(
+    outcome: &FrameOutcome,
+    state: &FrameState,
+    test: &[Observation],
+    test_renders: &[Vec<f32>],
+    grid: &GridSpec,
+    start: Instant,
+) -> FrameReport {
+    let (mut l1, mut psnr, mut ssim) = (0.0, 0.0, 0.0);
+    for (observation, render) in test.iter().zip(test_renders) {
+        let (w, h) = (
+            observation.image.width() as usize,
+            observation.image.height() as usize,
+        );
+        l1 += metrics::mean_abs_error(render, observation.image.data());
+        psnr += metrics::psnr(render, observation.image.data());
+        ssim += metrics::ssim(render, observation.image.data(), w, h);
+    }
+    let tests = test.len() as f64;
+    let speeds: Vec<f64> = state
+        .velocity
+        .chunks(3)
+        .map(|v| ((v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) as f64).sqrt())
+        .collect();
+    let projection = outcome.projection.unwrap_or_default();
+    FrameReport {
+        frame: outcome.frame,
+        train_l1: outcome.train_l1,
+        test_l1: (tests > 0.0).then_some(l1 / tests),
+        test_psnr: (tests > 0.0).then_some(psnr / tests),
+        test_ssim: (tests > 0.0).then_some(ssim / tests),
+        mean_abs_divergence: metrics::mean_abs_divergence(grid, &state.velocity),
+        projection_iterations: projection.iterations,
+        projection_residual: projection.relative_residual,
+        divergence_rms_before: projection.divergence_rms_before,
+        divergence_rms_after: projection.divergence_rms_after,
+        clamped_to_box: outcome.clamped_to_box,
+        respawned: outcome.respawned,
+        mean_speed: speeds.iter().sum::<f64>() / speeds.len().max(1) as f64,
+        max_speed: speeds.iter().cloned().fold(0.0, f64::max),
+        seconds: start.elapsed().as_secs_f64(),
     }
 }
