@@ -7,7 +7,7 @@
 use burn::tensor::{Bool, Tensor, TensorData};
 
 use crate::grid::GridSpec;
-use crate::interp::{Interpolation, sample_velocity};
+use crate::interp::{Interpolation, VelocitySample, sample_velocity};
 
 /// Time integrator of `dp/dt = u(p)`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -25,6 +25,9 @@ pub struct Advected {
     pub positions: Tensor<2>,
     /// Which centres were clamped back into the box, `[M]`.
     pub left_box: Tensor<1, Bool>,
+    /// The velocity and its Jacobian at the starting points (what `L_div` at the centres
+    /// reads, so it is sampled once).
+    pub start: VelocitySample,
 }
 
 /// Moves `points` (`[M, 3]`) for `dt` frames through `velocity` (`[nx, ny, nz, 3]`, world
@@ -37,12 +40,13 @@ pub fn advect(
     integrator: Integrator,
     interpolation: Interpolation,
 ) -> Advected {
-    let u = |p: &Tensor<2>| sample_velocity(grid, velocity, p, interpolation).velocity;
+    let start = sample_velocity(grid, velocity, points, interpolation);
     let moved = match integrator {
-        Integrator::Euler => points.clone() + u(points) * dt,
+        Integrator::Euler => points.clone() + start.velocity.clone() * dt,
         Integrator::Rk2 => {
-            let midpoint = points.clone() + u(points) * (0.5 * dt);
-            points.clone() + u(&midpoint) * dt
+            let midpoint = points.clone() + start.velocity.clone() * (0.5 * dt);
+            let u = sample_velocity(grid, velocity, &midpoint, interpolation).velocity;
+            points.clone() + u * dt
         }
     };
     let device = points.device();
@@ -60,5 +64,6 @@ pub fn advect(
     Advected {
         positions: moved.max_pair(lo).min_pair(hi),
         left_box: outside.reshape([m]),
+        start,
     }
 }

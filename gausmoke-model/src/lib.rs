@@ -7,6 +7,7 @@
 //! 3D U-Net), and the losses `L_div`, `L_adv` and `L_refine` (plain tensor functions).
 
 pub mod advect;
+pub mod conv;
 pub mod density;
 pub mod gaussians;
 pub mod grid;
@@ -23,10 +24,10 @@ pub use density::{
 pub use gaussians::GaussianModel;
 pub use grid::{GridError, GridSpec};
 pub use interp::{Interpolation, VelocitySample, grid_from_fn, sample_velocity};
-pub use losses::{advection_loss, divergence_loss, refine_loss};
+pub use losses::{advection_loss, divergence_loss, divergence_loss_of, refine_loss};
 pub use penalty::{PenaltyOptions, penalty_projection};
 pub use projection::{
-    ProjectionBackend, ProjectionOptions, ProjectionReport, ProjectionSpec, project_velocity,
-    project_with_report,
+    ProjectionBackend, ProjectionOptions, ProjectionReport, ProjectionSpec, project_direct,
+    project_velocity, project_with_report,
 };
 pub use unet::{UNetConfig, UNetError, VelocityUNet};

@@ -3,7 +3,7 @@
 use burn::tensor::Tensor;
 
 use crate::grid::GridSpec;
-use crate::interp::{Interpolation, sample_velocity};
+use crate::interp::{Interpolation, VelocitySample, sample_velocity};
 
 /// `L_div` (Eq. 16): mean squared closed-form divergence (Eq. 12) of the interpolated
 /// velocity at `points` `[M, 3]` (e.g. the cell centres, or the Gaussians' centres).
@@ -13,10 +13,13 @@ pub fn divergence_loss(
     points: &Tensor<2>,
     interpolation: Interpolation,
 ) -> Tensor<1> {
-    sample_velocity(grid, velocity, points, interpolation)
-        .divergence()
-        .powi_scalar(2)
-        .mean()
+    divergence_loss_of(&sample_velocity(grid, velocity, points, interpolation))
+}
+
+/// [`divergence_loss`] of velocity already sampled at the points (e.g. by
+/// [`crate::advect`]).
+pub fn divergence_loss_of(sample: &VelocitySample) -> Tensor<1> {
+    sample.divergence().powi_scalar(2).mean()
 }
 
 /// `L_refine` (Eq. 18): mean over Gaussians of the squared distance between the refined

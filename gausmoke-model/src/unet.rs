@@ -8,14 +8,17 @@
 //! 2^3 convolutions up, skip connections by concatenation, SiLU activations; three levels, so
 //! each grid axis must be divisible by 4. The output convolution starts at zero, so at
 //! initialisation `Delta u = 0` and training starts from the previous frame's velocity.
-//! burn 0.22 has Conv3d and ConvTranspose3d with autodiff on every backend shipped here
-//! (and no 3D pooling, which this design does not need).
+//! The layers are burn's Conv3d and ConvTranspose3d modules (their parameters and
+//! initialisation); their arithmetic is [`crate::conv`], which on the CPU backends replaces
+//! burn's (no 3D pooling is needed).
 
 use burn::module::{Initializer, Module};
 use burn::nn::PaddingConfig3d;
 use burn::nn::conv::{Conv3d, Conv3dConfig, ConvTranspose3d, ConvTranspose3dConfig};
 use burn::tensor::activation::silu;
 use burn::tensor::{Device, Tensor, TensorData};
+
+use crate::conv::{conv_transpose3d, conv3d};
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct UNetConfig {
@@ -68,7 +71,7 @@ impl DoubleConv {
     }
 
     fn forward(&self, x: Tensor<5>) -> Tensor<5> {
-        silu(self.second.forward(silu(self.first.forward(x))))
+        silu(conv3d(&self.second, silu(conv3d(&self.first, x))))
     }
 }
 
@@ -170,17 +173,19 @@ impl VelocityUNet {
         let skip1 = self.encode1.forward(x);
         let skip2 = self
             .encode2
-            .forward(silu(self.down1.forward(skip1.clone())));
+            .forward(silu(conv3d(&self.down1, skip1.clone())));
         let deep = self
             .bottleneck
-            .forward(silu(self.down2.forward(skip2.clone())));
-        let up2 = self
-            .decode2
-            .forward(Tensor::cat(vec![self.up2.forward(deep), skip2], 1));
-        let up1 = self
-            .decode1
-            .forward(Tensor::cat(vec![self.up1.forward(up2), skip1], 1));
-        let delta = self.output.forward(up1); // [1, 3, nx, ny, nz]
+            .forward(silu(conv3d(&self.down2, skip2.clone())));
+        let up2 = self.decode2.forward(Tensor::cat(
+            vec![conv_transpose3d(&self.up2, deep), skip2],
+            1,
+        ));
+        let up1 = self.decode1.forward(Tensor::cat(
+            vec![conv_transpose3d(&self.up1, up2), skip1],
+            1,
+        ));
+        let delta = conv3d(&self.output, up1); // [1, 3, nx, ny, nz]
         Ok(delta.squeeze_dim::<4>(0).permute([1, 2, 3, 0]))
     }
 }

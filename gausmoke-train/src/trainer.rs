@@ -22,8 +22,8 @@ use gausmoke_model::penalty::penalty_projection_with_report;
 use gausmoke_model::{
     GaussianModel, GridSpec, Integrator, Interpolation, PenaltyOptions, ProjectionOptions,
     ProjectionReport, SplatOptions, UNetConfig, VelocityUNet, advect, advection_loss,
-    density_gradient_grid, density_grid, divergence_loss, penalty_projection, project_velocity,
-    project_with_report, refine_loss,
+    density_gradient_grid, density_grid, divergence_loss_of, penalty_projection, project_direct,
+    project_velocity, refine_loss,
 };
 use gausmoke_render::{GaussianTensors, Gaussians, RasterOptions, render_volume};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -162,9 +162,7 @@ impl Trainer {
     /// What the configured `Pi` does to `velocity` (for the frame's metrics).
     fn projection_report(&self, velocity: Tensor<4>) -> ProjectionReport {
         match self.config.projection {
-            ProjectionKind::Exact => {
-                project_with_report(&self.grid, &mut host(velocity), &self.projection())
-            }
+            ProjectionKind::Exact => project_direct(&self.grid, &mut host(velocity)),
             ProjectionKind::Penalty => {
                 penalty_projection_with_report(&self.grid, velocity, &self.penalty()).1
             }
@@ -374,8 +372,7 @@ impl Trainer {
             let mut loss = render.clone();
             let (mut divergence_value, mut advection_value) = (0.0, 0.0);
             if config.physics_losses {
-                let divergence =
-                    divergence_loss(&self.grid, &projected, &previous_means, interpolation);
+                let divergence = divergence_loss_of(&moved.start);
                 let sigma_next = density_grid(&next, &self.grid, splat.cutoff);
                 let gradient_previous = density_gradient_grid(&previous, &self.grid, splat.cutoff);
                 let gradient_next = density_gradient_grid(&next, &self.grid, splat.cutoff);

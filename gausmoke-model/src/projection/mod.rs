@@ -1,12 +1,14 @@
 //! Incompressibility projection `Pi` (paper Eq. 10), exact: the discrete Helmholtz projection
-//! (see [`host`] for the operators and the solver), as a custom op whose backward pass is
-//! `Pi` itself ([`op`]), solved on the host for the CPU backends and on the device for the cube
-//! backends (`kernels`). The paper's penalty form is [`crate::penalty`].
+//! (see [`host`] for the operators), as a custom op whose backward pass is `Pi` itself
+//! ([`op`]). The CPU backends solve its Poisson equation directly ([`spectral`]: separation
+//! of variables, no iterations); the cube backends run Jacobi-PCG on the device (`kernels`,
+//! with [`host::project`] its host twin). The paper's penalty form is [`crate::penalty`].
 
 pub mod host;
 #[cfg(feature = "cube")]
 mod kernels;
 mod op;
+pub mod spectral;
 
 use burn::tensor::Tensor;
 
@@ -29,7 +31,15 @@ pub fn project_velocity(
     ))
 }
 
-/// Projects on the host and returns the solver report (for diagnostics and the CLI).
+/// Projects on the host with the direct solve the CPU backends use ([`spectral`]) and returns
+/// its report (for diagnostics and the CLI).
+pub fn project_direct(grid: &GridSpec, velocity: &mut [f32]) -> ProjectionReport {
+    let op = Divergence::on_grid(grid);
+    spectral::project(&op, &spectral::SpectralSolver::for_grid(&op), velocity)
+}
+
+/// Projects on the host with Jacobi-PCG, `options`' tolerance and iteration limit (the twin
+/// of the device solver of the cube backends), and returns the solver report.
 pub fn project_with_report(
     grid: &GridSpec,
     velocity: &mut [f32],

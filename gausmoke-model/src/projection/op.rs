@@ -14,7 +14,8 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, TensorMetadata, backend_extension};
 use burn::tensor::{TensorData, read_sync};
 
-use super::host::{ProjectionSpec, project};
+use super::host::ProjectionSpec;
+use super::spectral::{self, SpectralSolver};
 
 #[backend_extension(
     Cube: cfg(feature = "cube"),
@@ -27,7 +28,8 @@ pub trait ProjectionBackend: Backend {
     fn project_velocity(velocity: FloatTensor<Self>, spec: ProjectionSpec) -> FloatTensor<Self>;
 }
 
-/// Host implementation shared by the CPU backends; logs the solver report.
+/// Host implementation shared by the CPU backends (the direct solve of [`spectral`]); logs
+/// the solver report.
 fn host_project<B: Backend>(velocity: FloatTensor<B>, spec: ProjectionSpec) -> FloatTensor<B> {
     let device = velocity.device();
     let shape = velocity.shape();
@@ -35,7 +37,8 @@ fn host_project<B: Backend>(velocity: FloatTensor<B>, spec: ProjectionSpec) -> F
         .expect("reading the velocity grid back to the host failed")
         .try_into_vec_as::<f32>()
         .expect("CPU backends hold float tensors");
-    let report = project(&spec.operator(), &mut values, &spec.options);
+    let op = spec.operator();
+    let report = spectral::project(&op, &SpectralSolver::for_grid(&op), &mut values);
     tracing::debug!(?report, "velocity projection");
     B::float_from_data(TensorData::new(values, shape), &device)
 }

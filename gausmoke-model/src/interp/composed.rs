@@ -1,83 +1,10 @@
-//! Continuous velocity from the Eulerian grid (paper Eq. 11) with its closed-form Jacobian and
-//! divergence (Eq. 12, Appendix A Eq. 22-23), and trilinear interpolation as an alternative.
-//!
-//! Everything is composed of burn tensor ops, so it is differentiable with respect to the
-//! grid velocities and the query points on every backend.
-//!
-//! # Choice of kernel
-//!
-//! The normalised Gaussian kernel does not reproduce linear fields exactly, and its bias
-//! depends strongly on the stencil and the kernel width. For a linear field the interpolated
-//! slope (1 is exact) is, over all positions within a cell:
-//!
-//! | stencil | std (cells) | slope        | position bias |
-//! |---------|-------------|--------------|---------------|
-//! | 2x2x2   | 1.0         | 0.24 .. 0.25 | 0.38 cell     |
-//! | 2x2x2   | 0.5         | 0.42 .. 1.00 | 0.12 cell     |
-//! | 4x4x4   | 0.6         | 0.95 .. 1.02 | 0.005 cell    |
-//! | 6x6x6   | 0.7         | 0.997 .. 1.002 | < 0.001 cell |
-//!
-//! A 2x2x2 stencil with a one-cell kernel underestimates every velocity gradient (and so the
-//! divergence the losses penalise) about four times; the default here is 4x4x4 with a 0.6-cell
-//! standard deviation. (Checked by the `kernel_bias_table` test.)
-//!
-//! The stencil follows the query point, so where it moves by one cell (when a coordinate
-//! crosses a cell centre) the Gaussian interpolant jumps by the weight of the node it drops:
-//! about `exp(-2 / std^2)` relative, 0.4% for the default. Trilinear is continuous but has
-//! kinks there. Neither matters for advection; finite-difference checks must avoid them.
+//! Interpolation composed of burn tensor ops, so autodiff differentiates it with respect to
+//! the grid velocities and the query points on every backend.
 
-use burn::tensor::{Int, Tensor, TensorData};
+use burn::tensor::{Tensor, TensorData};
 
+use super::kind::{Interpolation, VelocitySample};
 use crate::grid::GridSpec;
-
-/// How the grid is sampled between cell centres.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum Interpolation {
-    /// Normalised isotropic Gaussian kernel (Eq. 11) over `stencil^3` nearest cell centres,
-    /// standard deviation `std_cells` cell sizes along each axis.
-    Gaussian { stencil: usize, std_cells: f32 },
-    /// Trilinear over the 2x2x2 nearest cell centres (exact for linear fields).
-    Trilinear,
-}
-
-impl Default for Interpolation {
-    fn default() -> Self {
-        Self::Gaussian {
-            stencil: 4,
-            std_cells: 0.6,
-        }
-    }
-}
-
-impl Interpolation {
-    /// Nodes per axis the stencil reads.
-    pub fn stencil(&self) -> usize {
-        match self {
-            Self::Gaussian { stencil, .. } => *stencil,
-            Self::Trilinear => 2,
-        }
-    }
-}
-
-/// Velocity sampled at points, with its spatial derivatives.
-#[derive(Debug, Clone)]
-pub struct VelocitySample {
-    /// `u(x)`, `[M, 3]`.
-    pub velocity: Tensor<2>,
-    /// `J[m, a, b] = d u_a / d x_b`, `[M, 3, 3]`.
-    pub jacobian: Tensor<3>,
-}
-
-impl VelocitySample {
-    /// `div u = trace(J)`, `[M]`.
-    pub fn divergence(&self) -> Tensor<1> {
-        let [m, _, _] = self.jacobian.dims();
-        let j = self.jacobian.clone().reshape([m, 9]);
-        let diagonal =
-            Tensor::<1, Int>::from_data(TensorData::new(vec![0i32, 4, 8], [3]), &j.device());
-        j.select(1, diagonal).sum_dim(1).reshape([m])
-    }
-}
 
 /// Constant tensors of the stencil: node offsets `[S^3, 3]` (in cells).
 fn stencil_offsets(stencil: usize, device: &burn::tensor::Device) -> Tensor<2> {
@@ -96,10 +23,9 @@ fn row3(v: [f32; 3], device: &burn::tensor::Device) -> Tensor<2> {
     Tensor::from_data(TensorData::new(v.to_vec(), [1, 3]), device)
 }
 
-/// Samples the velocity grid `velocity` (`[nx, ny, nz, 3]`, see [`crate::grid`]) at
-/// `points` (`[M, 3]`, world units). Points outside the box use the nearest in-box stencil
-/// (the kernel extrapolates smoothly).
-pub fn sample_velocity(
+/// [`super::sample_velocity`] composed of burn tensor ops (differentiated by autodiff): what
+/// trilinear interpolation runs, and an independent reference for the fused Gaussian op.
+pub fn sample(
     grid: &GridSpec,
     velocity: &Tensor<4>,
     points: &Tensor<2>,
@@ -190,20 +116,4 @@ pub fn sample_velocity(
             }
         }
     }
-}
-
-/// Velocity grid `[nx, ny, nz, 3]` holding `field(cell centre)` (for tests and analytic
-/// initial conditions).
-pub fn grid_from_fn(
-    grid: &GridSpec,
-    device: &burn::tensor::Device,
-    field: impl Fn([f32; 3]) -> [f32; 3],
-) -> Tensor<4> {
-    let [nx, ny, nz] = grid.resolution();
-    let values: Vec<f32> = grid
-        .cell_centres()
-        .chunks_exact(3)
-        .flat_map(|c| field([c[0], c[1], c[2]]))
-        .collect();
-    Tensor::from_data(TensorData::new(values, [nx, ny, nz, 3]), device)
 }
