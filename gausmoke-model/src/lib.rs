@@ -19,7 +19,8 @@ pub mod unet;
 
 pub use advect::{Advected, Integrator, advect};
 pub use density::{
-    DensityBackend, DensityField, SplatOptions, density_field, density_gradient_grid, density_grid,
+    DensityBackend, DensityField, SplatOptions, density_and_gradient_grid, density_field,
+    density_gradient_grid, density_grid,
 };
 pub use gaussians::GaussianModel;
 pub use grid::{GridError, GridSpec};

@@ -284,5 +284,8 @@ fn direct_solve_matches_converged_conjugate_gradients() {
         .iter()
         .zip(&iterative)
         .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
-    assert!(worst < 1e-5 * scale, "direct vs PCG: {worst} (scale {scale})");
+    assert!(
+        worst < 1e-5 * scale,
+        "direct vs PCG: {worst} (scale {scale})"
+    );
 }

@@ -22,8 +22,8 @@ use gausmoke_model::penalty::penalty_projection_with_report;
 use gausmoke_model::{
     GaussianModel, GridSpec, Integrator, Interpolation, PenaltyOptions, ProjectionOptions,
     ProjectionReport, SplatOptions, UNetConfig, VelocityUNet, advect, advection_loss,
-    density_gradient_grid, density_grid, divergence_loss_of, penalty_projection, project_direct,
-    project_velocity, refine_loss,
+    density_and_gradient_grid, density_grid, divergence_loss_of, penalty_projection,
+    project_direct, project_velocity, refine_loss,
 };
 use gausmoke_render::{GaussianTensors, Gaussians, RasterOptions, render_volume};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -348,7 +348,14 @@ impl Trainer {
         let mut clamped = 0;
         for iteration in 0..config.advect_iterations {
             let previous = self.state.gaussians.tensors_at(previous_means.clone());
-            let sigma_previous = density_grid(&previous, &self.grid, splat.cutoff);
+            // The density and (for L_adv) its gradient, in one pass over the Gaussians.
+            let (sigma_previous, gradient_previous) = if config.physics_losses {
+                let (sigma, gradient) =
+                    density_and_gradient_grid(&previous, &self.grid, splat.cutoff);
+                (sigma, Some(gradient))
+            } else {
+                (density_grid(&previous, &self.grid, splat.cutoff), None)
+            };
             let delta = {
                 let _phase = phase!("U-Net forward");
                 self.state.phi.forward(
@@ -371,11 +378,10 @@ impl Trainer {
             let render = self.render_loss(&next, &observations, &targets)?;
             let mut loss = render.clone();
             let (mut divergence_value, mut advection_value) = (0.0, 0.0);
-            if config.physics_losses {
+            if let Some(gradient_previous) = gradient_previous {
                 let divergence = divergence_loss_of(&moved.start);
-                let sigma_next = density_grid(&next, &self.grid, splat.cutoff);
-                let gradient_previous = density_gradient_grid(&previous, &self.grid, splat.cutoff);
-                let gradient_next = density_gradient_grid(&next, &self.grid, splat.cutoff);
+                let (sigma_next, gradient_next) =
+                    density_and_gradient_grid(&next, &self.grid, splat.cutoff);
                 let advection = advection_loss(
                     &sigma_previous,
                     &sigma_next,

@@ -78,7 +78,7 @@ fn gaussians(scene: &Scene, device: &Device) -> GaussianTensors {
 fn run(
     scene: &Scene,
     grid: &GridSpec,
-    spatial_gradient: bool,
+    field: DensityField,
     weight: &[f32],
     device: &Device,
     float_atomics: FloatAtomics,
@@ -90,9 +90,13 @@ fn run(
         cutoff: 9.0,
         float_atomics,
     };
-    let grads = if spatial_gradient {
-        let field: Tensor<4> = density_field(&g, grid, &options, DensityField::SpatialGradient);
-        let w = Tensor::<4>::from_data(TensorData::new(weight.to_vec(), [nx, ny, nz, 3]), &ad);
+    let grads = if field != DensityField::Density {
+        let channels = field.channels();
+        let field: Tensor<4> = density_field(&g, grid, &options, field);
+        let w = Tensor::<4>::from_data(
+            TensorData::new(weight.to_vec(), [nx, ny, nz, channels]),
+            &ad,
+        );
         let values = to_vec(field.clone());
         ((field * w).sum().backward(), values)
     } else {
@@ -113,7 +117,7 @@ fn run(
     )
 }
 
-fn compare(spatial_gradient: bool) {
+fn compare(field: DensityField) {
     let gpu = gpu_devices();
     assert!(
         !gpu.is_empty(),
@@ -123,28 +127,17 @@ fn compare(spatial_gradient: bool) {
     // Non-cubic on purpose: a wrong axis order in the kernel's flat index fails here.
     let grid = GridSpec::new(Vec3::splat(-1.0), Vec3::new(1.0, 1.2, 0.9), [20, 24, 18], 1).unwrap();
     let scene = random_scene(3000, 7);
-    let channels = if spatial_gradient { 3 } else { 1 };
+    let channels = field.channels();
     let mut rng = SplitMix64::new(11);
     let weight: Vec<f32> = (0..grid.num_cells() * channels)
         .map(|_| rng.uniform() * 2.0 - 1.0)
         .collect();
-    let (cpu_values, cpu_grads) = run(
-        &scene,
-        &grid,
-        spatial_gradient,
-        &weight,
-        &cpu,
-        FloatAtomics::Native,
-    );
-    let what = if spatial_gradient {
-        "grad sigma"
-    } else {
-        "sigma"
-    };
+    let (cpu_values, cpu_grads) = run(&scene, &grid, field, &weight, &cpu, FloatAtomics::Native);
+    let what = format!("{field:?}");
     for atomics in [FloatAtomics::Native, FloatAtomics::CompareAndSwap] {
         for (backend, device) in &gpu {
             let label = format!("{what} on {backend} ({atomics:?} float atomics)");
-            let (values, grads) = run(&scene, &grid, spatial_gradient, &weight, device, atomics);
+            let (values, grads) = run(&scene, &grid, field, &weight, device, atomics);
             let scale = cpu_values.iter().fold(0.0f32, |m, v| m.max(v.abs()));
             assert!(scale > 1.0, "the scene must put real density on the grid");
             assert_close(&label, &values, &cpu_values, 2e-5 * scale, 0.0);
@@ -169,12 +162,17 @@ fn compare(spatial_gradient: bool) {
 
 #[test]
 fn density_kernel_matches_cpu() {
-    compare(false);
+    compare(DensityField::Density);
 }
 
 #[test]
 fn density_gradient_kernel_matches_cpu() {
-    compare(true);
+    compare(DensityField::SpatialGradient);
+}
+
+#[test]
+fn density_and_gradient_kernel_matches_cpu() {
+    compare(DensityField::Both);
 }
 
 /// The fused interpolation's kernels against its CPU path: velocity, Jacobian and the

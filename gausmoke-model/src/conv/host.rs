@@ -228,19 +228,24 @@ fn for_each_run(
 
 /// `Col` rows for output cells `start..start + len`, `[K, len]` row-major.
 fn im2col(g: &ConvGeometry, x: &[f32], start: usize, len: usize, col: &mut Vec<f32>) {
-    col.clear();
+    // Every entry is written below (taps outside the input as zeros), so the buffer is
+    // reused as it is.
     col.resize(g.patch() * len, 0.0);
     col.par_chunks_mut(len).enumerate().for_each(|(row, out)| {
+        let mut written = 0;
         for_each_run(g, row, start, len, |t, count, i, step| {
-            let out = &mut out[t..t + count];
+            out[written..t].fill(0.0);
+            let run = &mut out[t..t + count];
             if step == 1 {
-                out.copy_from_slice(&x[i..i + count]);
+                run.copy_from_slice(&x[i..i + count]);
             } else {
-                for (j, value) in out.iter_mut().enumerate() {
+                for (j, value) in run.iter_mut().enumerate() {
                     *value = x[i + j * step];
                 }
             }
-        })
+            written = t + count;
+        });
+        out[written..].fill(0.0);
     });
 }
 
@@ -317,7 +322,7 @@ pub fn adjoint(g: &ConvGeometry, dy: &[f32], weight: &[f32]) -> Vec<f32> {
     let taps = g.kernel.iter().product::<usize>();
     let mut col = Vec::new();
     for (start, len) in tiles(g) {
-        col.clear();
+        // Overwritten whole by the product.
         col.resize(g.patch() * len, 0.0);
         matmul_into(&mut col, len, 0, wt, dy_view.columns(start, len), false);
         // Each input channel gathers from its own taps only: channels in parallel, each

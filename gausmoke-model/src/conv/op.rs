@@ -151,9 +151,17 @@ macro_rules! cpu_conv_passes {
                         host::channel_sums(&grad, g.channels_in),
                     )
                 } else {
+                    let grad_x = {
+                        let _phase = gausmoke_core::phase!("convolution input gradient");
+                        host::adjoint(&g, &grad, &weight)
+                    };
+                    let grad_weight = {
+                        let _phase = gausmoke_core::phase!("convolution weight gradient");
+                        host::weight_grad(&g, &x, &grad)
+                    };
                     (
-                        host::adjoint(&g, &grad, &weight),
-                        host::weight_grad(&g, &x, &grad),
+                        grad_x,
+                        grad_weight,
                         host::channel_sums(&grad, g.channels_out),
                     )
                 };

@@ -25,22 +25,31 @@ pub enum DensityField {
     Density,
     /// `grad sigma_grid`, `[nx, ny, nz, 3]` (per world unit).
     SpatialGradient,
+    /// Both in one pass, `[nx, ny, nz, 4]`: `sigma` then its gradient.
+    Both,
 }
 
 impl DensityField {
+    /// Whether the field holds the density (its channel 0).
+    pub fn has_density(self) -> bool {
+        self != DensityField::SpatialGradient
+    }
+
+    /// Whether the field holds the spatial gradient (its last three channels).
+    pub fn has_gradient(self) -> bool {
+        self != DensityField::Density
+    }
+
     /// Values per cell.
     pub fn channels(self) -> usize {
-        match self {
-            DensityField::Density => 1,
-            DensityField::SpatialGradient => 3,
-        }
+        usize::from(self.has_density()) + 3 * usize::from(self.has_gradient())
     }
 
     /// The field's tensor shape on `grid`.
     pub fn shape(self, grid: &SplatGrid) -> Vec<usize> {
         let mut shape = grid.resolution.to_vec();
-        if self == DensityField::SpatialGradient {
-            shape.push(3);
+        if self != DensityField::Density {
+            shape.push(self.channels());
         }
         shape
     }
@@ -219,11 +228,81 @@ fn gaussian_gradients(
     out
 }
 
-/// `sigma_grid`, `[nx * ny * nz]` in the grid's flat order.
-pub fn splat_forward(gaussians: &GaussianSlices, grid: &SplatGrid) -> Vec<f32> {
-    accumulate_field(gaussians, grid, 1, |splat, m, out| {
-        out[0] += splat.sigma * (-0.5 * dot3(m, m)).exp();
+/// `field` of the Gaussians, `[cells * field.channels()]` in the grid's flat order: the
+/// density `sum_i sigma_i k_i(x)` and/or its analytic spatial gradient
+/// `sum_i sigma_i k_i(x) (-Sigma_i^-1 (x - mu_i))`, with `Sigma^-1 (x - mu) = L^T m`.
+pub fn splat_field_forward(
+    gaussians: &GaussianSlices,
+    grid: &SplatGrid,
+    field: DensityField,
+) -> Vec<f32> {
+    let offset = usize::from(field.has_density());
+    accumulate_field(gaussians, grid, field.channels(), |splat, m, out| {
+        let density = splat.sigma * (-0.5 * dot3(m, m)).exp();
+        if field.has_density() {
+            out[0] += density;
+        }
+        if field.has_gradient() {
+            let l = &splat.whiten;
+            let weight = -density;
+            for a in 0..3 {
+                out[offset + a] += weight * (l[0][a] * m[0] + l[1][a] * m[1] + l[2][a] * m[2]);
+            }
+        }
     })
+}
+
+/// Gradients of every attribute of [`splat_field_forward`] given the gradient of its output
+/// (`[cells * field.channels()]`).
+///
+/// Density channel: `d(sigma k)/dm = -sigma k m`, `d(sigma k)/dsigma = k`. Gradient channels:
+/// per cell the output is `f = -sigma k m.(L g)` for upstream `g`; with `v = L g`, `s = m.v`:
+/// `df/dm = sigma k (s m - v)`, `df/dL = -sigma k m g^T` directly plus `(df/dm) x^T` through
+/// `m = L x - L mu`, and `df/dsigma = -k s`.
+pub fn splat_field_backward(
+    gaussians: &GaussianSlices,
+    grid: &SplatGrid,
+    field: DensityField,
+    grad_field: &[f32],
+) -> HostGaussians {
+    let channels = field.channels();
+    assert_eq!(
+        grad_field.len(),
+        channels * grid.cells(),
+        "gradient must be [cells, {channels}]"
+    );
+    let offset = usize::from(field.has_density());
+    gaussian_gradients(gaussians, grid, |splat, c, p, m, acc| {
+        let kernel = (-0.5 * dot3(m, m)).exp();
+        let mut grad_m = [0.0f32; 3];
+        if field.has_density() {
+            let up = grad_field[channels * c];
+            acc.sigma += up * kernel;
+            let scale = -up * splat.sigma * kernel;
+            grad_m = [scale * m[0], scale * m[1], scale * m[2]];
+        }
+        if field.has_gradient() {
+            let l = &splat.whiten;
+            let base = channels * c + offset;
+            let up = [grad_field[base], grad_field[base + 1], grad_field[base + 2]];
+            let v = [dot3(l[0], up), dot3(l[1], up), dot3(l[2], up)];
+            let s = dot3(m, v);
+            acc.sigma -= kernel * s;
+            let sk = splat.sigma * kernel;
+            for r in 0..3 {
+                for col in 0..3 {
+                    acc.whiten[r][col] -= sk * m[r] * up[col];
+                }
+                grad_m[r] += sk * (s * m[r] - v[r]);
+            }
+        }
+        acc.add_offset_grad(grad_m, p);
+    })
+}
+
+/// `sigma_grid`, `[nx * ny * nz]`.
+pub fn splat_forward(gaussians: &GaussianSlices, grid: &SplatGrid) -> Vec<f32> {
+    splat_field_forward(gaussians, grid, DensityField::Density)
 }
 
 /// Gradients of every attribute given `dLoss/dsigma_grid`.
@@ -232,73 +311,19 @@ pub fn splat_backward(
     grid: &SplatGrid,
     grad_grid: &[f32],
 ) -> HostGaussians {
-    assert_eq!(
-        grad_grid.len(),
-        grid.cells(),
-        "gradient must cover the grid"
-    );
-    gaussian_gradients(gaussians, grid, |splat, c, p, m, acc| {
-        let kernel = (-0.5 * dot3(m, m)).exp();
-        let up = grad_grid[c];
-        acc.sigma += up * kernel;
-        // d(sigma k)/dm = -sigma k m.
-        let scale = -up * splat.sigma * kernel;
-        acc.add_offset_grad([scale * m[0], scale * m[1], scale * m[2]], p);
-    })
+    splat_field_backward(gaussians, grid, DensityField::Density, grad_grid)
 }
 
-/// Analytic spatial gradient `grad sigma_grid`, `[nx * ny * nz * 3]`:
-/// `sum_i sigma_i k_i(x) (-Sigma_i^-1 (x - mu_i))`, with `Sigma^-1 (x - mu) = L^T m`.
+/// Analytic spatial gradient `grad sigma_grid`, `[nx * ny * nz * 3]`.
 pub fn splat_gradient_forward(gaussians: &GaussianSlices, grid: &SplatGrid) -> Vec<f32> {
-    accumulate_field(gaussians, grid, 3, |splat, m, out| {
-        let l = &splat.whiten;
-        let weight = -splat.sigma * (-0.5 * dot3(m, m)).exp();
-        for a in 0..3 {
-            out[a] += weight * (l[0][a] * m[0] + l[1][a] * m[1] + l[2][a] * m[2]);
-        }
-    })
+    splat_field_forward(gaussians, grid, DensityField::SpatialGradient)
 }
 
-/// Gradients of every attribute of [`splat_gradient_forward`]
-/// given `dLoss/d(grad sigma)` (`[cells * 3]`).
-///
-/// Per cell and Gaussian the output is `f = -sigma k m.(L g)` for upstream `g`; with
-/// `v = L g`, `s = m.v`: `df/dm = sigma k (s m - v)`, `df/dL = -sigma k m g^T` directly plus
-/// `(df/dm) x^T` through `m = L x - L mu`, and `df/dsigma = -k s`.
+/// Gradients of every attribute of [`splat_gradient_forward`] given `dLoss/d(grad sigma)`.
 pub fn splat_gradient_backward(
     gaussians: &GaussianSlices,
     grid: &SplatGrid,
     grad_field: &[f32],
 ) -> HostGaussians {
-    assert_eq!(
-        grad_field.len(),
-        3 * grid.cells(),
-        "gradient must be [cells, 3]"
-    );
-    gaussian_gradients(gaussians, grid, |splat, c, p, m, acc| {
-        let l = &splat.whiten;
-        let up = [
-            grad_field[3 * c],
-            grad_field[3 * c + 1],
-            grad_field[3 * c + 2],
-        ];
-        let v = [dot3(l[0], up), dot3(l[1], up), dot3(l[2], up)];
-        let s = dot3(m, v);
-        let kernel = (-0.5 * dot3(m, m)).exp();
-        acc.sigma -= kernel * s;
-        let sk = splat.sigma * kernel;
-        for r in 0..3 {
-            for col in 0..3 {
-                acc.whiten[r][col] -= sk * m[r] * up[col];
-            }
-        }
-        acc.add_offset_grad(
-            [
-                sk * (s * m[0] - v[0]),
-                sk * (s * m[1] - v[1]),
-                sk * (s * m[2] - v[2]),
-            ],
-            p,
-        );
-    })
+    splat_field_backward(gaussians, grid, DensityField::SpatialGradient, grad_field)
 }

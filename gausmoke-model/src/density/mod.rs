@@ -68,6 +68,27 @@ pub fn density_grid(gaussians: &GaussianTensors, grid: &GridSpec, cutoff: f32) -
     density_field(gaussians, grid, &options, DensityField::Density)
 }
 
+/// `sigma_grid` and its analytic gradient in one pass over the Gaussians (cheaper than
+/// [`density_grid`] and [`density_gradient_grid`] apart). See [`density_field`].
+pub fn density_and_gradient_grid(
+    gaussians: &GaussianTensors,
+    grid: &GridSpec,
+    cutoff: f32,
+) -> (Tensor<3>, Tensor<4>) {
+    let options = SplatOptions {
+        cutoff,
+        ..SplatOptions::default()
+    };
+    let both: Tensor<4> = density_field(gaussians, grid, &options, DensityField::Both);
+    let [nx, ny, nz, _] = both.dims();
+    (
+        both.clone()
+            .slice([0..nx, 0..ny, 0..nz, 0..1])
+            .reshape([nx, ny, nz]),
+        both.slice([0..nx, 0..ny, 0..nz, 1..4]),
+    )
+}
+
 /// Analytic `grad sigma_grid [nx, ny, nz, 3]` (per world unit). See [`density_field`].
 pub fn density_gradient_grid(
     gaussians: &GaussianTensors,

@@ -14,10 +14,7 @@ use burn::backend::{Backend, TensorMetadata, backend_extension};
 use gausmoke_render::primitives::{from_vec, gradient_tensors, host_gaussians, to_vec};
 use gausmoke_render::{FloatAtomics, GaussianPrimitives, HostGaussians};
 
-use super::host::{
-    DensityField, SplatGrid, splat_backward, splat_forward, splat_gradient_backward,
-    splat_gradient_forward,
-};
+use super::host::{DensityField, SplatGrid, splat_field_backward, splat_field_forward};
 
 #[backend_extension(
     Cube: cfg(feature = "cube"),
@@ -66,10 +63,7 @@ macro_rules! cpu_density_passes {
             ) -> FloatTensor<Self> {
                 let device = gaussians.means.device();
                 let host = host_gaussians::<Self>(gaussians);
-                let values = match field {
-                    DensityField::Density => splat_forward(&host.slices(), &grid),
-                    DensityField::SpatialGradient => splat_gradient_forward(&host.slices(), &grid),
-                };
+                let values = splat_field_forward(&host.slices(), &grid, field);
                 from_vec::<Self>(values, field.shape(&grid), &device)
             }
 
@@ -82,12 +76,7 @@ macro_rules! cpu_density_passes {
                 let device = gaussians.means.device();
                 let host: HostGaussians = host_gaussians::<Self>(gaussians);
                 let grad = to_vec::<Self>(grad);
-                let grads = match field {
-                    DensityField::Density => splat_backward(&host.slices(), &grid, &grad),
-                    DensityField::SpatialGradient => {
-                        splat_gradient_backward(&host.slices(), &grid, &grad)
-                    }
-                };
+                let grads = splat_field_backward(&host.slices(), &grid, field, &grad);
                 gradient_tensors::<Self>(grads, &device)
             }
         }

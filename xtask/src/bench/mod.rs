@@ -44,6 +44,9 @@ pub struct PhysicsArgs {
     reps: usize,
     #[arg(long, default_value = "flex")]
     device: String,
+    /// Base channels of the U-Net (the paper's 16; the reduced preset's 8).
+    #[arg(long, default_value_t = 16)]
+    unet_channels: usize,
 }
 
 #[derive(Debug, Args)]
@@ -512,7 +515,11 @@ fn physics(args: PhysicsArgs) -> Result<()> {
         Ok(())
     })?;
 
-    let unet = VelocityUNet::new(&UNetConfig::default(), &ad);
+    let unet_config = UNetConfig {
+        base_channels: args.unet_channels,
+        ..UNetConfig::default()
+    };
+    let unet = VelocityUNet::new(&unet_config, &ad);
     let velocity = Tensor::<4>::from_data(TensorData::new(field.clone(), [n, n, n, 3]), &ad);
     let density = Tensor::<3>::zeros([n, n, n], &ad);
     let unet_ms = time_ms(args.reps, || {
@@ -560,6 +567,9 @@ fn physics(args: PhysicsArgs) -> Result<()> {
         "| velocity and Jacobian at the centres (4^3 Gaussian stencil), forward+backward | {} points, {n}^3 | {interpolation_ms:.1} |",
         args.gaussians
     );
-    println!("| U-Net Phi forward+backward (16 base channels) | {n}^3 | {unet_ms:.1} |");
+    println!(
+        "| U-Net Phi forward+backward ({} base channels) | {n}^3 | {unet_ms:.1} |",
+        args.unet_channels
+    );
     Ok(())
 }

@@ -61,8 +61,11 @@ pub fn splat_field_backward_kernel(
     ny: u32,
     nz: u32,
     num_gaussians: u32,
-    #[comptime] spatial_gradient: bool,
+    #[comptime] density: bool,
+    #[comptime] gradient: bool,
 ) {
+    let channels = comptime!(density as usize + 3 * gradient as usize);
+    let offset = comptime!(density as usize);
     let i = ABSOLUTE_POS;
     if i >= num_gaussians as usize {
         terminate!();
@@ -80,9 +83,16 @@ pub fn splat_field_backward_kernel(
         let k2 = m.dot(&m);
         if k2 <= cutoff {
             let kernel = (-0.5f32 * k2).exp();
-            if spatial_gradient {
-                // f = -sigma k m.(L g): see `density::host::splat_gradient_backward`.
-                let up = Vec3::load(grad_field, 3 * cell.index);
+            let base = channels * cell.index;
+            if density {
+                let up = grad_field[base];
+                acc.sigma += up * kernel;
+                // d(sigma k)/dm = -sigma k m.
+                acc.add_offset_grad(&m.scale(-up * g.sigma * kernel), x);
+            }
+            if gradient {
+                // f = -sigma k m.(L g): see `density::host::splat_field_backward`.
+                let up = Vec3::load(grad_field, base + offset);
                 let v = l.mul(&up);
                 let s = m.dot(&v);
                 acc.sigma -= kernel * s;
@@ -90,11 +100,6 @@ pub fn splat_field_backward_kernel(
                 // Direct term: d f / d L = -sigma k m g^T.
                 acc.add_outer(&m.scale(-sk), &up);
                 acc.add_offset_grad(&m.scale(s).sub(&v).scale(sk), x);
-            } else {
-                let up = grad_field[cell.index];
-                acc.sigma += up * kernel;
-                // d(sigma k)/dm = -sigma k m.
-                acc.add_offset_grad(&m.scale(-up * g.sigma * kernel), x);
             }
         }
         k += 1;

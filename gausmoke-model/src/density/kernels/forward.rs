@@ -7,8 +7,8 @@ use gausmoke_render::kernels::atomics::GradientAdd;
 
 use super::support::{GridParam, grid_gaussian};
 
-/// Adds every Gaussian's density (`spatial_gradient = false`, one channel) or the density's
-/// spatial gradient (`true`, three channels, `-sigma k L^T m`) into `field`.
+/// Adds every Gaussian's density (one channel) and/or the density's spatial gradient (three
+/// channels, `-sigma k L^T m`) into `field` (channels in that order).
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 pub fn splat_field_kernel<A: GradientAdd>(
@@ -22,8 +22,11 @@ pub fn splat_field_kernel<A: GradientAdd>(
     ny: u32,
     nz: u32,
     num_gaussians: u32,
-    #[comptime] spatial_gradient: bool,
+    #[comptime] density: bool,
+    #[comptime] gradient: bool,
 ) {
+    let channels = comptime!(density as usize + 3 * gradient as usize);
+    let offset = comptime!(density as usize);
     let i = ABSOLUTE_POS;
     if i >= num_gaussians as usize {
         terminate!();
@@ -43,17 +46,19 @@ pub fn splat_field_kernel<A: GradientAdd>(
         let k2 = m.dot(&m);
         if k2 <= cutoff {
             let kernel = (-0.5f32 * k2).exp();
-            if spatial_gradient {
+            let base = channels * cell.index;
+            if density {
+                A::add(field, base, g.sigma * kernel);
+            }
+            if gradient {
                 let v = g
                     .whitening
                     .whiten
                     .transpose_mul(&m)
                     .scale(-g.sigma * kernel);
-                A::add(field, 3 * cell.index, v.x);
-                A::add(field, 3 * cell.index + 1, v.y);
-                A::add(field, 3 * cell.index + 2, v.z);
-            } else {
-                A::add(field, cell.index, g.sigma * kernel);
+                A::add(field, base + offset, v.x);
+                A::add(field, base + offset + 1, v.y);
+                A::add(field, base + offset + 2, v.z);
             }
         }
         k += 1;

@@ -42,7 +42,7 @@ pub fn splat_field(
     let output = alloc.zeros(len, DType::F32);
     let params = alloc.f32s(&grid_params(grid));
     let [nx, ny, nz] = resolution_u32(grid);
-    let spatial_gradient = field == DensityField::SpatialGradient;
+    let (density, gradient) = (field.has_density(), field.has_gradient());
     macro_rules! launch_forward {
         ($adder:ty) => {
             forward::splat_field_kernel::launch::<$adder>(
@@ -59,7 +59,8 @@ pub fn splat_field(
                 ny,
                 nz,
                 n as u32,
-                spatial_gradient,
+                density,
+                gradient,
             )
         };
     }
@@ -119,7 +120,8 @@ pub fn splat_field_backward(
             ny,
             nz,
             n as u32,
-            field == DensityField::SpatialGradient,
+            field.has_density(),
+            field.has_gradient(),
         );
     }
     gausmoke_render::kernels::buffers::gradient_shapes(grads, n)
