@@ -9,9 +9,11 @@
 //! * weight gradient: `dW = dY Col^T`;
 //! * adjoint: `dCol = W^T dY`, folded back onto the input (`col2im`).
 //!
-//! `N` is processed in tiles so `Col` never exists whole (at 64^3 with 16 channels it would be
-//! 450 MB). Every sum runs in a fixed order (tiles in sequence, `gemm` splitting only the
-//! output), so results are bit-for-bit reproducible.
+//! `N` is processed in tiles of about 256 KiB of `Col`, so `Col` never exists whole (at 64^3
+//! with 16 channels it would be 450 MB) and each tile stays in cache from `im2col` to the
+//! product. Tiles are the parallel unit (one `gemm` per tile, on one thread); every sum runs
+//! in an order fixed by the shapes alone, so results are bit-for-bit reproducible on any
+//! number of threads.
 
 use rayon::prelude::*;
 
@@ -57,11 +59,41 @@ impl ConvGeometry {
         }
     }
 
-    /// Output cells per tile: `Col` tiles of about 4 MiB.
+    /// Output cells per tile: a `Col` tile of about 256 KiB, so that it stays in a core's
+    /// cache between being written by `im2col` and read by the product.
     fn tile(&self) -> usize {
-        (1 << 20) / self.patch().max(1)
+        (TILE_FLOATS / self.patch().max(1)).max(MIN_TILE_CELLS)
+    }
+
+    /// Whether the gradient with respect to the input is itself a stride-1 convolution of the
+    /// output gradient (with the kernel flipped and its channel axes swapped).
+    fn adjoint_is_a_convolution(&self) -> bool {
+        (0..3).all(|a| self.stride[a] == 1 && self.padding[a] < self.kernel[a])
+    }
+
+    /// The stride-1 convolution that computes the adjoint: from the output grid back to the
+    /// input grid, padded by `k - 1 - p`.
+    fn flipped(&self) -> ConvGeometry {
+        ConvGeometry {
+            channels_in: self.channels_out,
+            channels_out: self.channels_in,
+            input: self.output(),
+            kernel: self.kernel,
+            stride: [1; 3],
+            padding: [0, 1, 2].map(|a| self.kernel[a] - 1 - self.padding[a]),
+        }
     }
 }
+
+/// Floats in one `Col` tile (256 KiB).
+const TILE_FLOATS: usize = 1 << 16;
+/// Fewest output cells per tile, so that each product still has a long side.
+const MIN_TILE_CELLS: usize = 64;
+/// Tiles whose weight-gradient products one task sums before the partial sums are added in
+/// order. A constant, so the order of every sum is the same on any number of threads.
+const TILES_PER_PARTIAL: usize = 8;
+/// Tiles of `W^T dY` formed at once by the general adjoint (about 16 MiB).
+const ADJOINT_BATCH_TILES: usize = 64;
 
 /// A matrix view into a slice: element `(r, c)` at `offset + r * row_stride + c * col_stride`.
 #[derive(Clone, Copy)]
@@ -145,11 +177,6 @@ fn matmul_into(
         }
         return;
     }
-    let parallelism = if m * n * k >= 1 << 18 {
-        gemm::Parallelism::Rayon(0)
-    } else {
-        gemm::Parallelism::None
-    };
     // SAFETY: the asserts above keep every index of the three matrices inside their slices;
     // `dst` is borrowed mutably and does not alias `lhs` or `rhs`.
     unsafe {
@@ -172,7 +199,7 @@ fn matmul_into(
             false,
             false,
             false,
-            parallelism,
+            gemm::Parallelism::None,
         );
     }
 }
@@ -231,7 +258,7 @@ fn im2col(g: &ConvGeometry, x: &[f32], start: usize, len: usize, col: &mut Vec<f
     // Every entry is written below (taps outside the input as zeros), so the buffer is
     // reused as it is.
     col.resize(g.patch() * len, 0.0);
-    col.par_chunks_mut(len).enumerate().for_each(|(row, out)| {
+    for (row, out) in col.chunks_mut(len).enumerate() {
         let mut written = 0;
         for_each_run(g, row, start, len, |t, count, i, step| {
             out[written..t].fill(0.0);
@@ -246,97 +273,162 @@ fn im2col(g: &ConvGeometry, x: &[f32], start: usize, len: usize, col: &mut Vec<f
             written = t + count;
         });
         out[written..].fill(0.0);
-    });
+    }
 }
 
 /// Output cells of every tile: `(start, len)`.
-fn tiles(g: &ConvGeometry) -> impl Iterator<Item = (usize, usize)> {
+fn tiles(g: &ConvGeometry) -> Vec<(usize, usize)> {
     let n = g.output_cells();
-    let tile = g.tile().clamp(64, n.max(64));
+    let tile = g.tile();
     (0..n)
         .step_by(tile)
         .map(move |start| (start, tile.min(n - start)))
+        .collect()
 }
 
 /// `Y [C_out, Do, Ho, Wo]` of `x [C_in, D, H, W]`, `weight [C_out, K]`, `bias [C_out]`.
+///
+/// Tiles run in parallel, each unfolding its own `Col` and multiplying it on one thread;
+/// every output value is one product over `K` in a fixed order.
 pub fn forward(g: &ConvGeometry, x: &[f32], weight: &[f32], bias: &[f32]) -> Vec<f32> {
     g.check();
     assert_eq!(x.len(), g.channels_in * g.input_cells(), "input shape");
     assert_eq!(weight.len(), g.channels_out * g.patch(), "weight shape");
     assert_eq!(bias.len(), g.channels_out, "bias shape");
     let n = g.output_cells();
-    let mut y = vec![0.0f32; g.channels_out * n];
     let w = View::row_major(weight, g.channels_out, g.patch());
-    let mut col = Vec::new();
-    for (start, len) in tiles(g) {
-        im2col(g, x, start, len, &mut col);
-        matmul_into(
-            &mut y,
-            n,
-            start,
-            w,
-            View::row_major(&col, g.patch(), len),
-            false,
-        );
-    }
+    let tiles = tiles(g);
+    let blocks: Vec<Vec<f32>> = tiles
+        .par_iter()
+        .map_init(Vec::new, |col, &(start, len)| {
+            im2col(g, x, start, len, col);
+            let mut block = vec![0.0f32; g.channels_out * len];
+            matmul_into(
+                &mut block,
+                len,
+                0,
+                w,
+                View::row_major(col, g.patch(), len),
+                false,
+            );
+            block
+        })
+        .collect();
+    let mut y = vec![0.0f32; g.channels_out * n];
     y.par_chunks_mut(n.max(1))
         .zip(bias)
-        .for_each(|(channel, b)| channel.iter_mut().for_each(|v| *v += b));
+        .enumerate()
+        .for_each(|(o, (channel, b))| {
+            for (&(start, len), block) in tiles.iter().zip(&blocks) {
+                let row = &block[o * len..(o + 1) * len];
+                for (v, r) in channel[start..start + len].iter_mut().zip(row) {
+                    *v = r + b;
+                }
+            }
+        });
     y
 }
 
-/// `dW [C_out, K]` given `x` and the output gradient `dy [C_out, Do, Ho, Wo]`.
+/// `dW [C_out, K]` given `x` and the output gradient `dy [C_out, Do, Ho, Wo]`: partial sums
+/// over fixed groups of tiles in parallel, then added in order.
 pub fn weight_grad(g: &ConvGeometry, x: &[f32], dy: &[f32]) -> Vec<f32> {
     g.check();
     assert_eq!(x.len(), g.channels_in * g.input_cells(), "input shape");
     let n = g.output_cells();
     assert_eq!(dy.len(), g.channels_out * n, "output gradient shape");
-    let mut dw = vec![0.0f32; g.channels_out * g.patch()];
     let dy_view = View::row_major(dy, g.channels_out, n);
-    let mut col = Vec::new();
-    for (i, (start, len)) in tiles(g).enumerate() {
-        im2col(g, x, start, len, &mut col);
-        matmul_into(
-            &mut dw,
-            g.patch(),
-            0,
-            dy_view.columns(start, len),
-            View::row_major(&col, g.patch(), len).transpose(),
-            i > 0,
-        );
-    }
+    let size = g.channels_out * g.patch();
+    let partials: Vec<Vec<f32>> = tiles(g)
+        .par_chunks(TILES_PER_PARTIAL)
+        .map_init(Vec::new, |col, group| {
+            let mut partial = vec![0.0f32; size];
+            for (i, &(start, len)) in group.iter().enumerate() {
+                im2col(g, x, start, len, col);
+                matmul_into(
+                    &mut partial,
+                    g.patch(),
+                    0,
+                    dy_view.columns(start, len),
+                    View::row_major(col, g.patch(), len).transpose(),
+                    i > 0,
+                );
+            }
+            partial
+        })
+        .collect();
+    let mut dw = vec![0.0f32; size];
+    dw.par_chunks_mut(g.patch().max(1))
+        .enumerate()
+        .for_each(|(o, row)| {
+            let range = o * g.patch()..(o + 1) * g.patch();
+            for partial in &partials {
+                for (d, p) in row.iter_mut().zip(&partial[range.clone()]) {
+                    *d += p;
+                }
+            }
+        });
     dw
+}
+
+/// `W [C_out, C_in, k...]` as `W' [C_in, C_out, k...]` with every kernel axis reversed.
+fn flip_kernel(g: &ConvGeometry, weight: &[f32]) -> Vec<f32> {
+    let taps = g.kernel.iter().product::<usize>();
+    let mut flipped = vec![0.0f32; weight.len()];
+    for o in 0..g.channels_out {
+        for c in 0..g.channels_in {
+            let from = &weight[(o * g.channels_in + c) * taps..][..taps];
+            let to = &mut flipped[(c * g.channels_out + o) * taps..][..taps];
+            for (tap, value) in from.iter().enumerate() {
+                to[taps - 1 - tap] = *value;
+            }
+        }
+    }
+    flipped
 }
 
 /// The adjoint of [`forward`] without its bias, `dX [C_in, D, H, W] = col2im(W^T dY)`: the
 /// gradient with respect to the input, and the transposed convolution.
+///
+/// With stride 1 it is the convolution of `dY` with the flipped kernel ([`forward`]'s tiled
+/// path). Otherwise `W^T dY` is formed tile by tile in parallel, a batch of tiles at a time,
+/// and folded back channel by channel, each input cell summing its taps in a fixed order.
 pub fn adjoint(g: &ConvGeometry, dy: &[f32], weight: &[f32]) -> Vec<f32> {
     g.check();
     let n = g.output_cells();
     assert_eq!(dy.len(), g.channels_out * n, "output gradient shape");
     assert_eq!(weight.len(), g.channels_out * g.patch(), "weight shape");
+    if g.adjoint_is_a_convolution() {
+        let flipped = g.flipped();
+        let no_bias = vec![0.0f32; flipped.channels_out];
+        return forward(&flipped, dy, &flip_kernel(g, weight), &no_bias);
+    }
     let cells = g.input_cells();
     let mut dx = vec![0.0f32; g.channels_in * cells];
     let wt = View::row_major(weight, g.channels_out, g.patch()).transpose();
     let dy_view = View::row_major(dy, g.channels_out, n);
     let taps = g.kernel.iter().product::<usize>();
-    let mut col = Vec::new();
-    for (start, len) in tiles(g) {
-        // Overwritten whole by the product.
-        col.resize(g.patch() * len, 0.0);
-        matmul_into(&mut col, len, 0, wt, dy_view.columns(start, len), false);
-        // Each input channel gathers from its own taps only: channels in parallel, each
-        // summing in a fixed order.
+    let tiles = tiles(g);
+    for batch in tiles.chunks(ADJOINT_BATCH_TILES) {
+        let cols: Vec<Vec<f32>> = batch
+            .par_iter()
+            .map(|&(start, len)| {
+                let mut col = vec![0.0f32; g.patch() * len];
+                matmul_into(&mut col, len, 0, wt, dy_view.columns(start, len), false);
+                col
+            })
+            .collect();
         dx.par_chunks_mut(cells).enumerate().for_each(|(c, plane)| {
-            for tap in 0..taps {
-                let row = c * taps + tap;
-                let values = &col[row * len..(row + 1) * len];
-                for_each_run(g, row, start, len, |t, count, i, step| {
-                    let i = i - c * cells;
-                    for (j, value) in values[t..t + count].iter().enumerate() {
-                        plane[i + j * step] += value;
-                    }
-                });
+            for (&(start, len), col) in batch.iter().zip(&cols) {
+                for tap in 0..taps {
+                    let row = c * taps + tap;
+                    let values = &col[row * len..(row + 1) * len];
+                    for_each_run(g, row, start, len, |t, count, i, step| {
+                        let i = i - c * cells;
+                        for (j, value) in values[t..t + count].iter().enumerate() {
+                            plane[i + j * step] += value;
+                        }
+                    });
+                }
             }
         });
     }
