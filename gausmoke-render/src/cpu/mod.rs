@@ -2,13 +2,15 @@
 //! parallel over 16x16 screen tiles with rayon. Every CPU backend (NdArray, Flex) runs it; it
 //! is also the twin each GPU stage is tested against.
 //!
-//! Stages: project every Gaussian into the camera's whitened frame, bound its footprint and
-//! bin it into the tiles it touches, nearest centre first ([`project`]); composite each pixel
-//! front to back ([`composite`]). The backward pass reuses the forward's [`Binning`], replays
+//! Stages: project every Gaussian into the camera's whitened frame, bound its footprint by
+//! the exact image-plane ellipse and bin it into the tiles that ellipse meets, nearest centre
+//! first ([`project`]); composite the pixels front to back, eight at a time as SIMD lanes
+//! ([`composite`], [`lanes`]). The backward pass reuses the forward's [`Binning`], replays
 //! each pixel back to front from its final transmittance and chains per-Gaussian gradients
 //! back to the world-space parameters ([`crate::math::view_vjp`]).
 
 mod composite;
+mod lanes;
 mod project;
 
 use rayon::prelude::*;
@@ -16,7 +18,7 @@ use rayon::prelude::*;
 use crate::RasterOptions;
 use crate::gaussians::{GaussianSlices, HostGaussians};
 use crate::math::ViewContext;
-use composite::{SplatGrad, TileInputs, backward_tile, render_tile};
+use composite::{SplatGrad, TileInputs, TileScene, backward_tile, render_tile};
 use gausmoke_core::Camera;
 pub use project::{Binning, project_and_bin};
 
@@ -111,11 +113,18 @@ pub fn forward(
     );
     let frame = ViewFrame::new(camera);
     let binning = project_and_bin(gaussians, &frame, options);
+    let scene = TileScene {
+        splats: &binning.splats,
+        cutoffs: &binning.cutoffs,
+        frame: &frame,
+        options,
+        background,
+    };
     let tiles: Vec<_> = binning
         .tiles
         .par_iter()
         .enumerate()
-        .map(|(t, list)| render_tile(t, list, &binning.splats, &frame, options, background))
+        .map(|(t, list)| render_tile(t, list, &scene))
         .collect();
     let width = frame.width();
     let pixels = width * frame.height();
@@ -163,6 +172,13 @@ pub fn backward(
         "render gradient has the wrong size"
     );
     let binning = &rendered.binning;
+    let scene = TileScene {
+        splats: &binning.splats,
+        cutoffs: &binning.cutoffs,
+        frame: &frame,
+        options,
+        background,
+    };
     let inputs = TileInputs {
         image: &rendered.image,
         walked: &rendered.walked,
@@ -172,17 +188,7 @@ pub fn backward(
         .tiles
         .par_iter()
         .enumerate()
-        .map(|(t, list)| {
-            backward_tile(
-                t,
-                list,
-                &binning.splats,
-                &frame,
-                options,
-                background,
-                &inputs,
-            )
-        })
+        .map(|(t, list)| backward_tile(t, list, &scene, &inputs))
         .collect();
 
     // Sequential scatter in tile order: deterministic sums, run after run.
