@@ -56,7 +56,8 @@ pub enum IntegratorKind {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ProjectionKind {
-    /// Exact discrete Helmholtz projection (PCG Poisson solve, solid walls).
+    /// Exact discrete Helmholtz projection (solid walls): a direct Poisson solve by separation
+    /// of variables on the CPU backends, Jacobi-PCG on the device backends.
     Exact,
     /// The paper's penalty form: `penalty_steps` gradient steps on `|D u|^2 / 2`.
     Penalty,
@@ -107,8 +108,10 @@ pub struct TrainConfig {
     pub integrator: IntegratorKind,
     /// Form of `Pi`: `exact` (default) or `penalty` (the paper's description).
     pub projection: ProjectionKind,
-    /// Relative residual at which the exact projection's PCG solve stops.
+    /// Relative residual at which the exact projection's PCG solve stops (device backends
+    /// only: the CPU backends solve directly, to a residual near 1e-14).
     pub projection_tolerance: f64,
+    /// Iteration cap of that PCG solve (device backends only).
     pub projection_max_iterations: usize,
     /// Gradient steps of the penalty form (`projection = "penalty"`), each with step size
     /// `1 / sum_a h_a^-2`.
