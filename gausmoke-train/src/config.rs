@@ -63,6 +63,9 @@ pub enum ProjectionKind {
     Penalty,
 }
 
+/// Largest `time_frequencies` accepted (see [`TrainConfig::validate`]).
+pub const MAX_TIME_FREQUENCIES: usize = 16;
+
 /// Everything a training run needs besides the data set. Field names are the TOML keys.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -315,6 +318,45 @@ impl TrainConfig {
             && (w == 0 || h == 0)
         {
             return bad("image_size must not be empty".into());
+        }
+        let rates = &self.init_learning_rates;
+        let init_rates = [
+            ("init_learning_rates.means", rates.means),
+            ("init_learning_rates.rotations", rates.rotations),
+            ("init_learning_rates.log_scales", rates.log_scales),
+            ("init_learning_rates.raw_densities", rates.raw_densities),
+            ("init_learning_rates.colors", rates.colors),
+        ];
+        for (name, value) in init_rates {
+            if !(value.is_finite() && value > 0.0) {
+                return bad(format!("{name} must be a positive number, got {value}"));
+            }
+        }
+        // PE(t) uses frequencies 2^0 .. 2^(L-1): beyond 16 an f32 phase keeps no digits of t.
+        if !(1..=MAX_TIME_FREQUENCIES).contains(&self.time_frequencies) {
+            return bad(format!(
+                "time_frequencies must be in 1..={MAX_TIME_FREQUENCIES}, got {}",
+                self.time_frequencies
+            ));
+        }
+        if self.projection_max_iterations == 0 {
+            return bad("projection_max_iterations must be >= 1".into());
+        }
+        if self.projection == ProjectionKind::Penalty && self.penalty_steps == 0 {
+            return bad("penalty_steps must be >= 1 with projection = \"penalty\"".into());
+        }
+        if self.frames == Some(0) {
+            return bad("frames must be >= 1 (or left out for all)".into());
+        }
+        for (name, views) in [
+            ("train_views", &self.train_views),
+            ("test_views", &self.test_views),
+        ] {
+            if views.as_ref().is_some_and(|v| v.is_empty()) {
+                return bad(format!(
+                    "{name} must name at least one view (or be left out)"
+                ));
+            }
         }
         Ok(())
     }
