@@ -76,13 +76,18 @@ impl Run {
             session_start: Instant::now(),
             phase_times: Vec::new(),
         };
+        let sequence = &run.trainer.sequence;
+        let fingerprint = sequence.fingerprint();
+        let data = std::fs::canonicalize(&sequence.path).unwrap_or_else(|_| sequence.path.clone());
         if let Some(dir) = existing.filter(|_| resume) {
+            run.check_same_data(&data, &fingerprint)?;
             run.restore(&dir)?;
         }
         run.folder.write_config(&run.trainer.config)?;
         let grid = &run.trainer.grid;
         run.folder.write_run_info(&RunInfo {
-            data: run.trainer.sequence.path.clone(),
+            data,
+            data_fingerprint: Some(fingerprint),
             frames: run.trainer.sequence.frames(),
             grid_resolution: grid.resolution(),
             box_lo: grid.lo().to_array(),
@@ -97,6 +102,40 @@ impl Run {
     pub fn quiet(mut self, quiet: bool) -> Self {
         self.trainer = self.trainer.quiet(quiet);
         self
+    }
+
+    /// Refuses to resume on other data than the run was trained on: same cameras, views,
+    /// box and frame count (the fingerprint), wherever the folder now lives.
+    fn check_same_data(&self, data: &Path, fingerprint: &str) -> Result<(), TrainError> {
+        let info = match self.folder.read_run_info() {
+            Ok(info) => info,
+            Err(err) => {
+                tracing::warn!(%err, "cannot check that --data is the data set this run was trained on");
+                return Ok(());
+            }
+        };
+        match &info.data_fingerprint {
+            Some(trained) if trained != fingerprint => Err(TrainError::Config {
+                origin: "--data".into(),
+                reason: format!(
+                    "{} is not the data set this run was trained on ({}): its cameras, views, \
+                     box or frame count differ (fingerprint {fingerprint}, the run's {trained}); \
+                     resume with the original --data or start a new --out",
+                    data.display(),
+                    info.data.display()
+                ),
+            }),
+            Some(_) => Ok(()),
+            None => {
+                tracing::warn!(
+                    run_data = %info.data.display(),
+                    data = %data.display(),
+                    "this run predates data fingerprints: cannot check that --data is the data \
+                     set it was trained on"
+                );
+                Ok(())
+            }
+        }
     }
 
     fn restore(&mut self, dir: &Path) -> Result<(), TrainError> {

@@ -18,8 +18,12 @@ use crate::{TrainError, checkpoint};
 /// `run.json`: what the run was trained on.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RunInfo {
-    /// The data set's path as given.
+    /// The data set's absolute path (as given where it could not be resolved).
     pub data: PathBuf,
+    /// [`crate::sequence::Sequence::fingerprint`] of the data the run was trained on
+    /// (absent in runs written before it existed).
+    #[serde(default)]
+    pub data_fingerprint: Option<String>,
     pub frames: usize,
     pub grid_resolution: [usize; 3],
     pub box_lo: [f32; 3],

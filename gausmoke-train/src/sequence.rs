@@ -41,6 +41,30 @@ impl Sequence {
         self.train.len()
     }
 
+    /// A 64-bit FNV-1a hash of what makes two data sets the same for a run: the frame count,
+    /// the smoke box, and every observation's view name, image size and camera (pose and
+    /// intrinsics, bit for bit), as 16 hex digits. Resuming refuses a different one.
+    pub fn fingerprint(&self) -> String {
+        let mut hash = Fnv1a::default();
+        hash.write(&(self.frames() as u64).to_le_bytes());
+        for value in self.lo.to_array().iter().chain(&self.hi.to_array()) {
+            hash.write(&value.to_bits().to_le_bytes());
+        }
+        for observation in self.train.iter().chain(&self.test).flatten() {
+            let camera = &observation.camera;
+            hash.write(observation.view.as_bytes());
+            hash.write(&[0]);
+            hash.write(&camera.width().to_le_bytes());
+            hash.write(&camera.height().to_le_bytes());
+            let k = camera.intrinsics();
+            let pose = camera.camera_to_world().to_cols_array();
+            for value in [k.fx, k.fy, k.cx, k.cy].iter().chain(&pose) {
+                hash.write(&value.to_bits().to_le_bytes());
+            }
+        }
+        format!("{:016x}", hash.0)
+    }
+
     /// Loads a PINF/HyFluid folder (`info.json`) or a D-NeRF folder (`transforms_train.json`)
     /// at the configured image size and frame count, and splits views as configured.
     pub fn open(path: &Path, config: &TrainConfig) -> Result<Self, TrainError> {
@@ -145,5 +169,22 @@ impl Sequence {
             ground_truth: ground_truth.is_dir().then_some(ground_truth),
             ground_truth_density_scale: density_scale,
         })
+    }
+}
+
+/// 64-bit FNV-1a: stable across Rust versions and platforms, unlike `DefaultHasher`.
+struct Fnv1a(u64);
+
+impl Default for Fnv1a {
+    fn default() -> Self {
+        Self(0xcbf2_9ce4_8422_2325)
+    }
+}
+
+impl Fnv1a {
+    fn write(&mut self, bytes: &[u8]) {
+        for &byte in bytes {
+            self.0 = (self.0 ^ u64::from(byte)).wrapping_mul(0x0000_0100_0000_01b3);
+        }
     }
 }

@@ -412,3 +412,62 @@ fn the_ablations_train_and_fit_the_held_out_view() {
         }
     }
 }
+
+/// Resuming with another data set (other cameras) is refused, naming both; the same data set
+/// under another path is accepted, and `run.json` records the absolute path and fingerprint.
+#[test]
+fn resume_refuses_other_data() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let other = dir.path().join("other");
+    generate(
+        &SynthConfig {
+            camera_distance: SynthConfig::tiny().camera_distance * 1.1,
+            ..SynthConfig::tiny()
+        },
+        &other,
+    )
+    .unwrap();
+    let config = TrainConfig {
+        frames: Some(1),
+        init_iterations: 5,
+        ..test_config()
+    };
+    let device = device_by_name("flex").unwrap().autodiff();
+    let out = dir.path().join("run");
+    let scene = Sequence::open(&data, &config).unwrap();
+    let mut run = Run::new(scene, config.clone(), device.clone(), &out, false)
+        .unwrap()
+        .quiet(true);
+    run.run().unwrap();
+    drop(run);
+    let info = gausmoke_train::RunFolder::at(&out).read_run_info().unwrap();
+    assert!(info.data.is_absolute(), "{}", info.data.display());
+    assert!(info.data_fingerprint.is_some());
+
+    let elsewhere = Sequence::open(&other, &config).unwrap();
+    let Err(err) = Run::new(elsewhere, config.clone(), device.clone(), &out, true) else {
+        panic!("resuming on another data set was accepted");
+    };
+    let message = err.to_string();
+    assert!(
+        message.contains("--data") && message.contains("other") && message.contains("data"),
+        "{message}"
+    );
+
+    // The same data through another path (a relative one) resumes.
+    let relative = pathdiff_relative(&data);
+    let same = Sequence::open(&relative, &config).unwrap();
+    Run::new(same, config, device, &out, true).expect("the same data set resumes");
+}
+
+/// `path` relative to the current directory, through `..` components.
+fn pathdiff_relative(path: &Path) -> PathBuf {
+    let cwd = std::env::current_dir().unwrap();
+    let depth = cwd.components().count() - 1;
+    let mut relative = PathBuf::new();
+    for _ in 0..depth {
+        relative.push("..");
+    }
+    relative.join(path.strip_prefix("/").unwrap())
+}
