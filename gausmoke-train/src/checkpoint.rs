@@ -131,18 +131,23 @@ pub fn save(run: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<Pat
 }
 
 /// Restores `state` (freshly built with the same configuration) from checkpoint `dir`.
-pub fn load(
-    dir: &Path,
-    state: TrainState,
-    device: &Device,
-) -> Result<(TrainState, CheckpointMeta), TrainError> {
+/// Reads a checkpoint's `state.json` (frame, configuration, history) without its tensors, so
+/// that a resume can compare configurations before loading state of another shape.
+pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, TrainError> {
     let text =
         std::fs::read_to_string(dir.join("state.json")).map_err(|source| TrainError::Io {
             path: dir.join("state.json"),
             source,
         })?;
-    let meta: CheckpointMeta =
-        serde_json::from_str(&text).map_err(|e| checkpoint_error(&dir.join("state.json"), e))?;
+    serde_json::from_str(&text).map_err(|e| checkpoint_error(&dir.join("state.json"), e))
+}
+
+pub fn load(
+    dir: &Path,
+    state: TrainState,
+    device: &Device,
+) -> Result<(TrainState, CheckpointMeta), TrainError> {
+    let meta = read_meta(dir)?;
     let record = |e: burn::store::RecordError| checkpoint_error(dir, e);
     let gaussians = state
         .gaussians

@@ -2,6 +2,7 @@
 //! TOML file and from `--set key=value` on the command line. The configuration actually used
 //! is written next to the outputs (`config.toml`).
 
+use std::collections::BTreeMap;
 use std::path::Path;
 
 use serde::{Deserialize, Serialize};
@@ -62,6 +63,19 @@ pub enum ProjectionKind {
     /// The paper's penalty form: `penalty_steps` gradient steps on `|D u|^2 / 2`.
     Penalty,
 }
+
+/// Keys that may differ when a run is resumed: they change how the rest of the run trains or
+/// what it writes, not the shape or meaning of what is already trained. `frames` extends (or
+/// shortens) the run; the learning rates let a run that diverged continue more gently.
+pub const RESUMABLE_KEYS: &[&str] = &[
+    "frames",
+    "lr_velocity",
+    "lr_gaussians",
+    "lr_decay",
+    "lr_decay_every",
+    "output_every",
+    "sync_phase_timings",
+];
 
 /// Largest `time_frequencies` accepted (see [`TrainConfig::validate`]).
 pub const MAX_TIME_FREQUENCIES: usize = 16;
@@ -258,6 +272,46 @@ impl TrainConfig {
                 reason: e.to_string(),
             })?;
         Ok(config)
+    }
+
+    /// The keys whose values differ between `self` and `other` (nested ones as
+    /// `table.key`), each with both values, in key order.
+    pub fn differences(&self, other: &TrainConfig) -> Vec<(String, String, String)> {
+        fn flatten(prefix: &str, table: &toml::Table, out: &mut BTreeMap<String, String>) {
+            for (key, value) in table {
+                let key = if prefix.is_empty() {
+                    key.clone()
+                } else {
+                    format!("{prefix}.{key}")
+                };
+                match value {
+                    toml::Value::Table(inner) => flatten(&key, inner, out),
+                    value => {
+                        out.insert(key, value.to_string());
+                    }
+                }
+            }
+        }
+        let table = |config: &TrainConfig| {
+            let mut flat = BTreeMap::new();
+            if let Ok(table) = toml::Table::try_from(config) {
+                flatten("", &table, &mut flat);
+            }
+            flat
+        };
+        let (mine, theirs) = (table(self), table(other));
+        let keys: std::collections::BTreeSet<&String> = mine.keys().chain(theirs.keys()).collect();
+        let missing = || "(unset)".to_string();
+        keys.into_iter()
+            .filter(|key| mine.get(*key) != theirs.get(*key))
+            .map(|key| {
+                (
+                    key.clone(),
+                    mine.get(key).cloned().unwrap_or_else(missing),
+                    theirs.get(key).cloned().unwrap_or_else(missing),
+                )
+            })
+            .collect()
     }
 
     /// Checks ranges before any work starts.

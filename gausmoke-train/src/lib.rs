@@ -62,8 +62,8 @@ pub enum TrainError {
     UNet(#[from] gausmoke_model::UNetError),
     #[error(
         "{quantity} became {value} at frame {frame}, {phase} iteration {iteration}; training \
-         stopped, the last complete frame's checkpoint is kept (resume with --resume after \
-         lowering the learning rates)"
+         stopped, the last complete frame's checkpoint is kept (continue it with --resume and \
+         lower learning rates, e.g. --set lr_gaussians=... --set lr_velocity=...)"
     )]
     NonFinite {
         quantity: &'static str,

@@ -10,6 +10,7 @@ use gausmoke_core::phases::{self, PhaseTime, PhaseTotals};
 use gausmoke_model::GridSpec;
 
 use crate::checkpoint::{self, CheckpointMeta};
+use crate::config::RESUMABLE_KEYS;
 use crate::run_folder::{FrameState, Metrics, PhaseSeconds, RunFolder, RunInfo, ViewRender};
 use crate::sequence::{Observation, Sequence};
 use crate::state::{FrameReport, LossRow};
@@ -52,6 +53,9 @@ impl Run {
                          choose another --out"
                     .into(),
             });
+        }
+        if existing.is_none() {
+            refuse_foreign_folder(out)?;
         }
         folder.create()?;
         if let Some(totals) = PhaseTotals::current() {
@@ -104,8 +108,8 @@ impl Run {
         self
     }
 
-    /// Refuses to resume on other data than the run was trained on: same cameras, views,
-    /// box and frame count (the fingerprint), wherever the folder now lives.
+    /// Refuses to resume on other data than the run was trained on (the fingerprint: box,
+    /// views, cameras, first images), wherever the data set now lives.
     fn check_same_data(&self, data: &Path, fingerprint: &str) -> Result<(), TrainError> {
         let info = match self.folder.read_run_info() {
             Ok(info) => info,
@@ -119,7 +123,7 @@ impl Run {
                 origin: "--data".into(),
                 reason: format!(
                     "{} is not the data set this run was trained on ({}): its cameras, views, \
-                     box or frame count differ (fingerprint {fingerprint}, the run's {trained}); \
+                     box or first images differ (fingerprint {fingerprint}, the run's {trained}); \
                      resume with the original --data or start a new --out",
                     data.display(),
                     info.data.display()
@@ -139,18 +143,33 @@ impl Run {
     }
 
     fn restore(&mut self, dir: &Path) -> Result<(), TrainError> {
-        let fresh = self.trainer.fresh_state();
-        let (state, meta) = checkpoint::load(dir, fresh, &self.trainer.device)?;
-        if meta.config != self.trainer.config {
+        // Compared before any tensor is loaded, so that a different shape is named as the
+        // setting that caused it rather than failing inside the record loader.
+        let trained = checkpoint::read_meta(dir)?.config;
+        let changes = trained.differences(&self.trainer.config);
+        let (allowed, refused): (Vec<_>, Vec<_>) = changes
+            .into_iter()
+            .partition(|(key, _, _)| RESUMABLE_KEYS.contains(&key.as_str()));
+        if !refused.is_empty() {
+            let list: Vec<String> = refused
+                .iter()
+                .map(|(key, was, now)| format!("{key} = {was} in the run, {now} now"))
+                .collect();
             return Err(TrainError::Checkpoint {
                 path: dir.to_path_buf(),
                 reason: format!(
-                    "it was trained with a different configuration; resume with the same \
-                     --config/--set options (its configuration:\n{})",
-                    meta.config.to_toml()
+                    "it was trained with a different configuration: {}. Only {} may change on \
+                     resume; resume with the run's values (its config.toml) or start a new --out",
+                    list.join("; "),
+                    RESUMABLE_KEYS.join(", ")
                 ),
             });
         }
+        for (key, was, now) in &allowed {
+            tracing::warn!(%key, run = %was, now = %now, "resuming with a changed setting");
+        }
+        let fresh = self.trainer.fresh_state();
+        let (state, meta) = checkpoint::load(dir, fresh, &self.trainer.device)?;
         self.trainer.state = state;
         self.frame = Some(meta.frame);
         self.losses = meta.losses;
@@ -362,4 +381,31 @@ fn frame_report(
         max_speed: speeds.iter().cloned().fold(0.0, f64::max),
         seconds: start.elapsed().as_secs_f64(),
     }
+}
+
+/// Refuses an `--out` folder that holds files but no run of ours (no `run.json`), so that
+/// training never writes over someone's data.
+fn refuse_foreign_folder(out: &Path) -> Result<(), TrainError> {
+    let Ok(entries) = std::fs::read_dir(out) else {
+        return Ok(()); // absent: created below; unreadable: creating it reports why
+    };
+    let names: Vec<String> = entries
+        .filter_map(Result::ok)
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    if names.is_empty() || out.join("run.json").is_file() {
+        return Ok(());
+    }
+    let mut shown: Vec<&str> = names.iter().map(String::as_str).collect();
+    shown.sort_unstable();
+    shown.truncate(3);
+    Err(TrainError::Config {
+        origin: out.display().to_string(),
+        reason: format!(
+            "this folder is not empty and holds no GauSmoke run (it has {}{}); choose an empty \
+             or new --out",
+            shown.join(", "),
+            if names.len() > 3 { ", ..." } else { "" }
+        ),
+    })
 }

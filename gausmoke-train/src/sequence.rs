@@ -41,16 +41,17 @@ impl Sequence {
         self.train.len()
     }
 
-    /// A 64-bit FNV-1a hash of what makes two data sets the same for a run: the frame count,
-    /// the smoke box, and every observation's view name, image size and camera (pose and
-    /// intrinsics, bit for bit), as 16 hex digits. Resuming refuses a different one.
+    /// A 64-bit FNV-1a hash of what makes two data sets the same for a run, as 16 hex digits:
+    /// the smoke box, every view's name, image size and camera (pose and intrinsics, bit for
+    /// bit), and frame 0's images. Not the frame count, so that a run can be extended with
+    /// `frames`. Resuming refuses a different one.
     pub fn fingerprint(&self) -> String {
         let mut hash = Fnv1a::default();
-        hash.write(&(self.frames() as u64).to_le_bytes());
         for value in self.lo.to_array().iter().chain(&self.hi.to_array()) {
             hash.write(&value.to_bits().to_le_bytes());
         }
-        for observation in self.train.iter().chain(&self.test).flatten() {
+        let first = self.train.first().into_iter().chain(self.test.first());
+        for observation in first.flatten() {
             let camera = &observation.camera;
             hash.write(observation.view.as_bytes());
             hash.write(&[0]);
@@ -59,6 +60,9 @@ impl Sequence {
             let k = camera.intrinsics();
             let pose = camera.camera_to_world().to_cols_array();
             for value in [k.fx, k.fy, k.cx, k.cy].iter().chain(&pose) {
+                hash.write(&value.to_bits().to_le_bytes());
+            }
+            for value in observation.image.data() {
                 hash.write(&value.to_bits().to_le_bytes());
             }
         }
@@ -153,6 +157,31 @@ impl Sequence {
         let bbox = dataset.bbox.ok_or_else(|| {
             fail("the data set gives no smoke box (PINF voxel_matrix/voxel_scale)".into())
         })?;
+        // Every view must see every frame: a shorter video would silently train later frames
+        // on fewer views and leave their held-out metrics empty.
+        for name in train_names.iter().chain(&test_names) {
+            let view = dataset.view(name).expect("checked above");
+            let mut seen = vec![0usize; frames];
+            for frame in &view.frames {
+                seen[frame.time_index] += 1;
+            }
+            if let Some(missing) = seen.iter().position(|&n| n != 1) {
+                let longest = dataset
+                    .views
+                    .iter()
+                    .max_by_key(|v| v.frames.len())
+                    .expect("a data set with a view");
+                return Err(fail(format!(
+                    "view `{name}` has {} frames but view `{}` has {} (first disagreement at \
+                     frame {missing}); every train and test view must cover every frame: trim \
+                     the videos to the same length, or pass --set frames=N with N <= {}",
+                    view.frames.len(),
+                    longest.name,
+                    longest.frames.len(),
+                    view.frames.len().min(frames),
+                )));
+            }
+        }
         let ground_truth = path.join("gt");
         let density_scale = std::fs::read_to_string(path.join("info.json"))
             .ok()

@@ -79,3 +79,37 @@ pub struct FrameReport {
     pub max_speed: f64,
     pub seconds: f64,
 }
+
+#[cfg(test)]
+mod tests {
+    /// Checkpoints keep the per-frame metrics in `state.json`; a resumed run writes them back
+    /// into `metrics.json`, which must then equal an uninterrupted run's bit for bit. serde_json
+    /// parses floats exactly only with its `float_roundtrip` feature.
+    #[test]
+    fn floats_survive_a_json_round_trip_bit_for_bit() {
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let values: Vec<f64> = (0..100_000)
+            .map(|_| {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                // Metrics-like magnitudes: PSNRs, L1s, seconds, divergences.
+                let mantissa = (state >> 11) as f64 / (1u64 << 53) as f64;
+                mantissa * 10f64.powi((state % 24) as i32 - 16)
+            })
+            .collect();
+        let text = serde_json::to_string(&values).unwrap();
+        let back: Vec<f64> = serde_json::from_str(&text).unwrap();
+        let differing = values
+            .iter()
+            .zip(&back)
+            .filter(|(a, b)| a.to_bits() != b.to_bits())
+            .count();
+        assert_eq!(
+            differing,
+            0,
+            "{differing} of {} values changed",
+            values.len()
+        );
+    }
+}

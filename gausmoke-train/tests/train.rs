@@ -413,10 +413,12 @@ fn the_ablations_train_and_fit_the_held_out_view() {
     }
 }
 
-/// Resuming with another data set (other cameras) is refused, naming both; the same data set
-/// under another path is accepted, and `run.json` records the absolute path and fingerprint.
+/// Resuming with another data set (other cameras) is refused, naming both, and so is a changed
+/// setting that shapes the state, naming it; the same data set under another path resumes
+/// with changed learning rates and more frames; `run.json` records the absolute path and the
+/// fingerprint.
 #[test]
-fn resume_refuses_other_data() {
+fn resume_refuses_other_data_and_names_changed_settings() {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
     let other = dir.path().join("other");
@@ -455,10 +457,40 @@ fn resume_refuses_other_data() {
         "{message}"
     );
 
-    // The same data through another path (a relative one) resumes.
+    // A setting that changes what was trained is named, before any tensor is loaded (a
+    // different Gaussian count used to fail inside the record loader).
+    let more = TrainConfig {
+        gaussians: config.gaussians + 1,
+        ..config.clone()
+    };
+    let scene = Sequence::open(&data, &more).unwrap();
+    let Err(err) = Run::new(scene, more, device.clone(), &out, true) else {
+        panic!("resuming with another Gaussian count was accepted");
+    };
+    assert!(
+        err.to_string()
+            .contains("gaussians = 1500 in the run, 1501 now"),
+        "{err}"
+    );
+
+    // The same data through another path (a relative one) resumes, with gentler learning
+    // rates and more frames: the settings a diverged or finished run may change.
     let relative = pathdiff_relative(&data);
-    let same = Sequence::open(&relative, &config).unwrap();
-    Run::new(same, config, device, &out, true).expect("the same data set resumes");
+    let extended = TrainConfig {
+        frames: Some(2),
+        lr_gaussians: config.lr_gaussians / 2.0,
+        lr_velocity: config.lr_velocity / 2.0,
+        ..config
+    };
+    let same = Sequence::open(&relative, &extended).unwrap();
+    let mut resumed = Run::new(same, extended, device, &out, true)
+        .expect("the same data set resumes")
+        .quiet(true);
+    assert_eq!(
+        resumed.run().unwrap().len(),
+        2,
+        "frame 1 trained after the resume"
+    );
 }
 
 /// `path` relative to the current directory, through `..` components.
@@ -470,4 +502,51 @@ fn pathdiff_relative(path: &Path) -> PathBuf {
         relative.push("..");
     }
     relative.join(path.strip_prefix("/").unwrap())
+}
+
+/// A view with fewer frames than the others is refused, naming it and both counts.
+#[test]
+fn views_with_different_frame_counts_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let mut dataset =
+        gausmoke_data::load_pinf(&data, &gausmoke_data::LoadOptions::default()).unwrap();
+    let config = test_config();
+    let full = dataset.views[0].frames.len();
+    Sequence::from_dataset(&data, &dataset, &config).expect("the untouched scene opens");
+    let shortened = dataset.views[1].name.clone();
+    dataset.views[1].frames.pop();
+    let err = Sequence::from_dataset(&data, &dataset, &config).unwrap_err();
+    let message = err.to_string();
+    assert!(
+        message.contains(&format!("view `{shortened}` has {} frames", full - 1))
+            && message.contains(&format!("has {full}")),
+        "{message}"
+    );
+}
+
+/// `--out` pointing at a folder of someone's files is refused before anything is written.
+#[test]
+fn a_folder_that_is_not_a_run_is_not_written_over() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let out = dir.path().join("papers");
+    std::fs::create_dir_all(&out).unwrap();
+    std::fs::write(out.join("config.toml"), "my own notes").unwrap();
+    let config = test_config();
+    let scene = Sequence::open(&data, &config).unwrap();
+    let device = device_by_name("flex").unwrap().autodiff();
+    let Err(err) = Run::new(scene, config, device, &out, false) else {
+        panic!("a foreign folder was accepted as --out");
+    };
+    assert!(err.to_string().contains("holds no GauSmoke run"), "{err}");
+    assert_eq!(
+        std::fs::read_to_string(out.join("config.toml")).unwrap(),
+        "my own notes"
+    );
+    assert_eq!(
+        std::fs::read_dir(&out).unwrap().count(),
+        1,
+        "nothing was added"
+    );
 }
