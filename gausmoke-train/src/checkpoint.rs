@@ -1,8 +1,10 @@
 //! Checkpoints after every frame: the Gaussians, the velocity grid, Phi's weights, both
 //! optimisers' state, the frame index and the loss history. A checkpoint is written into a
-//! hidden `.frame_TTT.partial` folder and renamed when complete, so a folder named
-//! `frame_TTT` is always whole; the two newest are kept.
+//! hidden `.frame_TTT.partial` folder, flushed to the disk and renamed when complete, so a
+//! folder named `frame_TTT` is always whole; the two newest are kept, so that a damaged newest
+//! one can fall back to the one before.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use burn::module::Module;
@@ -12,6 +14,8 @@ use serde::{Deserialize, Serialize};
 use crate::TrainError;
 use crate::arrays::{HostArrays, read_arrays, take_array, write_arrays};
 use crate::config::TrainConfig;
+use crate::export::sync_to_disk;
+use crate::hash::Fnv1a;
 use crate::state::{FrameReport, LossRow, TrainState};
 
 fn checkpoint_error(path: &Path, reason: impl ToString) -> TrainError {
@@ -31,36 +35,78 @@ pub struct CheckpointMeta {
     pub reports: Vec<FrameReport>,
     /// Training seconds spent up to this checkpoint (across resumed sessions).
     pub elapsed_seconds: f64,
+    /// Each tensor file's FNV-1a hash, checked on load, so that a damaged file is refused
+    /// rather than trained on. Filled in by [`save`].
+    #[serde(default)]
+    pub checksums: BTreeMap<String, String>,
 }
+
+const GAUSSIANS_FILE: &str = "gaussians.bpk";
+const PHI_FILE: &str = "phi.bpk";
+const GAUSSIAN_OPTIM_FILE: &str = "gaussian_optim.bpk";
+const PHI_OPTIM_FILE: &str = "phi_optim.bpk";
+const VELOCITY_FILE: &str = "velocity.safetensors";
+const META_FILE: &str = "state.json";
+const TENSOR_FILES: [&str; 5] = [
+    GAUSSIANS_FILE,
+    PHI_FILE,
+    GAUSSIAN_OPTIM_FILE,
+    PHI_OPTIM_FILE,
+    VELOCITY_FILE,
+];
 
 pub fn checkpoint_root(run: &Path) -> PathBuf {
     run.join("checkpoints")
 }
 
-/// The newest complete checkpoint folder of a run, if any.
-pub fn latest(run: &Path) -> Result<Option<PathBuf>, TrainError> {
+/// The complete checkpoint folders of a run, newest first.
+pub fn complete(run: &Path) -> Result<Vec<PathBuf>, TrainError> {
     let root = checkpoint_root(run);
     if !root.is_dir() {
-        return Ok(None);
+        return Ok(Vec::new());
     }
     let entries = std::fs::read_dir(&root).map_err(|source| TrainError::Io {
         path: root.clone(),
         source,
     })?;
-    let mut best: Option<(usize, PathBuf)> = None;
-    for entry in entries.flatten() {
-        let name = entry.file_name().to_string_lossy().into_owned();
-        if let Some(frame) = name
-            .strip_prefix("frame_")
-            .and_then(|n| n.parse::<usize>().ok())
-            && best.as_ref().is_none_or(|(b, _)| frame > *b)
-        {
-            best = Some((frame, entry.path()));
-        }
-    }
-    Ok(best.map(|(_, p)| p))
+    let mut found: Vec<(usize, PathBuf)> = entries
+        .flatten()
+        .filter_map(|entry| {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            let frame = name.strip_prefix("frame_")?.parse::<usize>().ok()?;
+            Some((frame, entry.path()))
+        })
+        .collect();
+    found.sort_by(|a, b| b.0.cmp(&a.0));
+    Ok(found.into_iter().map(|(_, path)| path).collect())
 }
 
+/// The newest complete checkpoint folder of a run, if any.
+pub fn latest(run: &Path) -> Result<Option<PathBuf>, TrainError> {
+    Ok(complete(run)?.into_iter().next())
+}
+
+/// Removes the `.frame_TTT.partial` folders a killed or failed write left behind, naming
+/// each: they never hold anything a resume could use.
+pub fn remove_partials(run: &Path) -> Result<(), TrainError> {
+    let root = checkpoint_root(run);
+    let Ok(entries) = std::fs::read_dir(&root) else {
+        return Ok(());
+    };
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if name.starts_with(".frame_") && name.ends_with(".partial") {
+            let path = entry.path();
+            tracing::warn!(folder = %path.display(), "removing an incomplete checkpoint");
+            std::fs::remove_dir_all(&path).map_err(|source| TrainError::Io { path, source })?;
+        }
+    }
+    Ok(())
+}
+
+/// Writes the checkpoint of `meta.frame`: into a hidden partial folder, every file and the
+/// folder flushed to the disk, then renamed, so that `frame_TTT` is whole even after a power
+/// loss. A failed write removes its partial folder and leaves the older checkpoints alone.
 pub fn save(run: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<PathBuf, TrainError> {
     let root = checkpoint_root(run);
     let name = format!("frame_{:03}", meta.frame);
@@ -72,44 +118,11 @@ pub fn save(run: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<Pat
             source,
         })?;
     }
-    std::fs::create_dir_all(&partial).map_err(|source| TrainError::Io {
-        path: partial.clone(),
-        source,
-    })?;
-    let record = |e: burn::store::RecordError| checkpoint_error(&partial, e);
-    state
-        .gaussians
-        .clone()
-        .save_file(partial.join("gaussians.bpk"))
-        .map_err(record)?;
-    state
-        .phi
-        .clone()
-        .save_file(partial.join("phi.bpk"))
-        .map_err(record)?;
-    state
-        .gaussian_optim
-        .save(partial.join("gaussian_optim.bpk"))
-        .map_err(record)?;
-    state
-        .phi_optim
-        .save(partial.join("phi_optim.bpk"))
-        .map_err(record)?;
-    let velocity = state.velocity.clone();
-    let shape = velocity.dims().to_vec();
-    let values = velocity
-        .into_data()
-        .try_into_vec_as::<f32>()
-        .map_err(|e| checkpoint_error(&partial, format!("{e:?}")))?;
-    write_arrays(
-        &partial.join("velocity.safetensors"),
-        &HostArrays::from([("velocity".to_string(), (shape, values))]),
-    )?;
-    let json = serde_json::to_string_pretty(meta).map_err(|e| checkpoint_error(&partial, e))?;
-    std::fs::write(partial.join("state.json"), json).map_err(|source| TrainError::Io {
-        path: partial.join("state.json"),
-        source,
-    })?;
+    if let Err(err) = write_files(&partial, state, meta) {
+        // The error is the one worth reporting; a leftover is removed on the next start.
+        let _ = std::fs::remove_dir_all(&partial);
+        return Err(err);
+    }
     if done.exists() {
         std::fs::remove_dir_all(&done).map_err(|source| TrainError::Io {
             path: done.clone(),
@@ -120,6 +133,7 @@ pub fn save(run: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<Pat
         path: done.clone(),
         source,
     })?;
+    sync_to_disk(&root)?;
     // Keep the newest two complete checkpoints.
     if meta.frame >= 2 {
         let old = root.join(format!("frame_{:03}", meta.frame - 2));
@@ -130,42 +144,122 @@ pub fn save(run: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<Pat
     Ok(done)
 }
 
-/// Restores `state` (freshly built with the same configuration) from checkpoint `dir`.
+fn write_files(dir: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<(), TrainError> {
+    std::fs::create_dir_all(dir).map_err(|source| TrainError::Io {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let record = |e: burn::store::RecordError| checkpoint_error(dir, e);
+    state
+        .gaussians
+        .clone()
+        .save_file(dir.join(GAUSSIANS_FILE))
+        .map_err(record)?;
+    state
+        .phi
+        .clone()
+        .save_file(dir.join(PHI_FILE))
+        .map_err(record)?;
+    state
+        .gaussian_optim
+        .save(dir.join(GAUSSIAN_OPTIM_FILE))
+        .map_err(record)?;
+    state
+        .phi_optim
+        .save(dir.join(PHI_OPTIM_FILE))
+        .map_err(record)?;
+    let velocity = state.velocity.clone();
+    let shape = velocity.dims().to_vec();
+    let values = velocity
+        .into_data()
+        .try_into_vec_as::<f32>()
+        .map_err(|e| checkpoint_error(dir, format!("{e:?}")))?;
+    write_arrays(
+        &dir.join(VELOCITY_FILE),
+        &HostArrays::from([("velocity".to_string(), (shape, values))]),
+    )?;
+    let mut meta = meta.clone();
+    meta.checksums.clear();
+    for file in TENSOR_FILES {
+        meta.checksums.insert(file.into(), checksum(&dir.join(file))?);
+    }
+    let json = serde_json::to_string_pretty(&meta).map_err(|e| checkpoint_error(dir, e))?;
+    std::fs::write(dir.join(META_FILE), json).map_err(|source| TrainError::Io {
+        path: dir.join(META_FILE),
+        source,
+    })?;
+    for file in TENSOR_FILES.iter().chain(&[META_FILE]) {
+        sync_to_disk(&dir.join(file))?;
+    }
+    sync_to_disk(dir)
+}
+
+fn checksum(path: &Path) -> Result<String, TrainError> {
+    let bytes = std::fs::read(path).map_err(|source| TrainError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let mut hash = Fnv1a::default();
+    hash.write(&bytes);
+    Ok(hash.hex())
+}
+
+/// Refuses a checkpoint whose files do not hash to what its `state.json` recorded.
+fn verify(dir: &Path, meta: &CheckpointMeta) -> Result<(), TrainError> {
+    for (file, recorded) in &meta.checksums {
+        let path = dir.join(file);
+        let found = checksum(&path)?;
+        if &found != recorded {
+            return Err(checkpoint_error(
+                &path,
+                format!("the file is damaged: its checksum is {found}, {recorded} when written"),
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// Reads a checkpoint's `state.json` (frame, configuration, history) without its tensors, so
 /// that a resume can compare configurations before loading state of another shape.
 pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, TrainError> {
-    let text =
-        std::fs::read_to_string(dir.join("state.json")).map_err(|source| TrainError::Io {
-            path: dir.join("state.json"),
-            source,
-        })?;
-    serde_json::from_str(&text).map_err(|e| checkpoint_error(&dir.join("state.json"), e))
+    let path = dir.join(META_FILE);
+    let text = std::fs::read_to_string(&path).map_err(|source| TrainError::Io {
+        path: path.clone(),
+        source,
+    })?;
+    serde_json::from_str(&text).map_err(|e| checkpoint_error(&path, e))
 }
 
+/// Restores `state` (freshly built with the same configuration) from checkpoint `dir`.
 pub fn load(
     dir: &Path,
     state: TrainState,
     device: &Device,
 ) -> Result<(TrainState, CheckpointMeta), TrainError> {
     let meta = read_meta(dir)?;
-    let record = |e: burn::store::RecordError| checkpoint_error(dir, e);
+    verify(dir, &meta)?;
+    // Each error names the file, not only the folder.
+    let record = |file: &str| {
+        let path = dir.join(file);
+        move |e: burn::store::RecordError| checkpoint_error(&path, e)
+    };
     let gaussians = state
         .gaussians
-        .try_load_file(dir.join("gaussians.bpk"))
-        .map_err(record)?;
+        .try_load_file(dir.join(GAUSSIANS_FILE))
+        .map_err(record(GAUSSIANS_FILE))?;
     let phi = state
         .phi
-        .try_load_file(dir.join("phi.bpk"))
-        .map_err(record)?;
+        .try_load_file(dir.join(PHI_FILE))
+        .map_err(record(PHI_FILE))?;
     let gaussian_optim = state
         .gaussian_optim
-        .load(dir.join("gaussian_optim.bpk"))
-        .map_err(record)?;
+        .load(dir.join(GAUSSIAN_OPTIM_FILE))
+        .map_err(record(GAUSSIAN_OPTIM_FILE))?;
     let phi_optim = state
         .phi_optim
-        .load(dir.join("phi_optim.bpk"))
-        .map_err(record)?;
-    let path = dir.join("velocity.safetensors");
+        .load(dir.join(PHI_OPTIM_FILE))
+        .map_err(record(PHI_OPTIM_FILE))?;
+    let path = dir.join(VELOCITY_FILE);
     let mut arrays = read_arrays(&path)?;
     let shape = state.velocity.dims();
     let values = take_array(&mut arrays, "velocity", &shape, &path)?;

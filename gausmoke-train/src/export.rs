@@ -22,11 +22,26 @@ fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
     }
 }
 
-/// Writes `path` via a temporary file and a rename, so a crash leaves no half file.
+/// Writes `path` via a temporary file, flushed to the disk, and a rename, so neither a crash
+/// nor a power loss leaves a half or empty file under the final name.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TrainError> {
     let tmp = path.with_extension("partial");
-    std::fs::write(&tmp, bytes).map_err(io_error(&tmp))?;
+    let mut file = std::fs::File::create(&tmp).map_err(io_error(&tmp))?;
+    file.write_all(bytes).map_err(io_error(&tmp))?;
+    file.sync_all().map_err(io_error(&tmp))?;
+    drop(file);
     std::fs::rename(&tmp, path).map_err(io_error(path))
+}
+
+/// Flushes a file, or a folder's entries, to the disk: a rename is only durable once the
+/// renamed file's data and the folder holding the new name both are.
+pub fn sync_to_disk(path: &Path) -> Result<(), TrainError> {
+    match std::fs::File::open(path) {
+        Ok(file) => file.sync_all().map_err(io_error(path)),
+        // Folders cannot be opened for syncing on every platform; their files still are.
+        Err(_) if path.is_dir() && !cfg!(unix) => Ok(()),
+        Err(source) => Err(io_error(path)(source)),
+    }
 }
 
 /// The Gaussians in the binary little-endian layout of the 3DGS reference implementation,

@@ -2,7 +2,7 @@
 //! written to its [`RunFolder`] and checkpointed, so an interrupted run resumes where it
 //! stopped.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use burn::tensor::Device;
@@ -11,6 +11,7 @@ use gausmoke_model::GridSpec;
 
 use crate::checkpoint::{self, CheckpointMeta};
 use crate::config::RESUMABLE_KEYS;
+use crate::run_lock::{LOCK_FILE, RunLock};
 use crate::run_folder::{FrameState, Metrics, PhaseSeconds, RunFolder, RunInfo, ViewRender};
 use crate::sequence::{Observation, Sequence};
 use crate::state::{FrameReport, LossRow};
@@ -30,6 +31,8 @@ pub struct Run {
     /// Wall time per phase in this session, from the `PhaseLayer` of the current subscriber
     /// (empty without one).
     phase_times: Vec<PhaseTime>,
+    /// Keeps a second process from training into the same folder.
+    _lock: RunLock,
 }
 
 impl Run {
@@ -45,8 +48,8 @@ impl Run {
     ) -> Result<Self, TrainError> {
         let trainer = Trainer::new(sequence, config, device)?;
         let folder = RunFolder::at(out);
-        let existing = checkpoint::latest(out)?;
-        if existing.is_some() && !resume {
+        let existing = checkpoint::complete(out)?;
+        if !existing.is_empty() && !resume {
             return Err(TrainError::Config {
                 origin: out.display().to_string(),
                 reason: "this folder already holds a run; pass --resume to continue it or \
@@ -54,10 +57,12 @@ impl Run {
                     .into(),
             });
         }
-        if existing.is_none() {
+        if existing.is_empty() {
             refuse_foreign_folder(out)?;
         }
         folder.create()?;
+        let lock = RunLock::acquire(out)?;
+        checkpoint::remove_partials(out)?;
         if let Some(totals) = PhaseTotals::current() {
             let _ = totals.take();
             totals.set_sync(trainer.config.sync_phase_timings.then(|| {
@@ -79,13 +84,14 @@ impl Run {
             elapsed_before: 0.0,
             session_start: Instant::now(),
             phase_times: Vec::new(),
+            _lock: lock,
         };
         let sequence = &run.trainer.sequence;
         let fingerprint = sequence.fingerprint();
         let data = std::fs::canonicalize(&sequence.path).unwrap_or_else(|_| sequence.path.clone());
-        if let Some(dir) = existing.filter(|_| resume) {
+        if resume && !existing.is_empty() {
             run.check_same_data(&data, &fingerprint)?;
-            run.restore(&dir)?;
+            run.restore(&existing)?;
         }
         run.folder.write_config(&run.trainer.config)?;
         let grid = &run.trainer.grid;
@@ -142,10 +148,61 @@ impl Run {
         }
     }
 
-    fn restore(&mut self, dir: &Path) -> Result<(), TrainError> {
-        // Compared before any tensor is loaded, so that a different shape is named as the
-        // setting that caused it rather than failing inside the record loader.
-        let trained = checkpoint::read_meta(dir)?.config;
+    /// Restores the newest intact checkpoint of `checkpoints` (newest first). A damaged one
+    /// (unreadable, truncated, failing its checksums) is reported and the one before it used;
+    /// it is replaced when its frame is trained again.
+    fn restore(&mut self, checkpoints: &[PathBuf]) -> Result<(), TrainError> {
+        let mut damaged: Vec<String> = Vec::new();
+        for dir in checkpoints {
+            let trained = match checkpoint::read_meta(dir) {
+                Ok(meta) => meta.config,
+                Err(err) => {
+                    tracing::warn!(%err, "damaged checkpoint, trying the one before");
+                    damaged.push(err.to_string());
+                    continue;
+                }
+            };
+            self.check_resumable(dir, &trained)?;
+            let fresh = self.trainer.fresh_state();
+            match checkpoint::load(dir, fresh, &self.trainer.device) {
+                Ok((state, meta)) => {
+                    self.trainer.state = state;
+                    self.frame = Some(meta.frame);
+                    self.losses = meta.losses;
+                    self.reports = meta.reports;
+                    self.elapsed_before = meta.elapsed_seconds;
+                    if damaged.is_empty() {
+                        tracing::info!(checkpoint = %dir.display(), frame = meta.frame, "resumed");
+                    } else {
+                        tracing::warn!(
+                            checkpoint = %dir.display(),
+                            frame = meta.frame,
+                            "resumed from an older checkpoint because the newer one is damaged; \
+                             the frames after it are trained again"
+                        );
+                    }
+                    return Ok(());
+                }
+                Err(err) => {
+                    tracing::warn!(%err, "damaged checkpoint, trying the one before");
+                    damaged.push(err.to_string());
+                }
+            }
+        }
+        Err(TrainError::Checkpoint {
+            path: checkpoint::checkpoint_root(self.folder.root()),
+            reason: format!(
+                "no intact checkpoint to resume from: {}; start a new --out",
+                damaged.join("; ")
+            ),
+        })
+    }
+
+    /// Refuses to resume checkpoint `dir`, trained with `trained`, with a configuration that
+    /// changes what was trained, naming every such key. Compared before any tensor is
+    /// loaded, so that a different shape is named as the setting that caused it rather than
+    /// failing inside the record loader.
+    fn check_resumable(&self, dir: &Path, trained: &TrainConfig) -> Result<(), TrainError> {
         let changes = trained.differences(&self.trainer.config);
         let (allowed, refused): (Vec<_>, Vec<_>) = changes
             .into_iter()
@@ -168,14 +225,6 @@ impl Run {
         for (key, was, now) in &allowed {
             tracing::warn!(%key, run = %was, now = %now, "resuming with a changed setting");
         }
-        let fresh = self.trainer.fresh_state();
-        let (state, meta) = checkpoint::load(dir, fresh, &self.trainer.device)?;
-        self.trainer.state = state;
-        self.frame = Some(meta.frame);
-        self.losses = meta.losses;
-        self.reports = meta.reports;
-        self.elapsed_before = meta.elapsed_seconds;
-        tracing::info!(checkpoint = %dir.display(), frame = meta.frame, "resumed");
         Ok(())
     }
 
@@ -286,6 +335,7 @@ impl Run {
             losses: self.losses.clone(),
             reports: self.reports.clone(),
             elapsed_seconds: self.elapsed(),
+            checksums: Default::default(),
         };
         checkpoint::save(self.folder.root(), &self.trainer.state, &meta)?;
         self.folder.write_losses(&self.losses)
@@ -392,6 +442,7 @@ fn refuse_foreign_folder(out: &Path) -> Result<(), TrainError> {
     let names: Vec<String> = entries
         .filter_map(Result::ok)
         .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|name| name != LOCK_FILE)
         .collect();
     if names.is_empty() || out.join("run.json").is_file() {
         return Ok(());

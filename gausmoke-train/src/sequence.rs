@@ -7,6 +7,7 @@ use gausmoke_core::Camera;
 use gausmoke_core::glam::Vec3;
 use gausmoke_data::{Dataset, Image, LoadOptions, Split, load_dnerf, load_pinf};
 
+use crate::hash::Fnv1a;
 use crate::{TrainConfig, TrainError};
 
 /// One observation: a camera and what it saw.
@@ -66,7 +67,7 @@ impl Sequence {
                 hash.write(&value.to_bits().to_le_bytes());
             }
         }
-        format!("{:016x}", hash.0)
+        hash.hex()
     }
 
     /// Loads a PINF/HyFluid folder (`info.json`) or a D-NeRF folder (`transforms_train.json`)
@@ -198,22 +199,5 @@ impl Sequence {
             ground_truth: ground_truth.is_dir().then_some(ground_truth),
             ground_truth_density_scale: density_scale,
         })
-    }
-}
-
-/// 64-bit FNV-1a: stable across Rust versions and platforms, unlike `DefaultHasher`.
-struct Fnv1a(u64);
-
-impl Default for Fnv1a {
-    fn default() -> Self {
-        Self(0xcbf2_9ce4_8422_2325)
-    }
-}
-
-impl Fnv1a {
-    fn write(&mut self, bytes: &[u8]) {
-        for &byte in bytes {
-            self.0 = (self.0 ^ u64::from(byte)).wrapping_mul(0x0000_0100_0000_01b3);
-        }
     }
 }

@@ -550,3 +550,100 @@ fn a_folder_that_is_not_a_run_is_not_written_over() {
         "nothing was added"
     );
 }
+
+/// Tiny settings for the tests of run folders and checkpoints: what is trained hardly matters.
+fn brief_config(frames: usize) -> TrainConfig {
+    TrainConfig {
+        frames: Some(frames),
+        init_iterations: 5,
+        advect_iterations: 3,
+        refine_iterations: 1,
+        ..test_config()
+    }
+}
+
+/// A second run on a folder another run is training into is refused, naming the holder; the
+/// lock goes with the first run.
+#[test]
+fn two_runs_cannot_train_into_one_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let config = brief_config(1);
+    let device = device_by_name("flex").unwrap().autodiff();
+    let out = dir.path().join("run");
+    let scene = Sequence::open(&data, &config).unwrap();
+    let first = Run::new(scene.clone(), config.clone(), device.clone(), &out, false).unwrap();
+    let Err(err) = Run::new(scene.clone(), config.clone(), device.clone(), &out, false) else {
+        panic!("a second run on the same folder was accepted");
+    };
+    let message = err.to_string();
+    assert!(
+        message.contains("another process is training into this folder")
+            && message.contains(&std::process::id().to_string()),
+        "{message}"
+    );
+    drop(first);
+    Run::new(scene, config, device, &out, false).expect("the folder is free again");
+}
+
+fn flip_bytes(path: &Path) {
+    let mut bytes = std::fs::read(path).unwrap();
+    let middle = bytes.len() / 2;
+    for byte in &mut bytes[middle..middle + 16] {
+        *byte ^= 0x5a;
+    }
+    std::fs::write(path, bytes).unwrap();
+}
+
+/// A damaged newest checkpoint (bytes flipped in place: the file still parses) is detected by
+/// its checksum and the run resumes from the one before, saying so; a leftover partial folder
+/// is removed; with every checkpoint damaged the resume is refused, naming the files.
+#[test]
+fn a_damaged_checkpoint_falls_back_to_the_one_before() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let config = brief_config(3);
+    let device = device_by_name("flex").unwrap().autodiff();
+    let out = dir.path().join("run");
+    let scene = Sequence::open(&data, &config).unwrap();
+    let mut run = Run::new(scene.clone(), config.clone(), device.clone(), &out, false)
+        .unwrap()
+        .quiet(true);
+    run.run().unwrap();
+    drop(run);
+    let checkpoints = out.join("checkpoints");
+    assert!(checkpoints.join("frame_001").is_dir() && checkpoints.join("frame_002").is_dir());
+    let intact = std::fs::read(checkpoints.join("frame_002/gaussians.bpk")).unwrap();
+
+    flip_bytes(&checkpoints.join("frame_002/gaussians.bpk"));
+    let leftover = checkpoints.join(".frame_003.partial");
+    std::fs::create_dir_all(&leftover).unwrap();
+    std::fs::write(leftover.join("phi.bpk"), b"half").unwrap();
+
+    let mut resumed = Run::new(scene.clone(), config.clone(), device.clone(), &out, true)
+        .expect("the older checkpoint resumes")
+        .quiet(true);
+    assert_eq!(resumed.frame, Some(1), "resumed from frame 1, not the damaged frame 2");
+    assert!(!leftover.exists(), "the partial folder was removed");
+    assert_eq!(resumed.run().unwrap().len(), 3);
+    drop(resumed);
+    let retrained = std::fs::read(checkpoints.join("frame_002/gaussians.bpk")).unwrap();
+    assert_eq!(
+        retrained, intact,
+        "frame 2 trained again from frame 1 gives the same Gaussians"
+    );
+
+    flip_bytes(&checkpoints.join("frame_001/velocity.safetensors"));
+    flip_bytes(&checkpoints.join("frame_002/phi.bpk"));
+    let Err(err) = Run::new(scene, config, device, &out, true) else {
+        panic!("a run whose checkpoints are all damaged was resumed");
+    };
+    let message = err.to_string();
+    assert!(
+        message.contains("no intact checkpoint")
+            && message.contains("frame_002/phi.bpk")
+            && message.contains("frame_001/velocity.safetensors")
+            && message.contains("damaged"),
+        "{message}"
+    );
+}
