@@ -269,12 +269,27 @@ pub fn decode_mp4(
                 video_err(
                     path,
                     format!(
-                        "H.264 decoding failed at sample {} (decode order): {e}",
+                        "frame {} (sample {} in decode order) cannot be decoded: {e}; the file \
+                         is damaged or uses an unsupported coding tool",
+                        rank[i],
                         i + 1
                     ),
                 )
             })?;
-            let Some(picture) = picture else { continue };
+            // An MP4 sample holds one whole picture, and the decoder returns each picture
+            // as its sample completes: none means the slice data ended before the last
+            // macroblock, which is damage (a cut or corrupted payload), not a valid stream.
+            let Some(picture) = picture else {
+                return Err(video_err(
+                    path,
+                    format!(
+                        "frame {} (sample {} in decode order) is damaged: its slice data ends \
+                         before the picture is complete",
+                        rank[i],
+                        i + 1
+                    ),
+                ));
+            };
             if !wanted.contains(&rank[i]) {
                 continue;
             }

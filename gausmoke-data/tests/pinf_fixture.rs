@@ -403,3 +403,44 @@ fn video_of_the_wrong_size() {
         other => panic!("{other}"),
     }
 }
+
+/// A damaged payload in the real capture's first picture (300 bytes overwritten) is refused,
+/// naming the file and the frame, rather than decoded into a picture of garbage.
+#[test]
+fn a_damaged_frame_is_refused_naming_it() {
+    let mut bytes = std::fs::read(real_video()).unwrap();
+    // The first IDR slice: walk the top-level boxes to `mdat`, then its length-prefixed NALs.
+    let mut at = 0;
+    let mdat = loop {
+        let size = u32::from_be_bytes(bytes[at..at + 4].try_into().unwrap()) as usize;
+        if &bytes[at + 4..at + 8] == b"mdat" {
+            break at + 8;
+        }
+        at += size;
+    };
+    let mut nal = mdat;
+    while bytes[nal + 4] & 31 != 5 {
+        nal += 4 + u32::from_be_bytes(bytes[nal..nal + 4].try_into().unwrap()) as usize;
+    }
+    let length = u32::from_be_bytes(bytes[nal..nal + 4].try_into().unwrap()) as usize;
+    assert!(
+        length > 3400,
+        "the IDR slice is long enough to damage its middle"
+    );
+    for byte in &mut bytes[nal + 4 + 3000..nal + 4 + 3300] {
+        *byte ^= 0xff;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let damaged = dir.path().join("damaged.mp4");
+    std::fs::write(&damaged, bytes).unwrap();
+    let Err(err) = gausmoke_data::video::decode_mp4(&damaged, 0..2, Some((27, 48))) else {
+        panic!("the damaged frame was decoded");
+    };
+    let message = err.to_string();
+    assert!(
+        message.contains("damaged.mp4")
+            && message.contains("frame 0 (sample 1")
+            && message.contains("damaged"),
+        "{message}"
+    );
+}

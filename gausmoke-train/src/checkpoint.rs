@@ -181,7 +181,8 @@ fn write_files(dir: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<
     let mut meta = meta.clone();
     meta.checksums.clear();
     for file in TENSOR_FILES {
-        meta.checksums.insert(file.into(), checksum(&dir.join(file))?);
+        meta.checksums
+            .insert(file.into(), checksum(&dir.join(file))?);
     }
     let json = serde_json::to_string_pretty(&meta).map_err(|e| checkpoint_error(dir, e))?;
     std::fs::write(dir.join(META_FILE), json).map_err(|source| TrainError::Io {

@@ -11,8 +11,8 @@ use gausmoke_model::GridSpec;
 
 use crate::checkpoint::{self, CheckpointMeta};
 use crate::config::RESUMABLE_KEYS;
-use crate::run_lock::{LOCK_FILE, RunLock};
 use crate::run_folder::{FrameState, Metrics, PhaseSeconds, RunFolder, RunInfo, ViewRender};
+use crate::run_lock::{LOCK_FILE, RunLock};
 use crate::sequence::{Observation, Sequence};
 use crate::state::{FrameReport, LossRow};
 use crate::trainer::{FrameOutcome, Trainer};

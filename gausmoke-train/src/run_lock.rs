@@ -64,7 +64,9 @@ impl RunLock {
 fn holder(file: &mut File, path: &PathBuf) -> String {
     let mut text = String::new();
     match file.read_to_string(&mut text) {
-        Ok(_) if !text.trim().is_empty() => format!("process {}, see {}", text.trim(), path.display()),
+        Ok(_) if !text.trim().is_empty() => {
+            format!("process {}, see {}", text.trim(), path.display())
+        }
         _ => format!("see {}", path.display()),
     }
 }

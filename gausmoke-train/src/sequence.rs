@@ -189,10 +189,23 @@ impl Sequence {
             .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
             .and_then(|info| info["synth"]["density_scale"].as_f64())
             .map(|s| s as f32);
+        let test = gather(&test_names);
+        for suspect in implausible_pictures(&train, &test) {
+            tracing::warn!(
+                view = %suspect.view,
+                frame = suspect.frame,
+                frames = suspect.count,
+                mean = suspect.mean,
+                others = suspect.others,
+                "this view's picture is far brighter or darker than every other view's at the \
+                 same time: a damaged video frame decodes into such a picture without an error \
+                 (the H.264 decoder reports no concealment); check the file"
+            );
+        }
         Ok(Self {
             path: path.to_path_buf(),
             train,
-            test: gather(&test_names),
+            test,
             background: dataset.background,
             lo: bbox.min,
             hi: bbox.max,
@@ -200,4 +213,67 @@ impl Sequence {
             ground_truth_density_scale: density_scale,
         })
     }
+}
+
+/// A view whose pictures stand out from all the others at the same time (see
+/// [`implausible_pictures`]): the first such frame, how many there are, and the means.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ImplausiblePicture {
+    pub view: String,
+    pub frame: usize,
+    pub count: usize,
+    /// The picture's mean value and the median of the other views' means at that frame.
+    pub mean: f32,
+    pub others: f32,
+}
+
+/// How far (in [0, 1] pixel units) a picture's mean may stray from the median view's before
+/// it is reported. The views of one plume share background and lighting; the damaged frames
+/// of a capture we tried decoded to means of 0.24-0.79 against 0.003.
+const IMPLAUSIBLE_MEAN_GAP: f32 = 0.15;
+
+/// Pictures whose mean value differs from the median of all views' means at the same frame by
+/// more than [`IMPLAUSIBLE_MEAN_GAP`], at most one entry per view. A heuristic (it needs three
+/// views or more and misses damage that keeps the brightness): the decoder gives no signal
+/// when corrupted slice data happens to parse.
+pub fn implausible_pictures(
+    train: &[Vec<Observation>],
+    test: &[Vec<Observation>],
+) -> Vec<ImplausiblePicture> {
+    let mut found: Vec<ImplausiblePicture> = Vec::new();
+    for (frame, (a, b)) in train.iter().zip(test).enumerate() {
+        let views: Vec<(&str, f32)> = a
+            .iter()
+            .chain(b)
+            .map(|o| {
+                let data = o.image.data();
+                (
+                    o.view.as_str(),
+                    data.iter().sum::<f32>() / data.len().max(1) as f32,
+                )
+            })
+            .collect();
+        if views.len() < 3 {
+            continue;
+        }
+        let mut means: Vec<f32> = views.iter().map(|&(_, m)| m).collect();
+        means.sort_by(f32::total_cmp);
+        let median = means[means.len() / 2];
+        for &(view, mean) in &views {
+            if (mean - median).abs() <= IMPLAUSIBLE_MEAN_GAP {
+                continue;
+            }
+            match found.iter_mut().find(|f| f.view == view) {
+                Some(seen) => seen.count += 1,
+                None => found.push(ImplausiblePicture {
+                    view: view.to_string(),
+                    frame,
+                    count: 1,
+                    mean,
+                    others: median,
+                }),
+            }
+        }
+    }
+    found
 }

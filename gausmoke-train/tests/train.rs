@@ -623,7 +623,11 @@ fn a_damaged_checkpoint_falls_back_to_the_one_before() {
     let mut resumed = Run::new(scene.clone(), config.clone(), device.clone(), &out, true)
         .expect("the older checkpoint resumes")
         .quiet(true);
-    assert_eq!(resumed.frame, Some(1), "resumed from frame 1, not the damaged frame 2");
+    assert_eq!(
+        resumed.frame,
+        Some(1),
+        "resumed from frame 1, not the damaged frame 2"
+    );
     assert!(!leftover.exists(), "the partial folder was removed");
     assert_eq!(resumed.run().unwrap().len(), 3);
     drop(resumed);
@@ -645,5 +649,34 @@ fn a_damaged_checkpoint_falls_back_to_the_one_before() {
             && message.contains("frame_001/velocity.safetensors")
             && message.contains("damaged"),
         "{message}"
+    );
+}
+
+/// A picture far brighter than every other view's at the same time (what a damaged video frame
+/// that still parses decodes to) is reported, naming the view and frame; the clean scene is not.
+#[test]
+fn a_picture_unlike_the_other_views_is_reported() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let config = test_config();
+    let scene = Sequence::open(&data, &config).unwrap();
+    assert!(
+        gausmoke_train::sequence::implausible_pictures(&scene.train, &scene.test).is_empty(),
+        "the clean scene has no outlier"
+    );
+    let mut damaged = scene.clone();
+    for t in 1..3 {
+        let picture = &mut damaged.train[t][1];
+        let (w, h) = (picture.image.width(), picture.image.height());
+        let garbage = (0..picture.image.data().len())
+            .map(|i| (i * 7919 % 101) as f32 / 100.0)
+            .collect();
+        picture.image = gausmoke_data::Image::from_vec(w, h, garbage).unwrap();
+    }
+    let found = gausmoke_train::sequence::implausible_pictures(&damaged.train, &damaged.test);
+    assert_eq!(found.len(), 1, "{found:?}");
+    assert_eq!(
+        (found[0].view.as_str(), found[0].frame, found[0].count),
+        (scene.train[1][1].view.as_str(), 1, 2)
     );
 }
