@@ -169,13 +169,13 @@ impl LoadOptions {
         Ok(())
     }
 
-    /// The frame range to load out of `available` announced frames (a range reaching past
-    /// them is an error, not a silent truncation).
-    pub(crate) fn frame_range(&self, available: usize) -> Result<Range<usize>> {
+    /// The frame range to load out of the `available` frames that `origin` (a view, a file)
+    /// announces: a range reaching past them is an error naming it, not a silent truncation.
+    pub(crate) fn frame_range(&self, available: usize, origin: &str) -> Result<Range<usize>> {
         match &self.frames {
             Some(r) if r.end > available => Err(DataError::Options {
                 option: "frames",
-                reason: format!("range {r:?} reaches past the {available} frames available"),
+                reason: format!("range {r:?} reaches past the {available} frames of {origin}"),
             }),
             Some(r) => Ok(r.clone()),
             None => Ok(0..available),

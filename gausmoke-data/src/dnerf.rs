@@ -61,7 +61,7 @@ pub fn load_dnerf(dir: &Path, options: &LoadOptions) -> Result<Dataset> {
             .iter()
             .map(|f| read_item(f.node(), dir))
             .collect::<Result<Vec<_>>>()?;
-        let range = options.frame_range(items.len())?;
+        let range = options.frame_range(items.len(), &format!("{stem}.json"))?;
         let selected = &items[range];
         let images = selected
             .par_iter()

@@ -54,8 +54,10 @@ pub enum DataError {
     },
     #[error("{path}: cannot decode video: {reason}")]
     Video { path: PathBuf, reason: String },
-    #[error("{path}: cannot decode image: {source}")]
+    #[error("{path}: cannot {action} image: {source}")]
     Image {
+        /// "read" or "write".
+        action: &'static str,
         path: PathBuf,
         #[source]
         source: image::ImageError,

@@ -81,6 +81,7 @@ impl Image {
             image::ExtendedColorType::Rgb8,
         )
         .map_err(|source| DataError::Image {
+            action: "write",
             path: path.to_path_buf(),
             source,
         })
@@ -100,6 +101,7 @@ pub fn read_png_over(path: &Path, background: [f32; 3]) -> Result<Image> {
         .map_err(crate::error::io_err(path))?
         .decode()
         .map_err(|source| DataError::Image {
+            action: "decode",
             path: path.to_path_buf(),
             source,
         })?;

@@ -265,7 +265,7 @@ fn checked_pose(node: Node<'_>, native: (u32, u32), k: Intrinsics) -> Result<Mat
 fn load_entry(e: &Entry, info: &Path, options: &LoadOptions, background: [f32; 3]) -> Result<View> {
     let target = options.resolution.unwrap_or(e.native);
     let k = scale_intrinsics(e.intrinsics, e.native, target);
-    let range = options.frame_range(e.frame_num)?;
+    let range = options.frame_range(e.frame_num, &format!("view `{}`", e.name))?;
     let expected_size = |path: &Path, frame: usize, w: u32, h: u32| -> Result<()> {
         if (w, h) == e.native {
             Ok(())

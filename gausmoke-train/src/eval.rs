@@ -153,6 +153,14 @@ pub fn evaluate(
         .map(|path| crate::lpips::Lpips::load(path, device))
         .transpose()?;
     let folder = RunFolder::at(run);
+    if !folder.root().join("run.json").is_file() {
+        return Err(TrainError::Config {
+            origin: run.display().to_string(),
+            reason: "this folder is not a GauSmoke run (it has no run.json); pass the --out \
+                     folder of a `gausmoke-train train`"
+                .into(),
+        });
+    }
     let config = folder.read_config()?;
     let info = folder.read_run_info()?;
     let scene = Sequence::open(&info.data, &config)?;

@@ -8,6 +8,7 @@
 //! * `render`: render a procedural plume (checks the build and the renderer).
 
 use std::path::{Path, PathBuf};
+use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
@@ -121,9 +122,32 @@ struct RenderArgs {
     height: u32,
 }
 
-fn main() -> Result<()> {
+fn main() -> ExitCode {
     gausmoke_train::logging::init();
-    match Cli::parse().command {
+    match run_command(Cli::parse()) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(err) => {
+            eprintln!("Error: {}", error_report(&err));
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// The error and its causes, one per line, leaving out each cause whose text the message
+/// before it already quotes (our error types quote their source).
+fn error_report(err: &anyhow::Error) -> String {
+    let mut report = err.to_string();
+    for cause in err.chain().skip(1) {
+        let text = cause.to_string();
+        if !report.contains(&text) {
+            report += &format!("\n  caused by: {text}");
+        }
+    }
+    report
+}
+
+fn run_command(cli: Cli) -> Result<()> {
+    match cli.command {
         None => quickstart(),
         Some(Command::Train(args)) => train(args, None),
         Some(Command::Eval {

@@ -314,6 +314,52 @@ fn bad_options_and_data_are_reported_plainly() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("grid_resolution"), "{stderr}");
     assert!(!stderr.contains("panicked"), "{stderr}");
+
+    // An I/O error's cause is quoted in its message, and not printed a second time.
+    let out = binary()
+        .args(["train", "--config", "/nonexistent/config.toml", "--out"])
+        .arg(dir.path().join("run4"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(
+        stderr.matches("No such file or directory").count(),
+        1,
+        "{stderr}"
+    );
+
+    // `eval` on a folder that is not a run says so.
+    let out = binary()
+        .args(["eval", "--run"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("is not a GauSmoke run"), "{stderr}");
+
+    // `inspect --out` into a folder that does not exist names the write, not a decode.
+    let data = tiny_scene(dir.path());
+    let out = binary()
+        .arg("inspect")
+        .arg(&data)
+        .arg("--out")
+        .arg(dir.path().join("missing/sheet.png"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("sheet.png: cannot write image"), "{stderr}");
+
+    // A frame range past the videos names the view.
+    let out = train_command(&data, &dir.path().join("run5"))
+        .args(["--frames", "50"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("frames of view `"), "{stderr}");
 }
 
 #[test]
