@@ -78,6 +78,19 @@ pub struct Frame {
     pub image: Image,
 }
 
+/// What a loader would load for one view, read from the data set's description alone (see
+/// [`crate::plan`]): enough to tell the memory the frames will take before decoding any.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PlannedView {
+    pub name: String,
+    pub split: Split,
+    /// Frames that would be loaded (after `LoadOptions::frames`).
+    pub frames: usize,
+    /// Size of the loaded images (after `LoadOptions::resolution`).
+    pub width: u32,
+    pub height: u32,
+}
+
 /// One camera's sequence (PINF), or one split's frames (D-NeRF, a moving camera).
 #[derive(Debug, Clone)]
 pub struct View {

@@ -14,7 +14,8 @@ use gausmoke_core::{Camera, Intrinsics};
 use rayon::prelude::*;
 
 use crate::dataset::{
-    Dataset, Format, Frame, LoadOptions, Split, View, resize_to, scale_intrinsics, time_indices,
+    Dataset, Format, Frame, LoadOptions, PlannedView, Split, View, resize_to, scale_intrinsics,
+    time_indices,
 };
 use crate::error::{DataError, Result};
 use crate::image::read_png_over;
@@ -25,6 +26,53 @@ struct Item {
     image: PathBuf,
     time: f32,
     pose: Mat4,
+}
+
+/// What [`load_dnerf`] would load from the transforms files and the first image's header,
+/// without decoding an image.
+pub fn plan_dnerf(dir: &Path, options: &LoadOptions) -> Result<Vec<PlannedView>> {
+    options.validate()?;
+    let mut planned = Vec::new();
+    let mut native: Option<(u32, u32)> = None;
+    for (stem, split) in [
+        ("transforms_train", Split::Train),
+        ("transforms_val", Split::Val),
+        ("transforms_test", Split::Test),
+    ] {
+        let json = dir.join(format!("{stem}.json"));
+        if split != Split::Train && !json.exists() {
+            continue;
+        }
+        let value = read_json(&json)?;
+        let root = Node::root(&json, &value);
+        let frames_owned = root.get("frames")?;
+        let list = frames_owned.node().array()?;
+        let Some(first) = list.first() else {
+            return Err(frames_owned.node().err("a non-empty array of frames"));
+        };
+        let range = options.frame_range(list.len(), &format!("{stem}.json"))?;
+        let (width, height) = match (options.resolution, native) {
+            (Some(size), _) | (None, Some(size)) => size,
+            (None, None) => {
+                let image = read_item(first.node(), dir)?.image;
+                let size =
+                    ::image::image_dimensions(&image).map_err(|source| DataError::Image {
+                        action: "read",
+                        path: image,
+                        source,
+                    })?;
+                *native.insert(size)
+            }
+        };
+        planned.push(PlannedView {
+            name: stem.trim_start_matches("transforms_").to_string(),
+            split,
+            frames: range.len(),
+            width,
+            height,
+        });
+    }
+    Ok(planned)
 }
 
 /// Loads a D-NeRF style data set from its folder.

@@ -18,16 +18,28 @@ mod dataset;
 mod dnerf;
 mod error;
 mod image;
+use std::path::Path;
+
 pub mod inspect;
 mod json;
 mod pinf;
 pub mod synth;
 pub mod video;
 
-pub use dataset::{Aabb, Dataset, Format, Frame, LoadOptions, Split, View};
-pub use dnerf::load_dnerf;
+pub use dataset::{Aabb, Dataset, Format, Frame, LoadOptions, PlannedView, Split, View};
+pub use dnerf::{load_dnerf, plan_dnerf};
 pub use error::{DataError, Result};
 pub use image::{Image, read_png_over, resize_area};
-pub use pinf::load_pinf;
+pub use pinf::{load_pinf, plan_pinf};
 
 pub use gausmoke_core::{Camera, Intrinsics, glam};
+
+/// What loading the data set at `path` (a PINF/HyFluid folder or `info.json`, or a D-NeRF
+/// folder) with `options` would produce, per view, without decoding a frame.
+pub fn plan(path: &Path, options: &LoadOptions) -> Result<Vec<PlannedView>> {
+    if path.join("transforms_train.json").is_file() {
+        plan_dnerf(path, options)
+    } else {
+        plan_pinf(path, options)
+    }
+}

@@ -22,8 +22,8 @@ use gausmoke_core::{Camera, Intrinsics};
 use rayon::prelude::*;
 
 use crate::dataset::{
-    Aabb, Dataset, Format, Frame, LoadOptions, Split, View, resize_to, scale_intrinsics,
-    time_indices,
+    Aabb, Dataset, Format, Frame, LoadOptions, PlannedView, Split, View, resize_to,
+    scale_intrinsics, time_indices,
 };
 use crate::error::{DataError, Result, io_err};
 use crate::image::read_png_over;
@@ -85,24 +85,7 @@ pub fn load_pinf(path: &Path, options: &LoadOptions) -> Result<Dataset> {
         .map(|c| sim_to_world.transform_point3(c)),
     );
 
-    let mut entries = Vec::new();
-    for (key, split) in [
-        ("train_videos", Split::Train),
-        ("val_videos", Split::Val),
-        ("test_videos", Split::Test),
-    ] {
-        let Some(list) = root.get_opt(key)? else {
-            continue;
-        };
-        for item in list.node().array()? {
-            entries.push(read_entry(item.node(), split, &root_dir)?);
-        }
-    }
-    if entries.is_empty() {
-        return Err(root.err(
-            "at least one camera in `train_videos`, `val_videos` or `test_videos`".to_string(),
-        ));
-    }
+    let entries = read_entries(root, &root_dir)?;
 
     let views: Vec<View> = entries
         .par_iter()
@@ -131,6 +114,57 @@ pub fn load_pinf(path: &Path, options: &LoadOptions) -> Result<Dataset> {
         bbox,
         sim_to_world: Some(sim_to_world),
     })
+}
+
+/// The cameras of `train_videos`, `val_videos` and `test_videos`, at least one.
+fn read_entries(root: Node<'_>, root_dir: &Path) -> Result<Vec<Entry>> {
+    let mut entries = Vec::new();
+    for (key, split) in [
+        ("train_videos", Split::Train),
+        ("val_videos", Split::Val),
+        ("test_videos", Split::Test),
+    ] {
+        let Some(list) = root.get_opt(key)? else {
+            continue;
+        };
+        for item in list.node().array()? {
+            entries.push(read_entry(item.node(), split, root_dir)?);
+        }
+    }
+    if entries.is_empty() {
+        return Err(root.err(
+            "at least one camera in `train_videos`, `val_videos` or `test_videos`".to_string(),
+        ));
+    }
+    Ok(entries)
+}
+
+/// What [`load_pinf`] would load (views, frame counts, image sizes) from `info.json` alone,
+/// without decoding a frame.
+pub fn plan_pinf(path: &Path, options: &LoadOptions) -> Result<Vec<PlannedView>> {
+    options.validate()?;
+    let info = if path.is_dir() {
+        path.join("info.json")
+    } else {
+        path.to_path_buf()
+    };
+    let root_dir = info.parent().unwrap_or(Path::new(".")).to_path_buf();
+    let value = read_json(&info)?;
+    let entries = read_entries(Node::root(&info, &value), &root_dir)?;
+    entries
+        .iter()
+        .map(|e| {
+            let range = options.frame_range(e.frame_num, &format!("view `{}`", e.name))?;
+            let (width, height) = options.resolution.unwrap_or(e.native);
+            Ok(PlannedView {
+                name: e.name.clone(),
+                split: e.split,
+                frames: range.len(),
+                width,
+                height,
+            })
+        })
+        .collect()
 }
 
 fn read_volume(root: Node<'_>) -> Result<Mat4> {

@@ -77,7 +77,7 @@ pub fn complete(run: &Path) -> Result<Vec<PathBuf>, TrainError> {
             Some((frame, entry.path()))
         })
         .collect();
-    found.sort_by(|a, b| b.0.cmp(&a.0));
+    found.sort_by_key(|(frame, _)| std::cmp::Reverse(*frame));
     Ok(found.into_iter().map(|(_, path)| path).collect())
 }
 

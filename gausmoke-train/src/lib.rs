@@ -24,6 +24,7 @@ pub mod export;
 mod hash;
 pub mod logging;
 pub mod lpips;
+pub mod memory;
 pub mod metrics;
 pub mod respawn;
 pub mod run;

@@ -18,6 +18,7 @@ use gausmoke_core::glam::Vec3;
 use gausmoke_data::synth::{self, SynthConfig};
 use gausmoke_data::{LoadOptions, inspect, load_dnerf, load_pinf};
 use gausmoke_render::{Camera, RasterOptions, backends, procedural, render_volume};
+use gausmoke_train::memory::{self, MemoryEstimate};
 use gausmoke_train::{Run, TrainConfig, eval, sequence::Sequence};
 
 #[derive(Debug, Parser)]
@@ -106,6 +107,10 @@ struct TrainArgs {
     /// Hide progress bars.
     #[arg(long)]
     quiet: bool,
+    /// Refuse a configuration whose estimated peak memory exceeds this (e.g. `24G`);
+    /// defaults to the memory the system has available.
+    #[arg(long, value_name = "SIZE")]
+    max_memory: Option<String>,
 }
 
 #[derive(Debug, Args)]
@@ -224,6 +229,7 @@ fn quickstart() -> Result<()> {
             no_refinement: false,
             no_volumetric: false,
             quiet: false,
+            max_memory: None,
         },
         Some(TrainConfig::quick_demo()),
     )
@@ -261,6 +267,7 @@ fn train(args: TrainArgs, base: Option<TrainConfig>) -> Result<()> {
     let device = backends::device_by_name(&args.device)
         .map_err(anyhow::Error::msg)?
         .autodiff();
+    check_memory(&data, &config, &args.device, args.max_memory.as_deref())?;
     let start = Instant::now();
     let scene = Sequence::open(&data, &config)
         .with_context(|| format!("loading the data set {}", data.display()))?;
@@ -288,6 +295,40 @@ fn train(args: TrainArgs, base: Option<TrainConfig>) -> Result<()> {
         last.mean_abs_divergence
     );
     println!("outputs in {} (see README.txt there)", args.out.display());
+    Ok(())
+}
+
+/// Refuses, before anything is loaded, a run whose estimated peak memory exceeds `--max-memory`
+/// or the memory available.
+fn check_memory(
+    data: &Path,
+    config: &TrainConfig,
+    device: &str,
+    max_memory: Option<&str>,
+) -> Result<()> {
+    let plan = Sequence::plan(data, config)
+        .with_context(|| format!("reading the data set {}", data.display()))?;
+    let on_host = matches!(device, "flex" | "ndarray");
+    let estimate = MemoryEstimate::new(config, &plan, on_host);
+    let (limit, origin) = match max_memory {
+        Some(text) => (
+            memory::parse_size(text).map_err(|e| anyhow::anyhow!("--max-memory: {e}"))?,
+            "allowed by --max-memory",
+        ),
+        None => match memory::available_memory() {
+            Some(bytes) => (bytes, "available on this machine"),
+            None => {
+                tracing::debug!("available memory unknown: the memory estimate is not checked");
+                return Ok(());
+            }
+        },
+    };
+    tracing::info!(
+        estimate = %memory::format_bytes(estimate.total()),
+        limit = %memory::format_bytes(limit as f64),
+        "peak memory"
+    );
+    estimate.check(limit, origin)?;
     Ok(())
 }
 

@@ -4,7 +4,7 @@
 
 use std::fs::{File, TryLockError};
 use std::io::{Read, Seek, Write};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use crate::TrainError;
 
@@ -61,7 +61,7 @@ impl RunLock {
     }
 }
 
-fn holder(file: &mut File, path: &PathBuf) -> String {
+fn holder(file: &mut File, path: &Path) -> String {
     let mut text = String::new();
     match file.read_to_string(&mut text) {
         Ok(_) if !text.trim().is_empty() => {

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use gausmoke_core::Camera;
 use gausmoke_core::glam::Vec3;
-use gausmoke_data::{Dataset, Image, LoadOptions, Split, load_dnerf, load_pinf};
+use gausmoke_data::{Dataset, Image, LoadOptions, PlannedView, Split, load_dnerf, load_pinf};
 
 use crate::hash::Fnv1a;
 use crate::{TrainConfig, TrainError};
@@ -73,11 +73,7 @@ impl Sequence {
     /// Loads a PINF/HyFluid folder (`info.json`) or a D-NeRF folder (`transforms_train.json`)
     /// at the configured image size and frame count, and splits views as configured.
     pub fn open(path: &Path, config: &TrainConfig) -> Result<Self, TrainError> {
-        let options = LoadOptions {
-            resolution: config.image_size.map(|[w, h]| (w, h)),
-            frames: config.frames.map(|n| 0..n),
-            background: None,
-        };
+        let options = Self::load_options(config);
         let dataset = if path.join("info.json").is_file() {
             load_pinf(path, &options)?
         } else if path.join("transforms_train.json").is_file() {
@@ -91,6 +87,20 @@ impl Sequence {
             });
         };
         Self::from_dataset(path, &dataset, config)
+    }
+
+    /// What [`Sequence::open`] would load (views, frames, image sizes), read from the data
+    /// set's description without decoding a frame: the input of the memory estimate.
+    pub fn plan(path: &Path, config: &TrainConfig) -> Result<Vec<PlannedView>, TrainError> {
+        Ok(gausmoke_data::plan(path, &Self::load_options(config))?)
+    }
+
+    fn load_options(config: &TrainConfig) -> LoadOptions {
+        LoadOptions {
+            resolution: config.image_size.map(|[w, h]| (w, h)),
+            frames: config.frames.map(|n| 0..n),
+            background: None,
+        }
     }
 
     pub fn from_dataset(

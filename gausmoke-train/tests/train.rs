@@ -352,6 +352,33 @@ fn bad_options_and_data_are_reported_plainly() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("sheet.png: cannot write image"), "{stderr}");
 
+    // A configuration far beyond the machine's memory is refused before loading anything,
+    // naming the setting; so is one above --max-memory.
+    for (setting, named, limit) in [
+        ("gaussians=100000000", "gaussians = 100000000", None),
+        ("grid_resolution=512", "grid_resolution = 512", None),
+        (
+            "image_size=[100000,100000]",
+            "image_size = [100000, 100000]",
+            None,
+        ),
+        ("gaussians=1500", "gaussians = 1500", Some("1M")),
+    ] {
+        let mut command = train_command(&data, &dir.path().join("run6"));
+        command.args(["--set", setting]);
+        if let Some(limit) = limit {
+            command.args(["--max-memory", limit]);
+        }
+        let out = command.output().unwrap();
+        assert!(!out.status.success(), "{setting} was accepted");
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            stderr.contains("memory: this configuration needs about") && stderr.contains(named),
+            "{stderr}"
+        );
+        assert!(!dir.path().join("run6").exists(), "nothing was written");
+    }
+
     // A frame range past the videos names the view.
     let out = train_command(&data, &dir.path().join("run5"))
         .args(["--frames", "50"])
