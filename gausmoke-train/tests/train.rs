@@ -753,3 +753,57 @@ fn a_picture_unlike_the_other_views_is_reported() {
         (scene.train[1][1].view.as_str(), 1, 2)
     );
 }
+
+/// A full disk, simulated with a file-size limit (writes past it fail with EFBIG), stops the
+/// run with an error naming the file, leaves no partial checkpoint or half file behind, and the
+/// run resumes from its last complete frame once there is room.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_full_disk_stops_the_run_without_losing_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let out = dir.path().join("run");
+    let trained = train_command(&data, &out);
+    // bash counts `ulimit -f` in KiB; an ignored SIGXFSZ turns the limit into write errors.
+    let mut limited = Command::new("bash");
+    limited
+        .arg("-c")
+        .arg("ulimit -f 600; trap '' XFSZ; exec \"$0\" \"$@\"")
+        .arg(trained.get_program())
+        .args(trained.get_args());
+    let failed = limited.output().unwrap();
+    let stderr = String::from_utf8_lossy(&failed.stderr);
+    assert!(
+        !failed.status.success(),
+        "the 600 KiB limit did not bite: {stderr}"
+    );
+    assert!(
+        stderr.contains("Error:") && !stderr.contains("panicked"),
+        "{stderr}"
+    );
+    let leftovers: Vec<_> = walk(&out)
+        .into_iter()
+        .filter(|path| path.to_string_lossy().contains(".partial"))
+        .collect();
+    assert!(leftovers.is_empty(), "left behind: {leftovers:?}");
+
+    let resumed = train_command(&data, &out).arg("--resume").output().unwrap();
+    assert!(
+        resumed.status.success(),
+        "{}",
+        String::from_utf8_lossy(&resumed.stderr)
+    );
+    assert!(out.join("frames/frame_003.safetensors").is_file());
+}
+
+fn walk(dir: &Path) -> Vec<PathBuf> {
+    let mut found = Vec::new();
+    for entry in std::fs::read_dir(dir).unwrap().flatten() {
+        let path = entry.path();
+        if path.is_dir() {
+            found.extend(walk(&path));
+        }
+        found.push(path);
+    }
+    found
+}
