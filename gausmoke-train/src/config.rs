@@ -7,6 +7,8 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
+use gausmoke_model::projection::OpenFaces;
+
 use crate::TrainError;
 
 /// Learning rates of the frame-0 fit, per Gaussian attribute (3DGS practice: centres move
@@ -133,6 +135,9 @@ pub struct TrainConfig {
     /// Gradient steps of the penalty form (`projection = "penalty"`), each with step size
     /// `1 / sum_a h_a^-2`.
     pub penalty_steps: usize,
+    /// Box faces the flow may cross (`x-`, `x+`, `y-`, `y+`, `z-`, `z+`; `y+` is the top of
+    /// a box with y up); the others are solid walls. Exact projection only.
+    pub open_faces: Vec<String>,
     /// Ablation switch: `false` drops L_div and L_adv (paper Table 3, "w/o physics").
     pub physics_losses: bool,
     /// Ablation switch: `false` skips the K' refinement iterations ("w/o refinement").
@@ -188,6 +193,7 @@ impl Default for TrainConfig {
             projection_tolerance: 1e-5,
             projection_max_iterations: 400,
             penalty_steps: 20,
+            open_faces: Vec::new(),
             physics_losses: true,
             refinement: true,
             volumetric: true,
@@ -276,6 +282,14 @@ impl TrainConfig {
 
     /// The keys whose values differ between `self` and `other` (nested ones as
     /// `table.key`), each with both values, in key order.
+    /// The faces of `open_faces` (validated by [`TrainConfig::validate`]).
+    pub fn open_faces(&self) -> Result<OpenFaces, TrainError> {
+        OpenFaces::from_names(&self.open_faces).map_err(|reason| TrainError::Config {
+            origin: "open_faces".into(),
+            reason,
+        })
+    }
+
     pub fn differences(&self, other: &TrainConfig) -> Vec<(String, String, String)> {
         fn flatten(prefix: &str, table: &toml::Table, out: &mut BTreeMap<String, String>) {
             for (key, value) in table {
@@ -398,6 +412,16 @@ impl TrainConfig {
         }
         if self.projection == ProjectionKind::Penalty && self.penalty_steps == 0 {
             return bad("penalty_steps must be >= 1 with projection = \"penalty\"".into());
+        }
+        if let Err(reason) = OpenFaces::from_names(&self.open_faces) {
+            return bad(format!("open_faces: {reason}"));
+        }
+        if !self.open_faces.is_empty() && self.projection != ProjectionKind::Exact {
+            return bad(
+                "open_faces needs projection = \"exact\" (the penalty form has solid \
+                        walls only)"
+                    .into(),
+            );
         }
         if self.frames == Some(0) {
             return bad("frames must be >= 1 (or left out for all)".into());

@@ -165,6 +165,7 @@ pub fn evaluate(
     let info = folder.read_run_info()?;
     let scene = Sequence::open(&info.data, &config)?;
     let grid = config.grid(scene.lo, scene.hi)?;
+    let open_faces = config.open_faces()?;
     let background = burn::tensor::Tensor::<1>::from_data(
         burn::tensor::TensorData::new(scene.background.to_vec(), [3]),
         device,
@@ -214,7 +215,7 @@ pub fn evaluate(
             test_psnr: average(&psnr),
             test_ssim: average(&ssim),
             test_lpips: average(&perceptual),
-            mean_abs_divergence: metrics::mean_abs_divergence(&grid, velocity),
+            mean_abs_divergence: metrics::mean_abs_divergence(&grid, open_faces, velocity),
             velocity_rmse: truth.map(|e| e.0),
             velocity_relative_error: truth.map(|e| e.1),
             density_relative_error: truth.map(|e| e.2),

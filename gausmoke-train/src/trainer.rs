@@ -141,6 +141,8 @@ impl Trainer {
         ProjectionOptions {
             rel_tolerance: self.config.projection_tolerance,
             max_iterations: self.config.projection_max_iterations,
+            // Validated with the configuration.
+            open_faces: self.config.open_faces().unwrap_or_default(),
         }
     }
 

@@ -5,7 +5,8 @@
 //!
 //! * velocities live at cell centres (`[nx, ny, nz, 3]`, see [`crate::grid`]);
 //! * the discrete divergence `D` takes face velocities as the mean of the two adjacent cells,
-//!   and zero on the box walls (solid walls: no normal flow), divided by the cell size;
+//!   zero on the solid box faces (no normal flow) and the inner cell's velocity on open ones
+//!   ([`OpenFaces`]), divided by the cell size;
 //! * `Pi u = u - D^T p` with `D D^T p = D u`, solved matrix-free by conjugate gradients with a
 //!   Jacobi preconditioner, in f64 on the host. (`-D^T` is the discrete gradient, so this is
 //!   `u - grad p` with `p` solving the Poisson equation.) `D D^T` is singular (constants and
@@ -23,12 +24,70 @@
 
 use rayon::prelude::*;
 
+/// Which faces of the box let the flow through. A solid face (the default) has zero normal
+/// velocity; an open face takes its face velocity from the cell inside it (zero normal
+/// gradient, outflow or inflow), which makes the pressure zero there in effect: a plume can
+/// leave through it instead of recirculating.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Hash)]
+pub struct OpenFaces {
+    /// Per axis (x, y, z): the low face (`x-`, at the box's minimum) and the high face.
+    pub low: [bool; 3],
+    pub high: [bool; 3],
+}
+
+impl OpenFaces {
+    /// Every face solid.
+    pub const NONE: Self = Self {
+        low: [false; 3],
+        high: [false; 3],
+    };
+
+    /// Parses names such as `y+` (the high y face) and `x-`.
+    pub fn from_names<S: AsRef<str>>(names: &[S]) -> Result<Self, String> {
+        let mut faces = Self::NONE;
+        for name in names {
+            let name = name.as_ref();
+            let mut chars = name.chars();
+            let axis = match chars.next() {
+                Some('x') => 0,
+                Some('y') => 1,
+                Some('z') => 2,
+                _ => {
+                    return Err(format!(
+                        "unknown face `{name}`: use x-, x+, y-, y+, z- or z+"
+                    ));
+                }
+            };
+            match (chars.next(), chars.next()) {
+                (Some('-'), None) => faces.low[axis] = true,
+                (Some('+'), None) => faces.high[axis] = true,
+                _ => {
+                    return Err(format!(
+                        "unknown face `{name}`: use x-, x+, y-, y+, z- or z+"
+                    ));
+                }
+            }
+        }
+        Ok(faces)
+    }
+
+    /// The faces as a bit set (bit `2 a` the low face of axis `a`, bit `2 a + 1` the high),
+    /// for the kernels.
+    pub fn bits(&self) -> u32 {
+        (0..3)
+            .map(|a| (self.low[a] as u32) << (2 * a) | (self.high[a] as u32) << (2 * a + 1))
+            .sum()
+    }
+}
+
 /// Solver controls and what it reached.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ProjectionOptions {
     /// Stop when `|D u - D D^T p| <= rel_tolerance * |D u|`.
     pub rel_tolerance: f64,
     pub max_iterations: usize,
+    /// The box faces the flow may cross.
+    pub open_faces: OpenFaces,
 }
 
 impl Default for ProjectionOptions {
@@ -36,6 +95,7 @@ impl Default for ProjectionOptions {
         Self {
             rel_tolerance: 1e-6,
             max_iterations: 2000,
+            open_faces: OpenFaces::NONE,
         }
     }
 }
@@ -60,7 +120,9 @@ pub struct ProjectionSpec {
 
 impl ProjectionSpec {
     pub fn new(grid: &crate::grid::GridSpec, options: ProjectionOptions) -> Self {
-        let Divergence { resolution, cell } = Divergence::on_grid(grid);
+        let Divergence {
+            resolution, cell, ..
+        } = Divergence::on_grid(grid);
         Self {
             resolution,
             cell,
@@ -72,6 +134,7 @@ impl ProjectionSpec {
         Divergence {
             resolution: self.resolution,
             cell: self.cell,
+            open: self.options.open_faces,
         }
     }
 }
@@ -82,16 +145,43 @@ pub struct Divergence {
     pub resolution: [usize; 3],
     /// Cell size per axis, world units.
     pub cell: [f64; 3],
+    pub open: OpenFaces,
 }
 
 impl Divergence {
-    /// The operator on `grid`'s cells.
+    /// The operator on `grid`'s cells, every face solid.
     pub fn on_grid(grid: &crate::grid::GridSpec) -> Self {
         let cell = grid.cell_size();
         Self {
             resolution: grid.resolution(),
             cell: [cell.x as f64, cell.y as f64, cell.z as f64],
+            open: OpenFaces::NONE,
         }
+    }
+
+    /// The same operator with `open` faces.
+    pub fn with_open_faces(self, open: OpenFaces) -> Self {
+        Self { open, ..self }
+    }
+
+    /// Row `c` of `D` along `axis` at coordinate `i`: the coefficient (times `h`) on the
+    /// cell's own velocity, and how many neighbours it reaches across interior faces (each
+    /// with `+-1/2`). An interior face adds `+-1/2` to the own coefficient, an open boundary
+    /// face `+-1`, a solid one nothing.
+    fn axis_row(&self, axis: usize, i: usize) -> (f64, usize) {
+        let n = self.resolution[axis];
+        let (after, before) = (i + 1 < n, i > 0);
+        let plus = match (after, self.open.high[axis]) {
+            (true, _) => 0.5,
+            (false, true) => 1.0,
+            (false, false) => 0.0,
+        };
+        let minus = match (before, self.open.low[axis]) {
+            (true, _) => 0.5,
+            (false, true) => 1.0,
+            (false, false) => 0.0,
+        };
+        (plus - minus, after as usize + before as usize)
     }
 
     /// `D u` per cell (1 / frame) of a velocity grid `[nx, ny, nz, 3]`, flat, in f64.
@@ -117,7 +207,7 @@ impl Divergence {
     }
 
     /// `(D u)_c = sum_axis (u_face+ - u_face-) / h`, face velocity = mean of its two cells,
-    /// zero at walls. `u` is `[cells * 3]`.
+    /// zero on solid walls, the inner cell's on open faces. `u` is `[cells * 3]`.
     pub fn apply(&self, u: &[f64], out: &mut [f64]) {
         let n = self.resolution;
         out.par_iter_mut().enumerate().for_each(|(c, o)| {
@@ -125,13 +215,18 @@ impl Divergence {
             for a in 0..3 {
                 let i = self.coord(c, a);
                 let s = self.stride(a);
+                let own = u[3 * c + a];
                 let plus = if i + 1 < n[a] {
-                    0.5 * (u[3 * c + a] + u[3 * (c + s) + a])
+                    0.5 * (own + u[3 * (c + s) + a])
+                } else if self.open.high[a] {
+                    own
                 } else {
                     0.0
                 };
                 let minus = if i > 0 {
-                    0.5 * (u[3 * c + a] + u[3 * (c - s) + a])
+                    0.5 * (own + u[3 * (c - s) + a])
+                } else if self.open.low[a] {
+                    own
                 } else {
                     0.0
                 };
@@ -149,13 +244,18 @@ impl Divergence {
                 let i = self.coord(c, a);
                 let s = self.stride(a);
                 // u_c appears with weight +1/2h in D at c's + face and in the cell above, and
-                // -1/2h at c's - face and in the cell below (interior faces only).
+                // -1/2h at c's - face and in the cell below (interior faces); with +-1/h at
+                // c's own open boundary faces.
                 let mut acc = 0.0;
                 if i + 1 < n[a] {
                     acc += 0.5 * (p[c] - p[c + s]);
+                } else if self.open.high[a] {
+                    acc += p[c];
                 }
                 if i > 0 {
                     acc -= 0.5 * (p[c] - p[c - s]);
+                } else if self.open.low[a] {
+                    acc -= p[c];
                 }
                 o[a] = acc / self.cell[a];
             }
@@ -170,12 +270,8 @@ impl Divergence {
             .map(|c| {
                 (0..3)
                     .map(|a| {
-                        let i = self.coord(c, a);
-                        // Column of D^T for p_c: +-1/2h on the normal component of each
-                        // neighbour across an interior face, and (+1 - 1)/2h on c itself.
-                        let interior = (i + 1 < n[a]) as usize + (i > 0) as usize;
-                        let own = if interior == 1 { 0.25 } else { 0.0 };
-                        (interior as f64 * 0.25 + own) / (self.cell[a] * self.cell[a])
+                        let (own, interior) = self.axis_row(a, self.coord(c, a));
+                        (interior as f64 * 0.25 + own * own) / (self.cell[a] * self.cell[a])
                     })
                     .sum::<f64>()
                     .max(1e-30)

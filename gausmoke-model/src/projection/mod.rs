@@ -13,7 +13,7 @@ pub mod spectral;
 use burn::tensor::Tensor;
 
 use crate::grid::GridSpec;
-pub use host::{Divergence, ProjectionOptions, ProjectionReport, ProjectionSpec};
+pub use host::{Divergence, OpenFaces, ProjectionOptions, ProjectionReport, ProjectionSpec};
 pub use op::ProjectionBackend;
 
 /// `Pi(u)`: the divergence-free, wall-tangent part of the velocity grid `[nx, ny, nz, 3]`.

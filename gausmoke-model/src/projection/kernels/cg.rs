@@ -81,6 +81,7 @@ pub fn step_kernel(
     curvature_slot: u32,
     tolerance_squared: f32,
     floor_squared: f32,
+    open_faces: u32,
     nx: u32,
     ny: u32,
     nz: u32,
@@ -104,7 +105,7 @@ pub fn step_kernel(
     pressure[c] += step * direction[c];
     let r = residual[c] - step * operator_direction[c];
     residual[c] = r;
-    preconditioned[c] = r * inverse_diagonal(cell, inverse_cell, nx, ny, nz);
+    preconditioned[c] = r * inverse_diagonal(cell, inverse_cell, open_faces, nx, ny, nz);
 }
 
 /// New direction of iteration `k`: `d = z + b d`, `b = (r.z)_{k+1} / (r.z)_k` (zero when the

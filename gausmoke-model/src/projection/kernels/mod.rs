@@ -75,6 +75,8 @@ struct Solver {
     /// Any tensor on the solve's device (for its client and device).
     like: CubeTensor,
     inverse_cell: CubeTensor,
+    /// `OpenFaces::bits` of the box.
+    open_faces: u32,
     dims: [u32; 3],
     cells: usize,
 }
@@ -116,6 +118,7 @@ impl Solver {
             buffer(velocity),
             buffer(output),
             buffer(&self.inverse_cell),
+            self.open_faces,
             nx,
             ny,
             nz,
@@ -131,6 +134,7 @@ impl Solver {
             buffer(pressure),
             buffer(output),
             buffer(&self.inverse_cell),
+            self.open_faces,
             nx,
             ny,
             nz,
@@ -210,6 +214,7 @@ pub fn project_velocity(
     let ProjectionOptions {
         rel_tolerance,
         max_iterations,
+        open_faces,
     } = spec.options;
     let inverse_cell = {
         use burn::backend::ops::FloatTensorOps;
@@ -225,6 +230,7 @@ pub fn project_velocity(
     let solver = Solver {
         like: velocity.clone(),
         inverse_cell,
+        open_faces: open_faces.bits(),
         dims,
         cells,
     };
@@ -263,6 +269,7 @@ pub fn project_velocity(
         buffer(&preconditioned),
         buffer(&direction),
         buffer(&solver.inverse_cell),
+        solver.open_faces,
         nx,
         ny,
         nz,
@@ -303,6 +310,7 @@ pub fn project_velocity(
             Slot::curvature(k) as u32,
             stopping.tolerance_squared,
             stopping.floor_squared,
+            solver.open_faces,
             nx,
             ny,
             nz,

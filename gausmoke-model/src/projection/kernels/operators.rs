@@ -39,38 +39,57 @@ fn axis_cells(axis: u32, nx: u32, ny: u32, nz: u32) -> u32 {
     cells
 }
 
+/// Whether bit `2 axis + side` of `open_faces` is set (side 0 the low face, 1 the high), as
+/// `OpenFaces::bits`.
+#[cube]
+fn face_is_open(open_faces: u32, axis: u32, side: u32) -> bool {
+    ((open_faces >> (2 * axis + side)) & 1) == 1
+}
+
 /// Jacobi preconditioner `1 / (D D^T)_cc` of one cell (as `Divergence::normal_diagonal`).
 #[cube]
-pub fn inverse_diagonal(cell: u32, inverse_cell: &[f32], nx: u32, ny: u32, nz: u32) -> f32 {
+pub fn inverse_diagonal(
+    cell: u32,
+    inverse_cell: &[f32],
+    open_faces: u32,
+    nx: u32,
+    ny: u32,
+    nz: u32,
+) -> f32 {
     let mut diagonal = 0.0f32;
     let mut axis = 0u32;
     while axis < 3 {
         let i = axis_coordinate(cell, axis, ny, nz);
         let n = axis_cells(axis, nx, ny, nz);
         let mut interior = 0.0f32;
+        let mut own = 0.0f32;
         if i + 1 < n {
             interior += 1.0;
+            own += 0.5;
+        } else if face_is_open(open_faces, axis, 1) {
+            own += 1.0;
         }
         if i > 0 {
             interior += 1.0;
-        }
-        let mut own = 0.0f32;
-        if interior == 1.0 {
-            own = 0.25;
+            own -= 0.5;
+        } else if face_is_open(open_faces, axis, 0) {
+            own -= 1.0;
         }
         let h_inv = inverse_cell[axis as usize];
-        diagonal += (0.25 * interior + own) * h_inv * h_inv;
+        diagonal += (0.25 * interior + own * own) * h_inv * h_inv;
         axis += 1;
     }
     1.0 / diagonal.max(1e-30)
 }
 
-/// `(D u)_c`: face velocity = mean of its two cells, zero on the walls, over the cell size.
+/// `(D u)_c`: face velocity = mean of its two cells, zero on solid walls, the inner cell's on
+/// open faces, over the cell size.
 #[cube(launch)]
 pub fn divergence_kernel(
     velocity: &[f32],
     divergence: &mut [f32],
     inverse_cell: &[f32],
+    open_faces: u32,
     nx: u32,
     ny: u32,
     nz: u32,
@@ -89,9 +108,13 @@ pub fn divergence_kernel(
         let mut flux = 0.0f32;
         if i + 1 < n {
             flux += 0.5 * (own + velocity[(3 * (cell + stride) + axis) as usize]);
+        } else if face_is_open(open_faces, axis, 1) {
+            flux += own;
         }
         if i > 0 {
             flux -= 0.5 * (own + velocity[(3 * (cell - stride) + axis) as usize]);
+        } else if face_is_open(open_faces, axis, 0) {
+            flux -= own;
         }
         total += flux * inverse_cell[axis as usize];
         axis += 1;
@@ -105,6 +128,7 @@ pub fn divergence_transpose_kernel(
     pressure: &[f32],
     output: &mut [f32],
     inverse_cell: &[f32],
+    open_faces: u32,
     nx: u32,
     ny: u32,
     nz: u32,
@@ -122,9 +146,13 @@ pub fn divergence_transpose_kernel(
         let mut value = 0.0f32;
         if i + 1 < n {
             value += 0.5 * (own - pressure[(cell + stride) as usize]);
+        } else if face_is_open(open_faces, axis, 1) {
+            value += own;
         }
         if i > 0 {
             value -= 0.5 * (own - pressure[(cell - stride) as usize]);
+        } else if face_is_open(open_faces, axis, 0) {
+            value -= own;
         }
         output[(3 * cell + axis) as usize] = value * inverse_cell[axis as usize];
         axis += 1;
@@ -138,6 +166,7 @@ pub fn precondition_kernel(
     preconditioned: &mut [f32],
     direction: &mut [f32],
     inverse_cell: &[f32],
+    open_faces: u32,
     nx: u32,
     ny: u32,
     nz: u32,
@@ -146,7 +175,7 @@ pub fn precondition_kernel(
     if cell >= nx * ny * nz {
         terminate!();
     }
-    let z = residual[cell as usize] * inverse_diagonal(cell, inverse_cell, nx, ny, nz);
+    let z = residual[cell as usize] * inverse_diagonal(cell, inverse_cell, open_faces, nx, ny, nz);
     preconditioned[cell as usize] = z;
     direction[cell as usize] = z;
 }
