@@ -96,6 +96,10 @@ pub struct TrainConfig {
     pub image_size: Option<[u32; 2]>,
     /// Train on the first `frames` frames only; `None` means all.
     pub frames: Option<usize>,
+    /// Start at this frame of the data: the run's frame 0 is the videos' frame `first_frame`
+    /// (with `frames = 1`, a static fit of that frame alone: the independent per-frame
+    /// baseline). Needs `frames` when not 0.
+    pub first_frame: usize,
     /// Views to train on by name; `None` uses the data set's train split.
     pub train_views: Option<Vec<String>>,
     /// Held-out views by name; `None` uses the data set's test split.
@@ -171,6 +175,7 @@ impl Default for TrainConfig {
             grid_resolution: 64,
             image_size: None,
             frames: None,
+            first_frame: 0,
             train_views: None,
             test_views: None,
             init_iterations: 2000,
@@ -422,6 +427,12 @@ impl TrainConfig {
                         walls only)"
                     .into(),
             );
+        }
+        if self.first_frame > 0 && self.frames.is_none() {
+            return bad(format!(
+                "first_frame = {} needs frames (how many frames from there)",
+                self.first_frame
+            ));
         }
         if self.frames == Some(0) {
             return bad("frames must be >= 1 (or left out for all)".into());

@@ -94,7 +94,7 @@ fn ground_truth_errors(
     let (Some(dir), Some(scale)) = (&scene.ground_truth, scene.ground_truth_density_scale) else {
         return Ok(None);
     };
-    let path = dir.join(format!("frame_{t:03}.safetensors"));
+    let path = dir.join(format!("frame_{:03}.safetensors", scene.first_frame + t));
     if !path.is_file() {
         return Ok(None);
     }

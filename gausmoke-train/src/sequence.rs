@@ -33,6 +33,8 @@ pub struct Sequence {
     pub hi: Vec3,
     /// `<path>/gt`: per-frame ground truth written by the synthetic generator, if present.
     pub ground_truth: Option<PathBuf>,
+    /// The data's frame that is frame 0 here (`first_frame` of the configuration).
+    pub first_frame: usize,
     /// Density scale the synthetic generator rendered with (sigma = scale * density).
     pub ground_truth_density_scale: Option<f32>,
 }
@@ -98,7 +100,9 @@ impl Sequence {
     fn load_options(config: &TrainConfig) -> LoadOptions {
         LoadOptions {
             resolution: config.image_size.map(|[w, h]| (w, h)),
-            frames: config.frames.map(|n| 0..n),
+            frames: config
+                .frames
+                .map(|n| config.first_frame..config.first_frame.saturating_add(n)),
             background: None,
         }
     }
@@ -220,6 +224,7 @@ impl Sequence {
             lo: bbox.min,
             hi: bbox.max,
             ground_truth: ground_truth.is_dir().then_some(ground_truth),
+            first_frame: config.first_frame,
             ground_truth_density_scale: density_scale,
         })
     }

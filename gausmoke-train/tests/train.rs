@@ -807,3 +807,36 @@ fn walk(dir: &Path) -> Vec<PathBuf> {
     }
     found
 }
+
+/// `first_frame` starts the run at a later frame of the data (the independent per-frame
+/// baseline): its frame 0 holds the data's frame `first_frame`, for every view; without
+/// `frames` it is refused.
+#[test]
+fn first_frame_starts_the_run_later_in_the_data() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let full = Sequence::open(&data, &test_config()).unwrap();
+    let later = TrainConfig {
+        first_frame: 2,
+        frames: Some(1),
+        ..test_config()
+    };
+    let alone = Sequence::open(&data, &later).unwrap();
+    assert_eq!((alone.frames(), alone.first_frame), (1, 2));
+    for (a, b) in alone.train[0]
+        .iter()
+        .chain(&alone.test[0])
+        .zip(full.train[2].iter().chain(&full.test[2]))
+    {
+        assert_eq!(a.view, b.view);
+        assert_eq!(a.image.data(), b.image.data(), "view {}", a.view);
+    }
+    assert_ne!(alone.fingerprint(), full.fingerprint());
+    let unbounded = TrainConfig {
+        first_frame: 2,
+        frames: None,
+        ..test_config()
+    };
+    let err = unbounded.validate().unwrap_err().to_string();
+    assert!(err.contains("first_frame = 2 needs frames"), "{err}");
+}
