@@ -18,6 +18,7 @@ use gausmoke_train::{Run, TrainConfig, eval, sequence::Sequence};
 use serde_json::{Value, json};
 
 mod ablation;
+mod independent;
 mod results;
 
 use ablation::Ablation;
@@ -80,6 +81,11 @@ pub struct ReproduceArgs {
     /// Folder holding `RESULTS.md` and `results/` (default: the workspace's `docs`).
     #[arg(long)]
     docs: Option<PathBuf>,
+    /// After each run, fit these frames each on their own (the frame-0 fit's settings) and
+    /// record them beside it: the independent per-frame baseline (comma list, e.g.
+    /// `0,30,60,90,119`). Written to `<out>/<key>-independent/frame_TTT`.
+    #[arg(long, value_delimiter = ',', value_name = "FRAMES")]
+    independent: Vec<usize>,
 }
 
 fn quick_scalar_real() -> TrainConfig {
@@ -301,6 +307,10 @@ fn command_line(args: &ReproduceArgs) -> String {
     if let Some(weights) = &args.lpips_weights {
         line += &format!(" --lpips-weights {}", weights.display());
     }
+    if !args.independent.is_empty() {
+        let frames: Vec<String> = args.independent.iter().map(|t| t.to_string()).collect();
+        line += &format!(" --independent {}", frames.join(","));
+    }
     line
 }
 
@@ -340,6 +350,13 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
     let docs = args.docs.clone().unwrap_or_else(|| root.join("docs"));
     let results_dir = docs.join("results");
     std::fs::create_dir_all(&results_dir)?;
+    let baseline = independent::Baseline {
+        frames: &args.independent,
+        data: &data,
+        device: &device,
+        resume: args.resume,
+        lpips_weights: args.lpips_weights.as_deref(),
+    };
     for variant in variants(&args)? {
         let run_dir = args.out.join(&variant.key);
         eprintln!(
@@ -352,6 +369,7 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
         let scene = Sequence::open(&data, &variant.config)
             .with_context(|| format!("loading {}", data.display()))?;
         let frames = scene.frames();
+        independent::check_frames(&args.independent, frames)?;
         let start = Instant::now();
         let mut trainer = Run::new(
             scene,
@@ -368,6 +386,20 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
         let metrics: Value = serde_json::from_str(
             &std::fs::read_to_string(run_dir.join("metrics.json")).context("metrics.json")?,
         )?;
+        let independent = baseline.fit(
+            &variant.config,
+            &report,
+            &args.out.join(format!("{}-independent", variant.key)),
+        )?;
+        let per_frame = |value: fn(&eval::FrameEval) -> Option<f64>| -> Vec<Option<f64>> {
+            report.frames.iter().map(value).collect()
+        };
+        let from_metrics = |name: &str| -> Vec<Value> {
+            metrics["per_frame"]
+                .as_array()
+                .map(|rows| rows.iter().map(|row| row[name].clone()).collect())
+                .unwrap_or_default()
+        };
         let last_frame = run_dir
             .join("frames")
             .join(format!("frame_{:03}.safetensors", frames - 1));
@@ -396,6 +428,15 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             "mean_abs_divergence": report.mean_abs_divergence,
             "velocity_relative_error": report.velocity_relative_error_mean,
             "density_relative_error": report.density_relative_error_mean,
+            "test_psnr_per_frame": per_frame(|f| f.test_psnr),
+            "test_ssim_per_frame": per_frame(|f| f.test_ssim),
+            "test_lpips_per_frame": per_frame(|f| f.test_lpips),
+            "velocity_relative_error_per_frame": per_frame(|f| f.velocity_relative_error),
+            "density_relative_error_per_frame": per_frame(|f| f.density_relative_error),
+            "mean_abs_divergence_per_frame": per_frame(|f| Some(f.mean_abs_divergence)),
+            "train_l1_per_frame": from_metrics("train_l1"),
+            "clamped_to_box_per_frame": from_metrics("clamped_to_box"),
+            "independent": independent,
             "training_seconds": metrics["training_seconds"],
             "wall_seconds_with_outputs": wall_seconds,
             "phase_seconds": metrics["phase_seconds"],
@@ -447,6 +488,7 @@ mod tests {
             overrides: Vec::new(),
             tag: None,
             docs: Some(docs.clone()),
+            independent: vec![0, 1],
         };
         run(args).unwrap();
 
@@ -462,7 +504,28 @@ mod tests {
         assert!(psnr > 33.0, "held-out PSNR {psnr} dB");
         let divergence = record["mean_abs_divergence"].as_f64().unwrap();
         assert!(divergence < 1e-4, "mean |div u| {divergence}");
+        assert_eq!(record["test_psnr_per_frame"].as_array().unwrap().len(), 2);
+        // Frame 0 fitted alone is the sequential run's frame-0 fit (same settings and seed),
+        // so it must agree exactly; frame 1 alone is a real fit of the next frame.
+        let alone = record["independent"].as_array().unwrap();
+        assert_eq!(alone.len(), 2);
+        assert_eq!(alone[0]["frame"], 0);
+        assert_eq!(
+            alone[0]["sequential_minus_independent_psnr"], 0.0,
+            "{alone:?}"
+        );
+        let frame1 = alone[1]["test_psnr"].as_f64().unwrap();
+        assert!(frame1 > 33.0, "frame 1 alone: {frame1} dB");
+        let sequential1 = record["test_psnr_per_frame"][1].as_f64().unwrap();
+        assert_eq!(
+            alone[1]["sequential_minus_independent_psnr"].as_f64(),
+            Some(sequential1 - frame1)
+        );
         let results = std::fs::read_to_string(docs.join("RESULTS.md")).unwrap();
+        assert!(
+            results.contains("| `scalar-real-quick-f2` | 1 | "),
+            "{results}"
+        );
         assert!(
             results.contains("| `scalar-real-quick-f2` | full method | 2 | 8000 |"),
             "{results}"

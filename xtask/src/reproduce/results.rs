@@ -221,6 +221,88 @@ fn write_paired_ablations(
 }
 
 /// Rebuilds the generated block of `docs/RESULTS.md` from `docs/results/*.json`.
+/// A run is long enough to show drift from this many frames on.
+const DRIFT_MIN_FRAMES: usize = 20;
+const DRIFT_BLOCK: usize = 10;
+
+/// The held-out PSNR of every long run per 10-frame block, and every sampled frame of the
+/// independent baseline (`--independent`) beside the sequential run's result there.
+fn write_drift_tables(block: &mut String, records: &[Value]) -> Result<()> {
+    let per_frame = |r: &Value| -> Vec<Option<f64>> {
+        r["test_psnr_per_frame"]
+            .as_array()
+            .map(|a| a.iter().map(Value::as_f64).collect())
+            .unwrap_or_default()
+    };
+    let long: Vec<(&Value, Vec<Option<f64>>)> = records
+        .iter()
+        .map(|r| (r, per_frame(r)))
+        .filter(|(_, psnr)| psnr.len() >= DRIFT_MIN_FRAMES)
+        .collect();
+    if let Some(blocks) = long
+        .iter()
+        .map(|(_, psnr)| psnr.len().div_ceil(DRIFT_BLOCK))
+        .max()
+    {
+        writeln!(
+            block,
+            "\nHeld-out PSNR (dB) per block of {DRIFT_BLOCK} frames:\n"
+        )?;
+        let mut header = "| run |".to_string();
+        let mut rule = "|---|".to_string();
+        for b in 0..blocks {
+            header += &format!(" {}-{} |", b * DRIFT_BLOCK, (b + 1) * DRIFT_BLOCK - 1);
+            rule += "---:|";
+        }
+        writeln!(block, "{header}\n{rule}")?;
+        for (r, psnr) in &long {
+            let mut row = format!("| `{}` |", r["key"].as_str().unwrap_or("?"));
+            for chunk in psnr.chunks(DRIFT_BLOCK) {
+                let values: Vec<f64> = chunk.iter().flatten().copied().collect();
+                if values.is_empty() {
+                    row += " n/a |";
+                } else {
+                    row += &format!(" {:.2} |", mean_std(&values).0);
+                }
+            }
+            row += &" |".repeat(blocks - psnr.len().div_ceil(DRIFT_BLOCK));
+            writeln!(block, "{row}")?;
+        }
+    }
+    let baselines: Vec<(&Value, &Vec<Value>)> = records
+        .iter()
+        .filter_map(|r| r["independent"].as_array().map(|rows| (r, rows)))
+        .filter(|(_, rows)| !rows.is_empty())
+        .collect();
+    if !baselines.is_empty() {
+        writeln!(
+            block,
+            "\nThe sequential run against each sampled frame fitted on its own (`--independent`; same settings as the run's frame-0 fit), held-out PSNR (dB):\n"
+        )?;
+        writeln!(
+            block,
+            "| run | frame | sequential | frame alone | sequential minus alone |"
+        )?;
+        writeln!(block, "|---|---:|---:|---:|---:|")?;
+        for (r, rows) in baselines {
+            for row in rows {
+                writeln!(
+                    block,
+                    "| `{}` | {} | {} | {} | {} |",
+                    r["key"].as_str().unwrap_or("?"),
+                    row["frame"],
+                    number(&row["sequential_test_psnr"], 2),
+                    number(&row["test_psnr"], 2),
+                    row["sequential_minus_independent_psnr"]
+                        .as_f64()
+                        .map_or("n/a".into(), |d| format!("{d:+.2}")),
+                )?;
+            }
+        }
+    }
+    Ok(())
+}
+
 pub fn write_results_md(docs: &Path) -> Result<()> {
     let mut records: Vec<Value> = std::fs::read_dir(docs.join("results"))?
         .flatten()
@@ -269,6 +351,7 @@ pub fn write_results_md(docs: &Path) -> Result<()> {
         )?;
     }
     write_seed_summary(&mut block, &records)?;
+    write_drift_tables(&mut block, &records)?;
     writeln!(
         block,
         "\nPaper, ScalarFlow real capture (Table 1/2): {PAPER_SCALAR_REAL}.\n"
@@ -332,6 +415,45 @@ pub fn write_results_md(docs: &Path) -> Result<()> {
 mod tests {
     use super::*;
     use serde_json::json;
+
+    #[test]
+    fn long_runs_get_block_means_and_the_independent_baseline_its_rows() {
+        // 25 frames: blocks 0-9 and 10-19 full, 20-24 partial; frame 3 has no held-out view.
+        let psnr: Vec<Value> = (0..25)
+            .map(|t| {
+                if t == 3 {
+                    Value::Null
+                } else {
+                    json!(40.0 - t as f64)
+                }
+            })
+            .collect();
+        let records = vec![
+            json!({"key": "long", "test_psnr_per_frame": psnr, "independent": [
+                {"frame": 0, "sequential_test_psnr": 40.0, "test_psnr": 40.0,
+                 "sequential_minus_independent_psnr": 0.0},
+                {"frame": 20, "sequential_test_psnr": 20.0, "test_psnr": 21.5,
+                 "sequential_minus_independent_psnr": -1.5},
+            ]}),
+            json!({"key": "short", "test_psnr_per_frame": [30.0, 29.0], "independent": []}),
+        ];
+        let mut block = String::new();
+        write_drift_tables(&mut block, &records).unwrap();
+        // Block 0: frames 0-9 without frame 3, mean of 40, 39, 38, 36, ..., 31 = 318 / 9.
+        assert!(
+            block.contains("| run | 0-9 | 10-19 | 20-29 |\n|---|---:|---:|---:|\n| `long` | 35.33 | 25.50 | 18.00 |\n"),
+            "{block}"
+        );
+        assert!(!block.contains("`short`"), "{block}");
+        assert!(
+            block.contains("| `long` | 0 | 40.00 | 40.00 | +0.00 |"),
+            "{block}"
+        );
+        assert!(
+            block.contains("| `long` | 20 | 20.00 | 21.50 | -1.50 |"),
+            "{block}"
+        );
+    }
 
     #[test]
     fn ablations_are_paired_with_the_full_method_of_the_same_seed() {
