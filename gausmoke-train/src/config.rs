@@ -424,7 +424,7 @@ impl TrainConfig {
         if !self.open_faces.is_empty() && self.projection != ProjectionKind::Exact {
             return bad(
                 "open_faces needs projection = \"exact\" (the penalty form has solid \
-                        walls only)"
+                        walls only); with the penalty form, also set open_faces = []"
                     .into(),
             );
         }

@@ -40,6 +40,21 @@ fn mean_std(values: &[f64]) -> (f64, f64) {
     (mean, var.sqrt())
 }
 
+/// A record's variant label, naming its open box faces (from its configuration) where the
+/// label does not: a preset's faces are not in its label.
+fn variant(record: &Value) -> String {
+    let label = record["variant"].as_str().unwrap_or("?");
+    let faces: Vec<&str> = record["config"]["open_faces"]
+        .as_array()
+        .map(|faces| faces.iter().filter_map(Value::as_str).collect())
+        .unwrap_or_default();
+    if faces.is_empty() || label.contains("open_faces") {
+        label.to_string()
+    } else {
+        format!("{label}, open faces {}", faces.join(" "))
+    }
+}
+
 /// The seed of a record's Gaussians' initialisation.
 fn seed_of(record: &Value) -> u64 {
     record["seed"]
@@ -121,7 +136,7 @@ fn write_seed_summary(block: &mut String, records: &[Value]) -> Result<()> {
         writeln!(
             block,
             "| `{group}` | {} | {} | {} | {} | {} | {} | {} |",
-            runs[0]["variant"].as_str().unwrap_or("?"),
+            variant(runs[0]),
             seeds.join(", "),
             column("test_psnr", SEED_METRICS[0].format),
             column("test_ssim", |v| format!("{v:.4}")),
@@ -331,7 +346,7 @@ pub fn write_results_md(docs: &Path) -> Result<()> {
             block,
             "| `{}` | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {}, {}, {} |",
             r["key"].as_str().unwrap_or("?"),
-            r["variant"].as_str().unwrap_or("?"),
+            variant(r),
             r["frames"],
             r["gaussians"],
             number(&r["test_psnr"], 2),
@@ -453,6 +468,23 @@ mod tests {
             block.contains("| `long` | 20 | 20.00 | 21.50 | -1.50 |"),
             "{block}"
         );
+    }
+
+    #[test]
+    fn variants_name_open_faces_that_their_label_does_not() {
+        let record =
+            |label: &str, faces: Value| json!({"variant": label, "config": {"open_faces": faces}});
+        assert_eq!(
+            variant(&record("full method", json!(["y-", "y+"]))),
+            "full method, open faces y- y+"
+        );
+        assert_eq!(variant(&record("full method", json!([]))), "full method");
+        assert_eq!(
+            variant(&json!({"variant": "full method", "config": {}})),
+            "full method"
+        );
+        let tagged = r#"full method, open_faces=["y-","y+"]"#;
+        assert_eq!(variant(&record(tagged, json!(["y-", "y+"]))), tagged);
     }
 
     #[test]
