@@ -44,10 +44,7 @@ fn mean_std(values: &[f64]) -> (f64, f64) {
 /// label does not: a preset's faces are not in its label.
 fn variant(record: &Value) -> String {
     let label = record["variant"].as_str().unwrap_or("?");
-    let faces: Vec<&str> = record["config"]["open_faces"]
-        .as_array()
-        .map(|faces| faces.iter().filter_map(Value::as_str).collect())
-        .unwrap_or_default();
+    let faces = open_faces(record);
     if faces.is_empty() || label.contains("open_faces") {
         label.to_string()
     } else {
@@ -94,13 +91,24 @@ const SEED_METRICS: [SeedMetric; 4] = [
     },
 ];
 
+/// A group of runs: the box faces they leave open (a preset's faces are not in its keys) and
+/// the group name they were recorded under.
+type GroupKey<'a> = (Vec<&'a str>, &'a str);
+
+fn open_faces(record: &Value) -> Vec<&str> {
+    record["config"]["open_faces"]
+        .as_array()
+        .map(|faces| faces.iter().filter_map(Value::as_str).collect())
+        .unwrap_or_default()
+}
+
 /// Runs grouped by what they share apart from the seed (records written before groups existed
-/// are their own group).
-fn seed_groups(records: &[Value]) -> std::collections::BTreeMap<&str, Vec<&Value>> {
-    let mut groups: std::collections::BTreeMap<&str, Vec<&Value>> = Default::default();
+/// are their own group; runs with other open faces are never in one group).
+fn seed_groups(records: &[Value]) -> std::collections::BTreeMap<GroupKey<'_>, Vec<&Value>> {
+    let mut groups: std::collections::BTreeMap<GroupKey<'_>, Vec<&Value>> = Default::default();
     for r in records {
         let group = r["group"].as_str().or(r["key"].as_str()).unwrap_or("?");
-        groups.entry(group).or_default().push(r);
+        groups.entry((open_faces(r), group)).or_default().push(r);
     }
     groups
 }
@@ -123,7 +131,7 @@ fn write_seed_summary(block: &mut String, records: &[Value]) -> Result<()> {
         "| group | variant | seeds | held-out PSNR (dB) | SSIM | velocity rel. error | density rel. error | mean abs div u (1/frame) |"
     )?;
     writeln!(block, "|---|---|---|---:|---:|---:|---:|---:|")?;
-    for (group, runs) in &repeated {
+    for ((_, group), runs) in &repeated {
         let column = |name: &str, format: fn(f64) -> String| {
             let values: Vec<f64> = runs.iter().filter_map(|r| r[name].as_f64()).collect();
             if values.len() < 2 {
@@ -154,10 +162,10 @@ fn write_seed_summary(block: &mut String, records: &[Value]) -> Result<()> {
 /// both runs alike.
 fn write_paired_ablations(
     block: &mut String,
-    groups: &std::collections::BTreeMap<&str, Vec<&Value>>,
+    groups: &std::collections::BTreeMap<GroupKey<'_>, Vec<&Value>>,
 ) -> Result<()> {
     let mut rows = Vec::new();
-    for (group, runs) in groups {
+    for ((faces, group), runs) in groups {
         let Some(ablation) = Ablation::ALL
             .into_iter()
             .find(|a| group.ends_with(a.suffix()))
@@ -165,7 +173,7 @@ fn write_paired_ablations(
             continue;
         };
         let full_group = &group[..group.len() - ablation.suffix().len()];
-        let Some(full_runs) = groups.get(full_group) else {
+        let Some(full_runs) = groups.get(&(faces.clone(), full_group)) else {
             continue;
         };
         let pairs: Vec<(&Value, &Value)> = runs
@@ -485,6 +493,30 @@ mod tests {
         );
         let tagged = r#"full method, open_faces=["y-","y+"]"#;
         assert_eq!(variant(&record(tagged, json!(["y-", "y+"]))), tagged);
+    }
+
+    #[test]
+    fn runs_with_other_open_faces_are_not_summarised_together() {
+        let record = |seed: u64, faces: Value| {
+            json!({"key": format!("g-s{seed}"), "group": "g", "seed": seed, "variant": "full method",
+                   "test_psnr": 30.0 + seed as f64, "config": {"open_faces": faces}})
+        };
+        let records = vec![
+            record(1, json!([])),
+            record(2, json!([])),
+            record(3, json!(["y-", "y+"])),
+            record(4, json!(["y-", "y+"])),
+        ];
+        let mut block = String::new();
+        write_seed_summary(&mut block, &records).unwrap();
+        assert!(
+            block.contains("| `g` | full method | 1, 2 | 31.50 +- 0.71 |"),
+            "{block}"
+        );
+        assert!(
+            block.contains("| `g` | full method, open faces y- y+ | 3, 4 | 33.50 +- 0.71 |"),
+            "{block}"
+        );
     }
 
     #[test]
