@@ -312,16 +312,19 @@ fn command_line(args: &ReproduceArgs) -> String {
         line += &format!(" --set {}", shell_quoted(entry));
     }
     if let Some(tag) = &args.tag {
-        line += &format!(" --tag {tag}");
+        line += &format!(" --tag {}", shell_quoted(tag));
     }
     if args.no_ablations {
         line += " --no-ablations";
     }
     if let Some(data) = &args.data {
-        line += &format!(" --data {}", data.display());
+        line += &format!(" --data {}", shell_quoted(&data.display().to_string()));
     }
     if let Some(weights) = &args.lpips_weights {
-        line += &format!(" --lpips-weights {}", weights.display());
+        line += &format!(
+            " --lpips-weights {}",
+            shell_quoted(&weights.display().to_string())
+        );
     }
     if !args.independent.is_empty() {
         let frames: Vec<String> = args.independent.iter().map(|t| t.to_string()).collect();
