@@ -204,20 +204,17 @@ pub fn evaluate(
             ssim.push(metrics::ssim(&rgb, observation.image.data(), w, h));
         }
         let average = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
+        let truth = ground_truth_errors(&scene, &grid, t, density, velocity)?;
         // u^0 is zero by construction (Algorithm 1, line 1): velocity errors from frame 1.
-        let truth = if t > 0 {
-            ground_truth_errors(&scene, &grid, t, density, velocity)?
-        } else {
-            None
-        };
+        let velocity_truth = truth.filter(|_| t > 0);
         frames.push(FrameEval {
             frame: t,
             test_psnr: average(&psnr),
             test_ssim: average(&ssim),
             test_lpips: average(&perceptual),
             mean_abs_divergence: metrics::mean_abs_divergence(&grid, open_faces, velocity),
-            velocity_rmse: truth.map(|e| e.0),
-            velocity_relative_error: truth.map(|e| e.1),
+            velocity_rmse: velocity_truth.map(|e| e.0),
+            velocity_relative_error: velocity_truth.map(|e| e.1),
             density_relative_error: truth.map(|e| e.2),
         });
     }

@@ -60,7 +60,8 @@ enum Command {
     },
     /// Write a synthetic smoke scene with ground-truth density and velocity.
     Synth {
-        /// `tiny` (24^3, 3 views, 8 frames, 64x96) or `scalarflow` (64^3, 5 views, 120
+        /// `tiny` (24^3, 3 views, 8 frames, 64x96), `long` (32^3, 5 views, 72 frames,
+        /// 64x96; the plume leaves through the top) or `scalarflow` (64^3, 5 views, 120
         /// frames, 270x480).
         preset: String,
         /// Output folder (must not exist or be empty).
@@ -184,8 +185,9 @@ fn run_command(cli: Cli) -> Result<()> {
         Some(Command::Synth { preset, out, seed }) => {
             let mut config = match preset.as_str() {
                 "tiny" => SynthConfig::tiny(),
+                "long" => SynthConfig::long_plume(),
                 "scalarflow" => SynthConfig::scalarflow(),
-                other => bail!("unknown preset `{other}`: use `tiny` or `scalarflow`"),
+                other => bail!("unknown preset `{other}`: use `tiny`, `long` or `scalarflow`"),
             };
             if let Some(seed) = seed {
                 config.seed = seed;

@@ -165,6 +165,16 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
         velocity_error < 0.95,
         "velocity relative error {velocity_error}"
     );
+    // Density against the truth from frame 0 on (the frame-alone baseline has only frame 0);
+    // velocity from frame 1, since u^0 = 0 by construction.
+    let first = &report.frames[0];
+    assert!(first.velocity_relative_error.is_none());
+    let density_error = first.density_relative_error.unwrap();
+    // An empty reconstruction scores exactly 1.0.
+    assert!(
+        density_error < 0.95,
+        "frame-0 density error {density_error}"
+    );
     assert!(run.join("eval.json").is_file());
 }
 
