@@ -30,6 +30,10 @@ pub struct FrameEval {
     /// `|sigma - s rho_true| / |s rho_true|` over all cells (`s` the generator's density
     /// scale, `rho_true` its density).
     pub density_relative_error: Option<f64>,
+    /// Pearson correlation of `sigma` with `rho_true` over all cells: unlike the relative
+    /// error it ignores the overall scale, which the images leave open (a darker smoke colour
+    /// with a denser medium renders alike).
+    pub density_correlation: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -40,6 +44,7 @@ pub struct EvalReport {
     pub mean_abs_divergence: f64,
     pub velocity_relative_error_mean: Option<f64>,
     pub density_relative_error_mean: Option<f64>,
+    pub density_correlation_mean: Option<f64>,
     pub test_lpips_mean: Option<f64>,
     /// Where the LPIPS weights came from, or why LPIPS is absent.
     pub lpips: String,
@@ -83,6 +88,15 @@ fn sample_grid(grid: &GridSpec, values: &[f32], channels: usize, p: Vec3, out: &
     }
 }
 
+/// One frame against the generator's ground truth (see [`FrameEval`]).
+#[derive(Debug, Clone, Copy)]
+struct TruthErrors {
+    velocity_rmse: f64,
+    velocity_relative_error: f64,
+    density_relative_error: f64,
+    density_correlation: f64,
+}
+
 /// Errors against the generator's ground truth for frame `t`.
 fn ground_truth_errors(
     scene: &Sequence,
@@ -90,7 +104,7 @@ fn ground_truth_errors(
     t: usize,
     density: &[f32],
     velocity: &[f32],
-) -> Result<Option<(f64, f64, f64)>, TrainError> {
+) -> Result<Option<TruthErrors>, TrainError> {
     let (Some(dir), Some(scale)) = (&scene.ground_truth, scene.ground_truth_density_scale) else {
         return Ok(None);
     };
@@ -111,6 +125,8 @@ fn ground_truth_errors(
     let (mut density_error2, mut density_truth2) = (0.0, 0.0);
     let mut ours = [0.0f64; 3];
     let mut ours_density = [0.0f64];
+    // Sums for the correlation: ours, truth, their squares and product.
+    let mut moments = [0.0f64; 5];
     // Ground truth layout: [z][y][x], x fastest, cell centres at (i + 0.5) / n of the box.
     for z in 0..n {
         for y in 0..n {
@@ -122,6 +138,16 @@ fn ground_truth_errors(
                 let truth = (scale * true_density[cell]) as f64;
                 density_error2 += (ours_density[0] - truth).powi(2);
                 density_truth2 += truth * truth;
+                let sampled = ours_density[0];
+                for (sum, term) in moments.iter_mut().zip([
+                    sampled,
+                    truth,
+                    sampled * sampled,
+                    truth * truth,
+                    sampled * truth,
+                ]) {
+                    *sum += term;
+                }
                 if true_density[cell] > threshold {
                     sample_grid(grid, velocity, 3, p, &mut ours);
                     for a in 0..3 {
@@ -135,11 +161,20 @@ fn ground_truth_errors(
         }
     }
     let cells = smoke_cells.max(1) as f64;
-    Ok(Some((
-        (error2 / cells).sqrt(),
-        (error2 / truth2.max(1e-30)).sqrt(),
-        (density_error2 / density_truth2.max(1e-30)).sqrt(),
-    )))
+    let count = (n * n * n) as f64;
+    let [o, r, oo, rr, or] = moments.map(|m| m / count);
+    let spread = ((oo - o * o) * (rr - r * r)).max(0.0).sqrt();
+    Ok(Some(TruthErrors {
+        velocity_rmse: (error2 / cells).sqrt(),
+        velocity_relative_error: (error2 / truth2.max(1e-30)).sqrt(),
+        density_relative_error: (density_error2 / density_truth2.max(1e-30)).sqrt(),
+        // An empty (constant) reconstruction is uncorrelated.
+        density_correlation: if spread > 0.0 {
+            (or - o * r) / spread
+        } else {
+            0.0
+        },
+    }))
 }
 
 /// Evaluates the run folder `run` (written by [`crate::Trainer`]) on `device`.
@@ -213,9 +248,10 @@ pub fn evaluate(
             test_ssim: average(&ssim),
             test_lpips: average(&perceptual),
             mean_abs_divergence: metrics::mean_abs_divergence(&grid, open_faces, velocity),
-            velocity_rmse: velocity_truth.map(|e| e.0),
-            velocity_relative_error: velocity_truth.map(|e| e.1),
-            density_relative_error: truth.map(|e| e.2),
+            velocity_rmse: velocity_truth.map(|e| e.velocity_rmse),
+            velocity_relative_error: velocity_truth.map(|e| e.velocity_relative_error),
+            density_relative_error: truth.map(|e| e.density_relative_error),
+            density_correlation: truth.map(|e| e.density_correlation),
         });
     }
     if frames.is_empty() {
@@ -231,6 +267,7 @@ pub fn evaluate(
             .unwrap_or(f64::NAN),
         velocity_relative_error_mean: mean(frames.iter().map(|f| f.velocity_relative_error)),
         density_relative_error_mean: mean(frames.iter().map(|f| f.density_relative_error)),
+        density_correlation_mean: mean(frames.iter().map(|f| f.density_correlation)),
         test_lpips_mean: mean(frames.iter().map(|f| f.test_lpips)),
         lpips: match lpips_weights {
             Some(path) => format!("AlexNet LPIPS v0.1, weights from {}", path.display()),

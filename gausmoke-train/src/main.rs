@@ -176,6 +176,10 @@ fn run_command(cli: Cli) -> Result<()> {
                 "density rel. error   {}",
                 show(report.density_relative_error_mean)
             );
+            println!(
+                "density correlation  {}",
+                show(report.density_correlation_mean)
+            );
             println!("held-out LPIPS       {}", show(report.test_lpips_mean));
             println!("  ({})", report.lpips);
             println!("wrote {}", run.join("eval.json").display());

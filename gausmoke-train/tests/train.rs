@@ -175,6 +175,12 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
         density_error < 0.95,
         "frame-0 density error {density_error}"
     );
+    let correlation = first.density_correlation.unwrap();
+    eprintln!("frame-0 density: relative error {density_error:.3}, correlation {correlation:.3}");
+    assert!(
+        correlation > 0.5,
+        "frame-0 density correlation {correlation}"
+    );
     assert!(run.join("eval.json").is_file());
 }
 

@@ -18,8 +18,10 @@ pub struct IndependentFrame {
     pub test_psnr: Option<f64>,
     pub test_ssim: Option<f64>,
     pub density_relative_error: Option<f64>,
+    pub density_correlation: Option<f64>,
     pub sequential_test_psnr: Option<f64>,
     pub sequential_density_relative_error: Option<f64>,
+    pub sequential_density_correlation: Option<f64>,
     /// Sequential minus independent held-out PSNR (dB): positive where the physics helps.
     pub sequential_minus_independent_psnr: Option<f64>,
     pub training_seconds: f64,
@@ -89,8 +91,10 @@ impl Baseline<'_> {
                 test_psnr: alone.test_psnr,
                 test_ssim: alone.test_ssim,
                 density_relative_error: alone.density_relative_error,
+                density_correlation: alone.density_correlation,
                 sequential_test_psnr,
                 sequential_density_relative_error: there.and_then(|f| f.density_relative_error),
+                sequential_density_correlation: there.and_then(|f| f.density_correlation),
                 sequential_minus_independent_psnr: sequential_test_psnr
                     .zip(alone.test_psnr)
                     .map(|(s, i)| s - i),

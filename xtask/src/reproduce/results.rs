@@ -300,18 +300,18 @@ fn write_drift_tables(block: &mut String, records: &[Value]) -> Result<()> {
     if !baselines.is_empty() {
         writeln!(
             block,
-            "\nThe sequential run against each sampled frame fitted on its own (`--independent`; same settings as the run's frame-0 fit), held-out PSNR (dB):\n"
+            "\nThe sequential run against each sampled frame fitted on its own (`--independent`; same settings as the run's frame-0 fit): held-out PSNR (dB), and on data with ground truth the 3D density's correlation with the true density:\n"
         )?;
         writeln!(
             block,
-            "| run | frame | sequential | frame alone | sequential minus alone |"
+            "| run | frame | sequential | frame alone | sequential minus alone | density corr., sequential | density corr., alone |"
         )?;
-        writeln!(block, "|---|---:|---:|---:|---:|")?;
+        writeln!(block, "|---|---:|---:|---:|---:|---:|---:|")?;
         for (r, rows) in baselines {
             for row in rows {
                 writeln!(
                     block,
-                    "| `{}` | {} | {} | {} | {} |",
+                    "| `{}` | {} | {} | {} | {} | {} | {} |",
                     r["key"].as_str().unwrap_or("?"),
                     row["frame"],
                     number(&row["sequential_test_psnr"], 2),
@@ -319,6 +319,8 @@ fn write_drift_tables(block: &mut String, records: &[Value]) -> Result<()> {
                     row["sequential_minus_independent_psnr"]
                         .as_f64()
                         .map_or("n/a".into(), |d| format!("{d:+.2}")),
+                    number(&row["sequential_density_correlation"], 3),
+                    number(&row["density_correlation"], 3),
                 )?;
             }
         }
@@ -456,7 +458,8 @@ mod tests {
                 {"frame": 0, "sequential_test_psnr": 40.0, "test_psnr": 40.0,
                  "sequential_minus_independent_psnr": 0.0},
                 {"frame": 20, "sequential_test_psnr": 20.0, "test_psnr": 21.5,
-                 "sequential_minus_independent_psnr": -1.5},
+                 "sequential_minus_independent_psnr": -1.5,
+                 "sequential_density_correlation": 0.8, "density_correlation": 0.75},
             ]}),
             json!({"key": "short", "test_psnr_per_frame": [30.0, 29.0], "independent": []}),
         ];
@@ -469,11 +472,11 @@ mod tests {
         );
         assert!(!block.contains("`short`"), "{block}");
         assert!(
-            block.contains("| `long` | 0 | 40.00 | 40.00 | +0.00 |"),
+            block.contains("| `long` | 0 | 40.00 | 40.00 | +0.00 | n/a | n/a |"),
             "{block}"
         );
         assert!(
-            block.contains("| `long` | 20 | 20.00 | 21.50 | -1.50 |"),
+            block.contains("| `long` | 20 | 20.00 | 21.50 | -1.50 | 0.800 | 0.750 |"),
             "{block}"
         );
     }
