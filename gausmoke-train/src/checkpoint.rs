@@ -16,7 +16,7 @@ use crate::arrays::{HostArrays, read_arrays, take_array, write_arrays};
 use crate::config::TrainConfig;
 use crate::export::sync_to_disk;
 use crate::hash::Fnv1a;
-use crate::state::{FrameReport, LossRow, TrainState};
+use crate::state::{FrameReport, LossRow, PhaseSeconds, TrainState};
 
 fn checkpoint_error(path: &Path, reason: impl ToString) -> TrainError {
     TrainError::Checkpoint {
@@ -35,6 +35,10 @@ pub struct CheckpointMeta {
     pub reports: Vec<FrameReport>,
     /// Training seconds spent up to this checkpoint (across resumed sessions).
     pub elapsed_seconds: f64,
+    /// Per-phase wall times up to this checkpoint (across resumed sessions), so that a
+    /// resumed run's `metrics.json` accounts for all of its training.
+    #[serde(default)]
+    pub phase_seconds: BTreeMap<String, PhaseSeconds>,
     /// Each tensor file's FNV-1a hash, checked on load, so that a damaged file is refused
     /// rather than trained on. Filled in by [`save`].
     #[serde(default)]

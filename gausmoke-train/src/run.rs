@@ -2,6 +2,7 @@
 //! written to its [`RunFolder`] and checkpointed, so an interrupted run resumes where it
 //! stopped.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -12,10 +13,10 @@ use gausmoke_model::projection::OpenFaces;
 
 use crate::checkpoint::{self, CheckpointMeta};
 use crate::config::RESUMABLE_KEYS;
-use crate::run_folder::{FrameState, Metrics, PhaseSeconds, RunFolder, RunInfo, ViewRender};
+use crate::run_folder::{FrameState, Metrics, RunFolder, RunInfo, ViewRender};
 use crate::run_lock::{LOCK_FILE, RunLock};
 use crate::sequence::{Observation, Sequence};
-use crate::state::{FrameReport, LossRow};
+use crate::state::{FrameReport, LossRow, PhaseSeconds};
 use crate::trainer::{FrameOutcome, Trainer};
 use crate::{TrainConfig, TrainError, metrics};
 
@@ -32,6 +33,8 @@ pub struct Run {
     /// Wall time per phase in this session, from the `PhaseLayer` of the current subscriber
     /// (empty without one).
     phase_times: Vec<PhaseTime>,
+    /// Phase totals of earlier sessions of a resumed run.
+    phases_before: BTreeMap<String, PhaseSeconds>,
     /// Keeps a second process from training into the same folder.
     _lock: RunLock,
 }
@@ -85,6 +88,7 @@ impl Run {
             elapsed_before: 0.0,
             session_start: Instant::now(),
             phase_times: Vec::new(),
+            phases_before: BTreeMap::new(),
             _lock: lock,
         };
         let sequence = &run.trainer.sequence;
@@ -172,6 +176,7 @@ impl Run {
                     self.losses = meta.losses;
                     self.reports = meta.reports;
                     self.elapsed_before = meta.elapsed_seconds;
+                    self.phases_before = meta.phase_seconds;
                     if damaged.is_empty() {
                         tracing::info!(checkpoint = %dir.display(), frame = meta.frame, "resumed");
                     } else {
@@ -231,6 +236,20 @@ impl Run {
 
     fn elapsed(&self) -> f64 {
         self.elapsed_before + self.session_start.elapsed().as_secs_f64()
+    }
+
+    /// Per-phase totals of all sessions: the checkpoint's and this session's.
+    fn phase_seconds(&self) -> BTreeMap<String, PhaseSeconds> {
+        let mut totals = self.phases_before.clone();
+        for p in &self.phase_times {
+            let entry = totals.entry(p.name.to_string()).or_insert(PhaseSeconds {
+                calls: 0,
+                seconds: 0.0,
+            });
+            entry.calls += p.calls;
+            entry.seconds += p.seconds;
+        }
+        totals
     }
 
     /// Adds the phase times recorded since the last call.
@@ -337,6 +356,7 @@ impl Run {
             losses: self.losses.clone(),
             reports: self.reports.clone(),
             elapsed_seconds: self.elapsed(),
+            phase_seconds: self.phase_seconds(),
             checksums: Default::default(),
         };
         checkpoint::save(self.folder.root(), &self.trainer.state, &meta)?;
@@ -371,19 +391,7 @@ impl Run {
             train_l1_mean: mean(|r| Some(r.train_l1)),
             training_seconds: self.elapsed(),
             device: format!("{:?}", self.trainer.device),
-            phase_seconds: self
-                .phase_times
-                .iter()
-                .map(|p| {
-                    (
-                        p.name.to_string(),
-                        PhaseSeconds {
-                            seconds: p.seconds,
-                            calls: p.calls,
-                        },
-                    )
-                })
-                .collect(),
+            phase_seconds: self.phase_seconds(),
             per_frame: self.reports.clone(),
         })
     }

@@ -11,6 +11,7 @@ use serde::{Deserialize, Serialize};
 use crate::arrays::{HostArrays, read_arrays, take_array, write_arrays};
 use crate::config::TrainConfig;
 use crate::export::{self, write_atomic};
+pub use crate::state::PhaseSeconds;
 use crate::state::{FrameReport, LossRow};
 use crate::visuals::{self, Picture};
 use crate::{TrainError, checkpoint};
@@ -30,13 +31,6 @@ pub struct RunInfo {
     pub box_hi: [f32; 3],
     pub device: String,
     pub version: String,
-}
-
-/// Wall time of one phase (see `gausmoke_core::phases`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct PhaseSeconds {
-    pub calls: u64,
-    pub seconds: f64,
 }
 
 /// `metrics.json`: per-frame reports and their means.

@@ -16,6 +16,13 @@ pub struct TrainState {
     pub phi_optim: ModuleOptimizer,
 }
 
+/// Wall time of one phase (see `gausmoke_core::phases`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PhaseSeconds {
+    pub calls: u64,
+    pub seconds: f64,
+}
+
 /// Which part of Algorithm 1 a step belongs to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]

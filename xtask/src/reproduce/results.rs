@@ -387,7 +387,9 @@ pub fn write_results_md(docs: &Path) -> Result<()> {
         "Per-phase wall time (s) of each run's optimisation (calls in brackets; nested phases are inside \"backward (all ops)\"):\n"
     )?;
     for r in &records {
-        let Some(phases) = r["phase_seconds"].as_object() else {
+        // Records re-evaluated from a finished run by a build that did not keep phase
+        // timings across sessions have none.
+        let Some(phases) = r["phase_seconds"].as_object().filter(|p| !p.is_empty()) else {
             continue;
         };
         let mut phases: Vec<(&String, &Value)> = phases.iter().collect();
