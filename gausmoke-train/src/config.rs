@@ -157,6 +157,11 @@ pub struct TrainConfig {
     /// Smallest smoke deficit (image units in `[0, 1]`) a place must show in every training
     /// view to receive recycled Gaussians.
     pub respawn_threshold: f32,
+    /// With `q > 0`, recycled Gaussians go only to cells next to (within one cell of) a cell
+    /// whose density, splatted from the Gaussians carried to the frame, is at least `q` times
+    /// its largest value: new smoke appears beside smoke, not in the empty parts of the
+    /// training views' visual hull. 0 lets every cell receive them.
+    pub respawn_near_smoke: f32,
     /// Seed of the Gaussians' initialisation.
     pub seed: u64,
     /// Write renders, exports and velocity slices every this many frames (1 = all).
@@ -204,6 +209,7 @@ impl Default for TrainConfig {
             volumetric: true,
             respawn_fraction: 0.0,
             respawn_threshold: 0.05,
+            respawn_near_smoke: 0.0,
             seed: 2026,
             output_every: 1,
             sync_phase_timings: false,
@@ -376,6 +382,12 @@ impl TrainConfig {
             return bad(format!(
                 "respawn_fraction must be in [0, 1], got {}",
                 self.respawn_fraction
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.respawn_near_smoke) {
+            return bad(format!(
+                "respawn_near_smoke must be in [0, 1], got {}",
+                self.respawn_near_smoke
             ));
         }
         if !(self.respawn_threshold.is_finite() && self.respawn_threshold >= 0.0) {

@@ -9,6 +9,11 @@
 //! - **Which to recycle.** Gaussians clamped onto a face of the box first, then those whose
 //!   largest possible opacity `1 - exp(-sigma sqrt(2 pi) max_std)` is below 1/255 (they add
 //!   nothing to any image), least visible first; at most `respawn_fraction` of all per frame.
+//! - **When.** After frame t's joint iterations, before its refinement: the Gaussians have
+//!   been carried from frame t-1 by the new velocity, so what frame t's views show and they
+//!   do not is smoke that entered (or was never fitted), and the refinement fits the recycled
+//!   ones. Measured right after a frame's own fit instead, the deficit is what that fit left
+//!   over (at most 0.002-0.007 on ScalarReal), and the rule never fired.
 //! - **Where to put them.** Every cell centre of the velocity grid is projected into every
 //!   training view. Its score is the smallest, over the views, of the pixel's *smoke
 //!   deficit*: how much further the observation is from the background than the render is
@@ -73,6 +78,9 @@ pub struct RespawnOptions {
     pub std: f32,
     pub background: [f32; 3],
     pub seed: u64,
+    /// Cells must lie within one cell of density at least this fraction of the largest
+    /// (`respawn_near_smoke`); 0 admits every cell.
+    pub near_smoke: f32,
 }
 
 /// What [`respawn`] did, for the frame report.
@@ -191,18 +199,57 @@ fn cell_scores(views: &[DeficitView], lattice: &SpawnLattice, background: [f32; 
     scores
 }
 
+/// Cells within one cell (26-neighbourhood) of a cell whose `density` is at least `fraction`
+/// of the largest; all cells where the density is empty or all zero.
+fn near_smoke(density: &[f32], lattice: &SpawnLattice, fraction: f32) -> Vec<bool> {
+    let [nx, ny, nz] = lattice.resolution;
+    let peak = density.iter().cloned().fold(0.0, f32::max);
+    if density.len() != nx * ny * nz || peak <= 0.0 {
+        return vec![true; nx * ny * nz];
+    }
+    let mut near = vec![false; nx * ny * nz];
+    for i in 0..nx {
+        for j in 0..ny {
+            for k in 0..nz {
+                if density[(i * ny + j) * nz + k] < fraction * peak {
+                    continue;
+                }
+                for a in i.saturating_sub(1)..(i + 2).min(nx) {
+                    for b in j.saturating_sub(1)..(j + 2).min(ny) {
+                        for c in k.saturating_sub(1)..(k + 2).min(nz) {
+                            near[(a * ny + b) * nz + c] = true;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    near
+}
+
 /// Recycles up to `options.fraction` of `gaussians` in place (see the module docs).
+/// `density` is the Gaussians' density on the lattice (`[nx, ny, nz]`, z fastest), read only
+/// with `options.near_smoke > 0`.
 pub fn respawn(
     gaussians: &mut HostGaussians,
     views: &[DeficitView],
     lattice: &SpawnLattice,
     options: &RespawnOptions,
+    density: &[f32],
 ) -> RespawnReport {
     let budget = (options.fraction.max(0.0) * gaussians.len() as f32).floor() as usize;
     if budget == 0 || views.is_empty() {
         return RespawnReport::default();
     }
-    let scores = cell_scores(views, lattice, options.background);
+    let mut scores = cell_scores(views, lattice, options.background);
+    if options.near_smoke > 0.0 {
+        let near = near_smoke(density, lattice, options.near_smoke);
+        for (score, near) in scores.iter_mut().zip(near) {
+            if !near {
+                *score = 0.0;
+            }
+        }
+    }
     let mut cells: Vec<(usize, f32)> = scores
         .iter()
         .enumerate()
@@ -348,6 +395,7 @@ mod tests {
             std: 0.03,
             background: [0.0; 3],
             seed: 7,
+            near_smoke: 0.0,
         }
     }
 
@@ -368,7 +416,7 @@ mod tests {
             .collect();
         let mut g = gaussians(100);
         let before = g.clone();
-        let report = respawn(&mut g, &views, &lattice(), &options(0.05));
+        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[]);
 
         assert_eq!(report.indices.len(), 5);
         assert_eq!(report.from_box_faces, 1);
@@ -403,6 +451,49 @@ mod tests {
     }
 
     #[test]
+    fn near_smoke_admits_only_cells_beside_the_carried_density() {
+        let cameras = cameras();
+        let smoke = Vec3::new(0.3, 0.7, 0.6);
+        let observed: Vec<Vec<f32>> = cameras.iter().map(|c| spot_image(c, smoke, 4.0)).collect();
+        let rendered = vec![0.0; 64 * 64 * 3];
+        let views: Vec<DeficitView> = cameras
+            .iter()
+            .zip(&observed)
+            .map(|(camera, observed)| DeficitView {
+                camera,
+                observed,
+                rendered: &rendered,
+            })
+            .collect();
+        let density_at = |[i, j, k]: [usize; 3]| {
+            let mut density = vec![0.01f32; 8 * 8 * 8];
+            density[(i * 8 + j) * 8 + k] = 1.0;
+            density
+        };
+        let options = RespawnOptions {
+            near_smoke: 0.5,
+            ..options(0.05)
+        };
+        // Density where the views show the smoke (cell (2, 5, 4) holds the point): recycled
+        // Gaussians land in that cell or a neighbour.
+        let mut g = gaussians(100);
+        let report = respawn(&mut g, &views, &lattice(), &options, &density_at([2, 5, 4]));
+        assert!(!report.indices.is_empty());
+        let centre = lattice().cell_centre([2, 5, 4]);
+        for &index in &report.indices {
+            let p = Vec3::from_slice(&g.means[3 * index..3 * index + 3]);
+            assert!(
+                (p - centre).abs().max_element() <= 1.5 * 0.125 + 1e-6,
+                "recycled Gaussian {index} at {p:?}, next to {centre:?}"
+            );
+        }
+        // Density only in a far corner: the deficit there is not next to smoke.
+        let mut g = gaussians(100);
+        let report = respawn(&mut g, &views, &lattice(), &options, &density_at([7, 0, 0]));
+        assert!(report.indices.is_empty(), "{report:?}");
+    }
+
+    #[test]
     fn nothing_moves_without_a_deficit_or_a_budget() {
         let cameras = cameras();
         let smoke = Vec3::new(0.3, 0.7, 0.6);
@@ -416,7 +507,7 @@ mod tests {
         let mut g = gaussians(100);
         let before = g.clone();
         assert!(
-            respawn(&mut g, &views, &lattice(), &options(0.05))
+            respawn(&mut g, &views, &lattice(), &options(0.05), &[])
                 .indices
                 .is_empty()
         );
@@ -428,7 +519,7 @@ mod tests {
             rendered: &dark,
         }];
         assert!(
-            respawn(&mut g, &views, &lattice(), &options(0.0))
+            respawn(&mut g, &views, &lattice(), &options(0.0), &[])
                 .indices
                 .is_empty()
         );
@@ -455,7 +546,7 @@ mod tests {
             },
         ];
         let mut g = gaussians(100);
-        let report = respawn(&mut g, &views, &lattice(), &options(0.05));
+        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[]);
         assert_eq!(report.deficit_cells, 0);
         assert!(report.indices.is_empty());
     }

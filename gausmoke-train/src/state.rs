@@ -78,7 +78,8 @@ pub struct FrameReport {
     pub divergence_rms_after: f64,
     /// Gaussians whose advected centre left the box and was clamped back onto it.
     pub clamped_to_box: usize,
-    /// Gaussians recycled before this frame's optimisation (`respawn_fraction`).
+    /// Gaussians recycled in this frame, between its joint iterations and its refinement
+    /// (`respawn_fraction`).
     #[serde(default)]
     pub respawned: usize,
     /// Mean and largest speed of the velocity grid (world units per frame).

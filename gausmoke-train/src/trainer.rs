@@ -46,7 +46,7 @@ pub struct FrameOutcome {
     pub projection: Option<ProjectionReport>,
     /// Gaussians whose advected centre left the box and was clamped back onto it.
     pub clamped_to_box: usize,
-    /// Gaussians recycled before the frame's optimisation.
+    /// Gaussians recycled between the joint iterations and the refinement.
     pub respawned: usize,
 }
 
@@ -320,7 +320,6 @@ impl Trainer {
 
     /// Frames `t-1 -> t`: K joint iterations, then K' refinement iterations.
     pub fn advance_to(&mut self, t: usize) -> Result<FrameOutcome, TrainError> {
-        let respawned = self.respawn(t - 1)?.indices.len();
         let config = self.config.clone();
         let observations = self.sequence.train[t].clone();
         let targets: Vec<Tensor<3>> = observations
@@ -455,8 +454,11 @@ impl Trainer {
         }
 
         // K' refinement iterations (lines 11-13): free centres tied to the advected ones.
-        let anchor = advected.clone();
-        self.state.gaussians = self.state.gaussians.clone().with_means(anchor.clone());
+        self.state.gaussians = self.state.gaussians.clone().with_means(advected);
+        // Recycling sees the transported Gaussians against frame t: what they miss entered
+        // the box (or was never fitted), and the refinement fits the recycled ones.
+        let respawned = self.respawn(t)?.indices.len();
+        let anchor = self.state.gaussians.means.val().detach();
         for iteration in 0..refine_iterations {
             let gaussians = self.state.gaussians.tensors();
             let render = self.render_loss(&gaussians, &observations, &targets)?;
@@ -495,8 +497,8 @@ impl Trainer {
         })
     }
 
-    /// Recycles Gaussians (see [`crate::respawn`]) against frame `t`'s training views, before
-    /// they move on from frame `t`; nothing happens with `respawn_fraction = 0`.
+    /// Recycles Gaussians (see [`crate::respawn`]) against frame `t`'s training views, after
+    /// they were carried to frame `t`; nothing happens with `respawn_fraction = 0`.
     fn respawn(&mut self, t: usize) -> Result<RespawnReport, TrainError> {
         if self.config.respawn_fraction <= 0.0 {
             return Ok(RespawnReport::default());
@@ -523,13 +525,19 @@ impl Trainer {
             background: self.sequence.background,
             // A per-frame stream, so a resumed run draws what an uninterrupted one did.
             seed: self.config.seed ^ (t as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+            near_smoke: self.config.respawn_near_smoke,
+        };
+        let density = if options.near_smoke > 0.0 {
+            self.density_host()
+        } else {
+            Vec::new()
         };
         let lattice = SpawnLattice {
             lo: self.grid.lo(),
             hi: self.grid.hi(),
             resolution: self.grid.resolution(),
         };
-        let report = respawn(&mut host, &views, &lattice, &options);
+        let report = respawn(&mut host, &views, &lattice, &options, &density);
         if !report.indices.is_empty() {
             self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
         }

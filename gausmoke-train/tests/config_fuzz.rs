@@ -38,6 +38,7 @@ const KEYS: &[(&str, bool)] = &[
     ("penalty_steps", false),
     ("respawn_fraction", true),
     ("respawn_threshold", true),
+    ("respawn_near_smoke", true),
     ("seed", true),
     ("output_every", true),
 ];
