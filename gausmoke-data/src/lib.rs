@@ -14,6 +14,7 @@
 //! no sRGB conversion. Resizing ([`LoadOptions::resolution`]) uses an area filter and scales
 //! the intrinsics by the size ratio.
 
+mod camera_file;
 mod dataset;
 mod dnerf;
 mod error;
@@ -25,7 +26,9 @@ mod json;
 mod pinf;
 pub mod synth;
 pub mod video;
+pub mod video_writer;
 
+pub use camera_file::read_camera_path;
 pub use dataset::{Aabb, Dataset, Format, Frame, LoadOptions, PlannedView, Split, View};
 pub use dnerf::{load_dnerf, plan_dnerf};
 pub use error::{DataError, Result};

@@ -169,6 +169,30 @@ pub fn write_vti(
     write_atomic(path, &bytes)
 }
 
+/// A ParaView time series (`.pvd`, VTK's "Collection" XML) of files beside it: `(time, file
+/// name)` pairs, so ParaView's reader plays the `.vti` frames with their times.
+pub fn write_pvd(path: &Path, datasets: &[(f64, String)]) -> Result<(), TrainError> {
+    let escape = |name: &str| {
+        name.replace('&', "&amp;")
+            .replace('"', "&quot;")
+            .replace('<', "&lt;")
+            .replace('>', "&gt;")
+    };
+    let mut xml = String::from(
+        "<?xml version=\"1.0\"?>\n\
+         <VTKFile type=\"Collection\" version=\"0.1\" byte_order=\"LittleEndian\">\n\
+         <Collection>\n",
+    );
+    for (time, file) in datasets {
+        xml += &format!(
+            "<DataSet timestep=\"{time}\" group=\"\" part=\"0\" file=\"{}\"/>\n",
+            escape(file)
+        );
+    }
+    xml += "</Collection>\n</VTKFile>\n";
+    write_atomic(path, xml.as_bytes())
+}
+
 /// One `.npy` (format 1.0, little-endian f32, C order).
 fn npy(values: &[f32], shape: &[usize]) -> Vec<u8> {
     let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();

@@ -26,6 +26,7 @@ pub mod logging;
 pub mod lpips;
 pub mod memory;
 pub mod metrics;
+pub mod novel_views;
 pub mod respawn;
 pub mod run;
 pub mod run_folder;

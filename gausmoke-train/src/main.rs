@@ -4,7 +4,7 @@
 //! * `train --data DIR --out DIR [--config FILE] [--set KEY=VALUE]...`: Algorithm 1;
 //! * `eval --run DIR`: held-out metrics, divergence, ground-truth errors;
 //! * `inspect DATASET`: what a data set holds, and a contact sheet with the box drawn in;
-//! * `synth tiny|scalarflow OUT`: write a synthetic scene with ground truth;
+//! * `synth tiny|long|scalarflow OUT`: write a synthetic scene with ground truth;
 //! * `render`: render a procedural plume (checks the build and the renderer).
 
 use std::path::{Path, PathBuf};
@@ -116,16 +116,43 @@ struct TrainArgs {
 
 #[derive(Debug, Args)]
 struct RenderArgs {
-    #[arg(long, default_value = "out/demo")]
-    out: PathBuf,
+    /// A run folder written by `train`: render its reconstruction. Without it, a procedural
+    /// plume is rendered once (a check of the build and the renderer).
+    #[arg(long)]
+    run: Option<PathBuf>,
+    /// Cameras: N steps of an orbit around the smoke box (the default, with 120 steps).
+    #[arg(long, value_name = "N", conflicts_with_all = ["views", "cameras"])]
+    orbit: Option<usize>,
+    /// Cameras: every train and held-out view of the run's data set, one video each.
+    #[arg(long, conflicts_with = "cameras")]
+    views: bool,
+    /// Cameras: a NeRF-style camera-path JSON (camera_angle_x, w, h,
+    /// frames[].transform_matrix camera-to-world, OpenGL axes).
+    #[arg(long, value_name = "FILE")]
+    cameras: Option<PathBuf>,
+    /// Time frames to show: `T`, `A..B` (B excluded) or `A..=B`; default all finished frames.
+    #[arg(long, value_name = "RANGE")]
+    frames: Option<String>,
+    /// Picture size WIDTHxHEIGHT (orbit: default the held-out camera's; demo: 270x480).
+    #[arg(long, value_name = "WxH")]
+    size: Option<String>,
+    /// Pictures per second of the videos.
+    #[arg(long, default_value_t = 10)]
+    fps: u32,
+    /// Also write every picture as a PNG.
+    #[arg(long)]
+    png: bool,
+    /// Output folder (default: RUN/render, or out/demo for the procedural plume).
+    #[arg(long)]
+    out: Option<PathBuf>,
     #[arg(long, default_value = "flex")]
     device: String,
-    #[arg(long, default_value_t = 30_000)]
+    /// Procedural plume only: number of Gaussians.
+    #[arg(long, default_value_t = 30_000, conflicts_with = "run")]
     gaussians: usize,
-    #[arg(long, default_value_t = 270)]
-    width: u32,
-    #[arg(long, default_value_t = 480)]
-    height: u32,
+    /// Hide the progress bar.
+    #[arg(long)]
+    quiet: bool,
 }
 
 fn main() -> ExitCode {
@@ -210,7 +237,10 @@ fn run_command(cli: Cli) -> Result<()> {
             );
             Ok(())
         }
-        Some(Command::Render(args)) => render_demo(args),
+        Some(Command::Render(args)) => match args.run.clone() {
+            Some(run) => render_trained(&run, args),
+            None => render_demo(args),
+        },
     }
 }
 
@@ -263,7 +293,17 @@ fn train(args: TrainArgs, base: Option<TrainConfig>) -> Result<()> {
     let data = match args.data {
         Some(path) => path,
         None => {
-            let path = args.out.join("synthetic-data");
+            // Beside the run folder, not in it: a run folder must start empty.
+            let name = args
+                .out
+                .file_name()
+                .map_or("run".into(), |n| n.to_string_lossy().into_owned());
+            let path = args.out.with_file_name(format!("{name}-synthetic-data"));
+            tracing::warn!(
+                data = %path.display(),
+                "no --data given: training on the built-in tiny synthetic scene (24^3, 3 views, \
+                 8 frames); pass --data DIR for your own"
+            );
             if !path.join("info.json").is_file() {
                 synth::generate(&SynthConfig::tiny(), &path)?;
             }
@@ -339,18 +379,10 @@ fn check_memory(
 }
 
 fn inspect_dataset(dataset: &Path, out: &Path, size: Option<String>) -> Result<()> {
-    let resolution = match size {
-        Some(text) => {
-            let (w, h) = text
-                .split_once('x')
-                .context("--size must look like 270x480")?;
-            Some((
-                w.parse().context("--size width")?,
-                h.parse().context("--size height")?,
-            ))
-        }
-        None => None,
-    };
+    let resolution = size
+        .map(|text| parse_size(&text))
+        .transpose()?
+        .map(|[w, h]| (w, h));
     let options = LoadOptions {
         resolution,
         ..Default::default()
@@ -373,8 +405,84 @@ fn inspect_dataset(dataset: &Path, out: &Path, size: Option<String>) -> Result<(
     Ok(())
 }
 
+/// `--size WIDTHxHEIGHT`, as everywhere on the command line.
+fn parse_size(text: &str) -> Result<[u32; 2]> {
+    let parsed = text.split_once('x').and_then(|(w, h)| {
+        let (w, h) = (w.trim().parse::<u32>().ok()?, h.trim().parse::<u32>().ok()?);
+        (w > 0 && h > 0).then_some([w, h])
+    });
+    parsed.with_context(|| format!("--size `{text}`: expected WIDTHxHEIGHT, e.g. 480x270"))
+}
+
+/// `--frames T`, `A..B` or `A..=B` as a half-open range.
+fn parse_frames(text: &str) -> Result<std::ops::Range<usize>> {
+    let number = |s: &str| {
+        s.trim()
+            .parse::<usize>()
+            .with_context(|| format!("--frames `{text}`: `{s}` is not a frame number"))
+    };
+    let range = if let Some((a, b)) = text.split_once("..=") {
+        number(a)?..number(b)? + 1
+    } else if let Some((a, b)) = text.split_once("..") {
+        number(a)?..number(b)?
+    } else {
+        let t = number(text)?;
+        t..t + 1
+    };
+    if range.is_empty() {
+        bail!("--frames `{text}` is empty");
+    }
+    Ok(range)
+}
+
+/// `render --run DIR`: videos of a trained reconstruction.
+fn render_trained(run: &Path, args: RenderArgs) -> Result<()> {
+    use gausmoke_train::novel_views::{CameraPath, RenderRequest, render_run};
+    let device = backends::device_by_name(&args.device).map_err(anyhow::Error::msg)?;
+    let cameras = if args.views {
+        CameraPath::DatasetViews
+    } else if let Some(file) = args.cameras {
+        CameraPath::File(file)
+    } else {
+        CameraPath::Orbit {
+            steps: args.orbit.unwrap_or(120),
+        }
+    };
+    let request = RenderRequest {
+        cameras,
+        frames: args.frames.as_deref().map(parse_frames).transpose()?,
+        size: args.size.as_deref().map(parse_size).transpose()?,
+        fps: args.fps,
+        png: args.png,
+        progress: !args.quiet,
+    };
+    let out = args.out.unwrap_or_else(|| run.join("render"));
+    let start = Instant::now();
+    let summary = render_run(run, &out, &request, &device)?;
+    for video in &summary.videos {
+        println!(
+            "{}: {} pictures -> {}",
+            video.name,
+            video.pictures,
+            video.video.display()
+        );
+    }
+    println!("grid slices -> {}", summary.slices_video.display());
+    println!(
+        "rendered in {:.1} s; list of pictures: {}",
+        start.elapsed().as_secs_f64(),
+        out.join("render.json").display()
+    );
+    Ok(())
+}
+
 /// Renders the procedural plume from the front and writes render.png and alpha.png.
 fn render_demo(args: RenderArgs) -> Result<()> {
+    let [width, height] = match args.size.as_deref() {
+        Some(text) => parse_size(text)?,
+        None => [270, 480],
+    };
+    let out_dir = args.out.unwrap_or_else(|| PathBuf::from("out/demo"));
     let device = backends::device_by_name(&args.device).map_err(anyhow::Error::msg)?;
     tracing::info!(device = %args.device, "rendering on");
     let lo = Vec3::new(-0.25, 0.0, -0.25);
@@ -384,8 +492,8 @@ fn render_demo(args: RenderArgs) -> Result<()> {
         Vec3::new(0.0, 0.4, 2.2),
         Vec3::new(0.0, 0.4, 0.0),
         Vec3::Y,
-        args.width,
-        args.height,
+        width,
+        height,
         0.45,
     )
     .context("building the demo camera")?;
@@ -396,16 +504,16 @@ fn render_demo(args: RenderArgs) -> Result<()> {
     let rgb = out.rgb.into_data().try_into_vec_as::<f32>()?;
     let transmittance = out.transmittance.into_data().try_into_vec_as::<f32>()?;
     let elapsed = start.elapsed();
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating output directory {}", args.out.display()))?;
-    let (w, h) = (args.width, args.height);
+    std::fs::create_dir_all(&out_dir)
+        .with_context(|| format!("creating output directory {}", out_dir.display()))?;
+    let (w, h) = (width, height);
     let to_u8 = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
-    let rgb_path = args.out.join("render.png");
+    let rgb_path = out_dir.join("render.png");
     image::RgbImage::from_raw(w, h, rgb.iter().map(|&v| to_u8(v)).collect())
         .expect("buffer matches the image size")
         .save(&rgb_path)
         .with_context(|| format!("writing {}", rgb_path.display()))?;
-    let alpha_path = args.out.join("alpha.png");
+    let alpha_path = out_dir.join("alpha.png");
     image::GrayImage::from_raw(
         w,
         h,

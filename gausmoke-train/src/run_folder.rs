@@ -318,20 +318,28 @@ impl RunFolder {
             false,
         )
         .save_png(&self.root.join("speed.png"))?;
-        let mut pictures = Vec::new();
-        for t in 0..frames {
-            let path = self.root.join("comparison").join(frame_file(t, "png"));
-            if let Ok(image) = image::open(&path) {
-                let rgb = image.to_rgb8();
-                pictures.push(Picture {
-                    width: rgb.width(),
-                    height: rgb.height(),
-                    pixels: rgb.into_raw(),
-                });
-            }
-        }
+        let pictures: Vec<Picture> = (0..frames)
+            .filter_map(|t| {
+                Picture::open_png(&self.root.join("comparison").join(frame_file(t, "png")))
+            })
+            .collect();
         if !pictures.is_empty() {
             visuals::save_gif(&self.root.join("comparison.gif"), &pictures, 100)?;
+            visuals::save_mp4(&self.root.join("comparison.mp4"), &pictures, 10)?;
+        }
+        let slices: Vec<Picture> = (0..frames)
+            .filter_map(|t| Picture::open_png(&self.root.join("slices").join(frame_file(t, "png"))))
+            .collect();
+        if !slices.is_empty() {
+            visuals::save_mp4(&self.root.join("slices.mp4"), &slices, 10)?;
+        }
+        // Frame t of the run is time step t (the data set's frame first_frame + t).
+        let grids: Vec<(f64, String)> = (0..frames)
+            .map(|t| (t as f64, format!("grid_{t:03}.vti")))
+            .filter(|(_, name)| self.root.join("exports").join(name).is_file())
+            .collect();
+        if !grids.is_empty() {
+            export::write_pvd(&self.root.join("exports").join("grid.pvd"), &grids)?;
         }
         write_atomic(&self.root.join("README.txt"), RUN_README.as_bytes())
     }
@@ -360,9 +368,12 @@ losses.png         log-scale loss curves over steps: blue total, orange L_render
                    green L_div, red L_adv, purple L_refine
 speed.png          per frame: blue mean speed, orange max speed (world units per frame)
 renders/VIEW/      per-frame renders of every camera (train and held-out)
-comparison/        per frame: held-out reference | render; comparison.gif animates them
-slices/            per frame, middle z slice: density (grey) | speed (dark blue -> yellow)
-exports/           per frame: gaussians_TTT.ply (3DGS layout), grid_TTT.vti (ParaView),
+comparison/        per frame: held-out reference | render; comparison.gif and
+                   comparison.mp4 (H.264, 10 frames per second) animate them
+slices/            per frame, middle z slice: density (grey) | speed (dark blue -> yellow);
+                   slices.mp4 animates them
+exports/           per frame: gaussians_TTT.ply (3DGS layout), grid_TTT.vti (ParaView;
+                   open grid.pvd to play them as a time series, time = frame index),
                    grid_TTT.npz (density [nx,ny,nz], velocity [nx,ny,nz,3], lo, hi)
 frames/            per frame: Gaussians, velocity and density grids (safetensors), read by
                    `gausmoke-train eval`

@@ -1,5 +1,5 @@
 //! Pictures a person looks at: PNG frames, side-by-side comparisons, grid slices, line plots
-//! and an animated GIF. Plots carry no text (no font rendering here); what each colour means
+//! and animations (GIF, and H.264 MP4 for players and slides). Plots carry no text (no font rendering here); what each colour means
 //! is in the run's `README.txt`.
 
 use std::path::Path;
@@ -62,6 +62,16 @@ impl Picture {
             let at = ((y as u32 * self.width + x as u32) * 3) as usize;
             self.pixels[at..at + 3].copy_from_slice(&colour);
         }
+    }
+
+    /// A PNG written by [`Picture::save_png`]; `None` when it is missing or unreadable.
+    pub fn open_png(path: &Path) -> Option<Self> {
+        let rgb = image::open(path).ok()?.to_rgb8();
+        Some(Self {
+            width: rgb.width(),
+            height: rgb.height(),
+            pixels: rgb.into_raw(),
+        })
     }
 
     pub fn save_png(&self, path: &Path) -> Result<(), TrainError> {
@@ -195,6 +205,21 @@ pub fn line_plot(series: &[Vec<f64>], width: u32, height: u32, log_y: bool) -> P
         }
     }
     picture
+}
+
+/// An H.264 MP4 of equally sized pictures at `fps` per second (see
+/// [`gausmoke_data::video_writer`]).
+pub fn save_mp4(path: &Path, frames: &[Picture], fps: u32) -> Result<(), TrainError> {
+    let Some(first) = frames.first() else {
+        return Ok(());
+    };
+    let mut writer =
+        gausmoke_data::video_writer::VideoWriter::create(path, first.width, first.height, fps)?;
+    for picture in frames {
+        writer.push_rgb(&picture.pixels)?;
+    }
+    writer.finish()?;
+    Ok(())
 }
 
 /// An animated GIF of equally sized pictures, `delay_ms` per frame, looping.

@@ -1,4 +1,4 @@
-//! The binary's `render`, `synth` and `inspect` commands: renders the built-in scene to PNG files of the requested size, and
+//! The binary's `render`, `synth`, `inspect` and data-less `train` commands: renders the built-in scene to PNG files of the requested size,
 //! reports a bad `--device` plainly.
 
 use std::process::Command;
@@ -11,16 +11,7 @@ fn binary() -> Command {
 fn demo_render_writes_images() {
     let out = std::env::temp_dir().join(format!("gausmoke-cli-{}", std::process::id()));
     let result = binary()
-        .args([
-            "render",
-            "--gaussians",
-            "500",
-            "--width",
-            "48",
-            "--height",
-            "80",
-            "--out",
-        ])
+        .args(["render", "--gaussians", "500", "--size", "48x80", "--out"])
         .arg(&out)
         .output()
         .expect("binary runs");
@@ -114,4 +105,29 @@ fn synth_then_inspect_reports_the_scene_and_writes_a_contact_sheet() {
         .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("not empty"));
+}
+
+#[test]
+fn train_without_data_says_so_and_keeps_the_scene_beside_the_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let out = binary()
+        .args(["train", "--quiet", "--frames", "1"])
+        .args(["--set", "gaussians=300", "--set", "init_iterations=5"])
+        .arg("--out")
+        .arg(&run)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        !stderr.contains('\x1b'),
+        "no colour codes when stderr is not a terminal: {stderr}"
+    );
+    assert!(
+        stderr.contains("no --data given") && stderr.contains("built-in tiny synthetic scene"),
+        "{stderr}"
+    );
+    assert!(dir.path().join("run-synthetic-data/info.json").is_file());
+    assert!(run.join("frames/frame_000.safetensors").is_file());
 }

@@ -120,6 +120,9 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
         "losses.png",
         "speed.png",
         "comparison.gif",
+        "comparison.mp4",
+        "slices.mp4",
+        "exports/grid.pvd",
         "README.txt",
     ] {
         expect(file);

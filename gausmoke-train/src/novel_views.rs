@@ -1,0 +1,365 @@
+//! `gausmoke-train render --run DIR`: the reconstruction of a run seen from any camera, as
+//! MP4 videos (and PNG pictures on request), with the grid slices as a video beside them.
+//!
+//! Cameras ([`CameraPath`]):
+//! * the data set's own views (train and held-out), one video per view;
+//! * an orbit around the smoke box: `steps` cameras evenly spaced on a circle about the box
+//!   centre, at the data set cameras' mean distance and height, with their mean up direction,
+//!   starting at the held-out camera's bearing (so picture 0 can be compared with it) and
+//!   with its field of view;
+//! * a camera-path file (see [`gausmoke_data::read_camera_path`]).
+//!
+//! A moving camera and a moving scene go together like this: picture `i` shows time frame
+//! `frames[min(i, len - 1)]` through camera `i mod cameras`, and there are
+//! `max(len, cameras)` pictures. So 120 frames with a 120-step orbit make one turn while the
+//! smoke evolves, and a single frame with a 90-step orbit is a frozen-time turn.
+
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+
+use burn::tensor::{Device, Tensor, TensorData};
+use gausmoke_core::glam::Vec3;
+use gausmoke_core::{Camera, Intrinsics};
+use gausmoke_data::video_writer::VideoWriter;
+use gausmoke_render::render_volume;
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::Serialize;
+
+use crate::TrainError;
+use crate::run_folder::RunFolder;
+use crate::sequence::Sequence;
+use crate::visuals::{self, Picture};
+
+/// Where the cameras come from.
+#[derive(Debug, Clone, PartialEq)]
+pub enum CameraPath {
+    /// Every train and held-out view of the run's data set, one video each.
+    DatasetViews,
+    /// `steps` cameras on a circle around the smoke box.
+    Orbit { steps: usize },
+    /// A NeRF-style camera-path file.
+    File(PathBuf),
+}
+
+/// What [`render_run`] renders.
+#[derive(Debug, Clone)]
+pub struct RenderRequest {
+    pub cameras: CameraPath,
+    /// Time frames to show; `None`: every frame the run has finished.
+    pub frames: Option<Range<usize>>,
+    /// Picture size for orbits (default: the held-out camera's), width then height.
+    pub size: Option<[u32; 2]>,
+    /// Pictures per second of the videos.
+    pub fps: u32,
+    /// Also write every picture as a PNG.
+    pub png: bool,
+    /// Show a progress bar.
+    pub progress: bool,
+}
+
+/// One written video.
+#[derive(Debug, Clone, Serialize)]
+pub struct RenderedVideo {
+    pub name: String,
+    pub video: PathBuf,
+    pub pictures: usize,
+    /// Time frame of each picture.
+    pub frames: Vec<usize>,
+    /// Camera centre of each picture (world units).
+    pub camera_positions: Vec<[f32; 3]>,
+}
+
+/// Everything [`render_run`] wrote, also saved as `OUT/render.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct RenderSummary {
+    pub run: PathBuf,
+    pub videos: Vec<RenderedVideo>,
+    /// Middle-z density | speed slices of the grid, one picture per frame.
+    pub slices_video: PathBuf,
+}
+
+fn config_error(origin: &str, reason: impl Into<String>) -> TrainError {
+    TrainError::Config {
+        origin: origin.into(),
+        reason: reason.into(),
+    }
+}
+
+/// Frames `0..n` whose state the run has written (`frames/frame_TTT.safetensors`).
+fn finished_frames(folder: &RunFolder) -> usize {
+    (0..)
+        .take_while(|&t| folder.frame_state_path(t).is_file())
+        .count()
+}
+
+/// The orbit described in the module docs.
+pub fn orbit_cameras(
+    reference: &Camera,
+    all: &[&Camera],
+    lo: Vec3,
+    hi: Vec3,
+    steps: usize,
+    size: Option<[u32; 2]>,
+) -> Result<Vec<Camera>, TrainError> {
+    let centre = (lo + hi) * 0.5;
+    let mut up = all
+        .iter()
+        .map(|c| c.camera_to_world().y_axis.truncate())
+        .sum::<Vec3>();
+    if up.length() < 1e-6 {
+        return Err(config_error(
+            "--orbit",
+            "the data set's cameras have no common up direction to orbit about",
+        ));
+    }
+    up = up.normalize();
+    let offsets: Vec<Vec3> = all.iter().map(|c| c.position() - centre).collect();
+    let height = offsets.iter().map(|o| o.dot(up)).sum::<f32>() / offsets.len() as f32;
+    let radius = offsets
+        .iter()
+        .map(|o| (*o - up * o.dot(up)).length())
+        .sum::<f32>()
+        / offsets.len() as f32;
+    let bearing = reference.position() - centre;
+    let mut e1 = bearing - up * bearing.dot(up);
+    if e1.length() < 1e-6 || radius < 1e-6 {
+        return Err(config_error(
+            "--orbit",
+            "the held-out camera sits on the box's vertical axis; no circle to orbit on",
+        ));
+    }
+    e1 = e1.normalize();
+    let e2 = up.cross(e1);
+    let [width, height_px] = size.unwrap_or([reference.width(), reference.height()]);
+    let Intrinsics { fx, .. } = reference.intrinsics();
+    let fov_x = 2.0 * (reference.width() as f32 / (2.0 * fx)).atan();
+    (0..steps)
+        .map(|k| {
+            let angle = std::f32::consts::TAU * k as f32 / steps as f32;
+            let eye = centre + up * height + (e1 * angle.cos() + e2 * angle.sin()) * radius;
+            Camera::look_at(eye, centre, up, width, height_px, fov_x)
+                .map_err(|e| config_error("--orbit", e.to_string()))
+        })
+        .collect()
+}
+
+/// Renders the run in `run` as `request` asks, into the folder `out` (created if missing).
+pub fn render_run(
+    run: &Path,
+    out: &Path,
+    request: &RenderRequest,
+    device: &Device,
+) -> Result<RenderSummary, TrainError> {
+    if request.fps == 0 {
+        return Err(config_error("--fps", "must be at least 1"));
+    }
+    let folder = RunFolder::at(run);
+    if !folder.run_info_path().is_file() {
+        return Err(config_error(
+            &run.display().to_string(),
+            "this folder is not a GauSmoke run (it has no run.json); pass the --out folder of \
+             a `gausmoke-train train`",
+        ));
+    }
+    let mut config = folder.read_config()?;
+    let info = folder.read_run_info()?;
+    let finished = finished_frames(&folder);
+    if finished == 0 {
+        return Err(TrainError::Dataset {
+            path: run.to_path_buf(),
+            reason: "no frames/frame_000.safetensors: the run has not finished a frame".into(),
+        });
+    }
+    let frames = request.frames.clone().unwrap_or(0..finished);
+    if frames.is_empty() || frames.end > finished {
+        return Err(config_error(
+            "--frames",
+            format!(
+                "frames {}..{} asked for, the run has finished frames 0..{finished}",
+                frames.start, frames.end
+            ),
+        ));
+    }
+    // Only the dataset's own views need the pictures of every frame shown (a D-NeRF camera
+    // moves); the others need the cameras and the box, which the first frame gives.
+    let needed = match request.cameras {
+        CameraPath::DatasetViews => frames.end,
+        _ => 1,
+    };
+    config.frames = Some(needed);
+    let scene = Sequence::open(&info.data, &config)?;
+    let grid = config.grid(scene.lo, scene.hi)?;
+    let background =
+        Tensor::<1>::from_data(TensorData::new(scene.background.to_vec(), [3]), device);
+
+    // (video name, camera for each picture index modulo its length)
+    let mut paths: Vec<(String, Vec<Camera>)> = Vec::new();
+    match &request.cameras {
+        CameraPath::DatasetViews => {
+            for (k, observation) in scene.train[0].iter().chain(&scene.test[0]).enumerate() {
+                let cameras = frames
+                    .clone()
+                    .map(|t| {
+                        let list = scene.train[t].iter().chain(&scene.test[t]);
+                        list.clone()
+                            .find(|o| o.view == observation.view)
+                            .or_else(|| list.clone().nth(k))
+                            .map(|o| o.camera)
+                            .expect("every frame has the same views")
+                    })
+                    .collect();
+                paths.push((observation.view.clone(), cameras));
+            }
+        }
+        CameraPath::Orbit { steps } => {
+            if *steps == 0 {
+                return Err(config_error("--orbit", "needs at least 1 step"));
+            }
+            let all: Vec<&Camera> = scene.train[0]
+                .iter()
+                .chain(&scene.test[0])
+                .map(|o| &o.camera)
+                .collect();
+            let reference = scene.test[0]
+                .first()
+                .or(scene.train[0].first())
+                .map(|o| &o.camera)
+                .expect("a data set has a view");
+            let cameras = orbit_cameras(reference, &all, scene.lo, scene.hi, *steps, request.size)?;
+            paths.push(("orbit".into(), cameras));
+        }
+        CameraPath::File(path) => {
+            let stem = path
+                .file_stem()
+                .map_or("cameras".into(), |s| s.to_string_lossy().into_owned());
+            paths.push((stem, gausmoke_data::read_camera_path(path)?));
+        }
+    }
+
+    std::fs::create_dir_all(out).map_err(|source| TrainError::Io {
+        path: out.to_path_buf(),
+        source,
+    })?;
+    let frame_list: Vec<usize> = frames.clone().collect();
+    let schedule = |cameras: usize| -> Vec<(usize, usize)> {
+        (0..frame_list.len().max(cameras))
+            .map(|i| (frame_list[i.min(frame_list.len() - 1)], i % cameras))
+            .collect()
+    };
+    let total: usize = paths
+        .iter()
+        .map(|(_, c)| schedule(c.len()).len())
+        .sum::<usize>()
+        + frame_list.len();
+    let bar = if request.progress {
+        ProgressBar::new(total as u64)
+    } else {
+        ProgressBar::hidden()
+    };
+    bar.set_style(
+        ProgressStyle::with_template("{msg:>12} [{bar:40}] {pos}/{len} pictures, eta {eta}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+
+    let mut loaded: Option<(usize, gausmoke_render::GaussianTensors)> = None;
+    let mut videos = Vec::new();
+    for (name, cameras) in &paths {
+        bar.set_message(name.clone());
+        let first = &cameras[0];
+        let (width, height) = (first.width(), first.height());
+        if let Some(other) = cameras
+            .iter()
+            .find(|c| (c.width(), c.height()) != (width, height))
+        {
+            return Err(config_error(
+                name,
+                format!(
+                    "cameras of one video must share a picture size ({}x{} and {}x{})",
+                    width,
+                    height,
+                    other.width(),
+                    other.height()
+                ),
+            ));
+        }
+        let video_path = out.join(format!("{name}.mp4"));
+        let png_dir = out.join(name);
+        if request.png {
+            std::fs::create_dir_all(&png_dir).map_err(|source| TrainError::Io {
+                path: png_dir.clone(),
+                source,
+            })?;
+        }
+        let mut writer = VideoWriter::create(&video_path, width, height, request.fps)?;
+        let mut shown = Vec::new();
+        let mut positions = Vec::new();
+        for (i, (t, c)) in schedule(cameras.len()).into_iter().enumerate() {
+            if loaded.as_ref().is_none_or(|(f, _)| *f != t) {
+                let state = folder.read_frame_state(t, &grid)?.ok_or_else(|| {
+                    config_error(
+                        &folder.frame_state_path(t).display().to_string(),
+                        "missing: the run's frame state was removed while rendering",
+                    )
+                })?;
+                loaded = Some((t, state.gaussians.to_tensors(device)?));
+            }
+            let gaussians = &loaded.as_ref().expect("loaded above").1;
+            let camera = &cameras[c];
+            let rgb = render_volume(gaussians, camera, &background, &config.raster_options())?
+                .rgb
+                .into_data()
+                .try_into_vec_as::<f32>()
+                .expect("f32 image");
+            let picture = Picture::from_rgb(&rgb, width, height);
+            writer.push_rgb(&picture.pixels)?;
+            if request.png {
+                picture.save_png(&png_dir.join(format!("{i:04}.png")))?;
+            }
+            shown.push(t);
+            positions.push(camera.position().to_array());
+            bar.inc(1);
+        }
+        let video = writer.finish()?;
+        videos.push(RenderedVideo {
+            name: name.clone(),
+            video,
+            pictures: shown.len(),
+            frames: shown,
+            camera_positions: positions,
+        });
+    }
+
+    bar.set_message("slices");
+    let slices_video = out.join("slices.mp4");
+    let mut writer: Option<VideoWriter> = None;
+    let [nx, ny, _] = grid.resolution();
+    let scale = (256 / nx.max(ny)).max(1) as u32;
+    for &t in &frame_list {
+        let state = folder
+            .read_frame_state(t, &grid)?
+            .expect("frames before `finished` exist");
+        let (picture, _) = visuals::grid_slices(&grid, &state.density, &state.velocity, scale);
+        let writer = match &mut writer {
+            Some(w) => w,
+            None => writer.insert(VideoWriter::create(
+                &slices_video,
+                picture.width,
+                picture.height,
+                request.fps,
+            )?),
+        };
+        writer.push_rgb(&picture.pixels)?;
+        bar.inc(1);
+    }
+    writer.expect("at least one frame").finish()?;
+    bar.finish_and_clear();
+    let summary = RenderSummary {
+        run: run.to_path_buf(),
+        videos,
+        slices_video,
+    };
+    let json = serde_json::to_string_pretty(&summary).expect("serialisable summary");
+    crate::export::write_atomic(&out.join("render.json"), json.as_bytes())?;
+    Ok(summary)
+}
