@@ -271,9 +271,12 @@ pub fn evaluate(
         test_lpips_mean: mean(frames.iter().map(|f| f.test_lpips)),
         lpips: match lpips_weights {
             Some(path) => format!("AlexNet LPIPS v0.1, weights from {}", path.display()),
-            None => "not computed: LPIPS needs its AlexNet weights, which cannot be downloaded \
-                     here; pass --lpips-weights FILE (see xtask/reference/lpips_export.py)"
-                .into(),
+            None => format!(
+                "not computed: no LPIPS weights; `cargo xtask lpips-weights` writes them to {} \
+                 where eval finds them, or pass --lpips-weights FILE",
+                crate::lpips::cached_weights_path()
+                    .map_or("the cache".into(), |p| p.display().to_string())
+            ),
         },
         frames,
     };

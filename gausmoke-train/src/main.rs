@@ -40,8 +40,8 @@ enum Command {
         /// The run folder written by `train`.
         #[arg(long)]
         run: PathBuf,
-        /// LPIPS (AlexNet, v0.1) weights as safetensors with the `lpips` package's names
-        /// (write them with xtask/reference/lpips_export.py); without, LPIPS is skipped.
+        /// LPIPS (AlexNet, v0.1) weights as safetensors with the `lpips` package's names;
+        /// default: the file `cargo xtask lpips-weights` caches, when present.
         #[arg(long)]
         lpips_weights: Option<PathBuf>,
         #[arg(long, default_value = "flex")]
@@ -189,7 +189,8 @@ fn run_command(cli: Cli) -> Result<()> {
             device,
         }) => {
             let device = backends::device_by_name(&device).map_err(anyhow::Error::msg)?;
-            let report = eval::evaluate(&run, &device, lpips_weights.as_deref())?;
+            let weights = gausmoke_train::lpips::weights_to_use(lpips_weights.as_deref());
+            let report = eval::evaluate(&run, &device, weights.as_deref())?;
             let show = |v: Option<f64>| v.map_or("n/a".to_string(), |v| format!("{v:.4}"));
             println!("frames evaluated     {}", report.frames.len());
             println!("held-out PSNR (dB)   {}", show(report.test_psnr_mean));

