@@ -17,6 +17,7 @@
 use std::path::PathBuf;
 
 pub mod arrays;
+pub mod chart;
 pub mod checkpoint;
 pub mod config;
 pub mod eval;
@@ -34,6 +35,7 @@ pub mod run_lock;
 pub mod sequence;
 pub mod state;
 pub mod trainer;
+pub mod viridis;
 pub mod visuals;
 
 pub use config::TrainConfig;

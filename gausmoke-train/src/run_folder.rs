@@ -286,38 +286,77 @@ impl RunFolder {
         write_atomic(&self.root.join("losses.csv"), csv.as_bytes())
     }
 
-    /// Loss and speed plots, the comparison GIF and the folder's `README.txt`.
+    /// Loss, speed and PSNR charts, the comparison and slice videos, the ParaView series and
+    /// the folder's `README.txt`.
     pub fn write_summary_pictures(
         &self,
         losses: &[LossRow],
         reports: &[FrameReport],
         frames: usize,
     ) -> Result<(), TrainError> {
-        let column =
-            |f: fn(&LossRow) -> f32| -> Vec<f64> { losses.iter().map(|r| f(r) as f64).collect() };
-        visuals::line_plot(
-            &[
-                column(|r| r.total),
-                column(|r| r.render),
-                column(|r| r.divergence),
-                column(|r| r.advection),
-                column(|r| r.refine),
-            ],
-            900,
-            400,
-            true,
-        )
-        .save_png(&self.root.join("losses.png"))?;
-        visuals::line_plot(
-            &[
-                reports.iter().map(|r| r.mean_speed).collect(),
-                reports.iter().map(|r| r.max_speed).collect(),
-            ],
-            600,
-            300,
-            false,
-        )
-        .save_png(&self.root.join("speed.png"))?;
+        use crate::chart::{self, Chart, Series};
+        let loss = |label: &str, f: fn(&LossRow) -> f32| Series {
+            label: label.into(),
+            points: losses
+                .iter()
+                .enumerate()
+                .map(|(step, r)| (step as f64, f(r) as f64))
+                .collect(),
+        };
+        let per_frame = |label: &str, f: fn(&FrameReport) -> Option<f64>| Series {
+            label: label.into(),
+            points: reports
+                .iter()
+                .map(|r| (r.frame as f64, f(r).unwrap_or(f64::NAN)))
+                .collect(),
+        };
+        let charts = [
+            (
+                "losses.png",
+                [900, 420],
+                Chart {
+                    title: "Training losses (init, then K joint + K' refine per frame)".into(),
+                    x_label: "optimisation step".into(),
+                    y_label: "loss (log scale)".into(),
+                    log_y: true,
+                    series: vec![
+                        loss("total", |r| r.total),
+                        loss("L_render", |r| r.render),
+                        loss("L_div", |r| r.divergence),
+                        loss("L_adv", |r| r.advection),
+                        loss("L_refine", |r| r.refine),
+                    ],
+                },
+            ),
+            (
+                "speed.png",
+                [640, 320],
+                Chart {
+                    title: "Recovered velocity".into(),
+                    x_label: "frame".into(),
+                    y_label: "speed (world units / frame)".into(),
+                    log_y: false,
+                    series: vec![
+                        per_frame("mean", |r| Some(r.mean_speed)),
+                        per_frame("max", |r| Some(r.max_speed)),
+                    ],
+                },
+            ),
+            (
+                "psnr.png",
+                [640, 320],
+                Chart {
+                    title: "Held-out view".into(),
+                    x_label: "frame".into(),
+                    y_label: "PSNR (dB)".into(),
+                    log_y: false,
+                    series: vec![per_frame("held-out PSNR", |r| r.test_psnr)],
+                },
+            ),
+        ];
+        for (name, [width, height], figure) in &charts {
+            chart::draw(figure, *width, *height).save_png(&self.root.join(name))?;
+        }
         let pictures: Vec<Picture> = (0..frames)
             .filter_map(|t| {
                 Picture::open_png(&self.root.join("comparison").join(frame_file(t, "png")))
@@ -364,13 +403,14 @@ run.json           data set, grid box and resolution, device
 metrics.json       per-frame and mean metrics: held-out PSNR/SSIM, mean |div u| (1/frame),
                    projection solver iterations/residual, speeds, seconds per frame
 losses.csv         every optimisation step: frame, phase (init/advect/refine), loss terms
-losses.png         log-scale loss curves over steps: blue total, orange L_render,
-                   green L_div, red L_adv, purple L_refine
-speed.png          per frame: blue mean speed, orange max speed (world units per frame)
+losses.png         loss curves over the optimisation steps (log scale, legend in the chart)
+speed.png          per frame: mean and max speed of the velocity (world units per frame)
+psnr.png           per frame: held-out PSNR (dB)
 renders/VIEW/      per-frame renders of every camera (train and held-out)
 comparison/        per frame: held-out reference | render; comparison.gif and
                    comparison.mp4 (H.264, 10 frames per second) animate them
-slices/            per frame, middle z slice: density (grey) | speed (dark blue -> yellow);
+slices/            per frame, middle z slice: density (grey) | speed (viridis, each frame
+                   scaled to its own maximum);
                    slices.mp4 animates them
 exports/           per frame: gaussians_TTT.ply (3DGS layout), grid_TTT.vti (ParaView;
                    open grid.pvd to play them as a time series, time = frame index),

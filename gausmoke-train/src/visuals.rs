@@ -1,6 +1,5 @@
-//! Pictures a person looks at: PNG frames, side-by-side comparisons, grid slices, line plots
-//! and animations (GIF, and H.264 MP4 for players and slides). Plots carry no text (no font rendering here); what each colour means
-//! is in the run's `README.txt`.
+//! Pictures a person looks at: PNG frames, side-by-side comparisons, grid slices and
+//! animations (GIF, and H.264 MP4 for players and slides); charts are in [`crate::chart`].
 
 use std::path::Path;
 
@@ -57,7 +56,8 @@ impl Picture {
         out
     }
 
-    fn put(&mut self, x: i64, y: i64, colour: [u8; 3]) {
+    /// Sets one pixel; coordinates outside the picture are ignored.
+    pub fn put(&mut self, x: i64, y: i64, colour: [u8; 3]) {
         if x >= 0 && y >= 0 && (x as u32) < self.width && (y as u32) < self.height {
             let at = ((y as u32 * self.width + x as u32) * 3) as usize;
             self.pixels[at..at + 3].copy_from_slice(&colour);
@@ -89,27 +89,7 @@ impl Picture {
     }
 }
 
-/// A perceptually ordered dark-blue -> green -> yellow ramp (viridis-like, 5 stops).
-pub fn colour_ramp(t: f32) -> [u8; 3] {
-    const STOPS: [[f32; 3]; 5] = [
-        [0.267, 0.005, 0.329],
-        [0.229, 0.322, 0.546],
-        [0.128, 0.567, 0.551],
-        [0.369, 0.789, 0.383],
-        [0.993, 0.906, 0.144],
-    ];
-    let t = if t.is_finite() {
-        t.clamp(0.0, 1.0)
-    } else {
-        0.0
-    } * 4.0;
-    let i = (t.floor() as usize).min(3);
-    let f = t - i as f32;
-    let c = |a: usize| to_u8(STOPS[i][a] * (1.0 - f) + STOPS[i + 1][a] * f);
-    [c(0), c(1), c(2)]
-}
-
-/// The middle z-slice of the density (grey, left) and of the speed |u| (colour ramp, right),
+/// The middle z-slice of the density (grey, left) and of the speed |u| (viridis, right),
 /// +y up, each cell `scale` pixels wide. Returns the picture and the slice's largest speed.
 pub fn grid_slices(
     grid: &GridSpec,
@@ -140,71 +120,14 @@ pub fn grid_slices(
             let (i, j) = ((x / scale) as usize, ny - 1 - (y / scale) as usize);
             let d = to_u8(density[cell(i, j)] / max_density);
             left.put(x as i64, y as i64, [d, d, d]);
-            right.put(x as i64, y as i64, colour_ramp(speed(i, j) / max_speed));
+            right.put(
+                x as i64,
+                y as i64,
+                crate::viridis::viridis(speed(i, j) / max_speed),
+            );
         }
     }
     (Picture::side_by_side(&[&left, &right]), max_speed)
-}
-
-/// Distinct colours of the curves of [`line_plot`], in series order.
-pub const SERIES_COLOURS: [[u8; 3]; 6] = [
-    [31, 119, 180],
-    [255, 127, 14],
-    [44, 160, 44],
-    [214, 39, 40],
-    [148, 103, 189],
-    [140, 86, 75],
-];
-
-/// Curves over a shared x axis on a white canvas with a light grid. With `log_y` the y axis
-/// is logarithmic (non-positive values are skipped). Each series is scaled to the common
-/// range of all series.
-pub fn line_plot(series: &[Vec<f64>], width: u32, height: u32, log_y: bool) -> Picture {
-    let mut picture = Picture::blank(width, height, [255, 255, 255]);
-    let margin = 20i64;
-    let (plot_w, plot_h) = (width as i64 - 2 * margin, height as i64 - 2 * margin);
-    for g in 0..=4 {
-        let y = margin + plot_h * g / 4;
-        for x in margin..margin + plot_w {
-            picture.put(x, y, [225, 225, 225]);
-        }
-    }
-    let transform = |v: f64| if log_y { v.log10() } else { v };
-    let values = series
-        .iter()
-        .flatten()
-        .filter(|v| v.is_finite() && (!log_y || **v > 0.0))
-        .map(|&v| transform(v));
-    let (lo, hi) = values.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
-        (lo.min(v), hi.max(v))
-    });
-    if !lo.is_finite() {
-        return picture;
-    }
-    let span = (hi - lo).max(1e-12);
-    let longest = series.iter().map(Vec::len).max().unwrap_or(0).max(2);
-    for (s, values) in series.iter().enumerate() {
-        let colour = SERIES_COLOURS[s % SERIES_COLOURS.len()];
-        let mut previous: Option<(i64, i64)> = None;
-        for (n, &v) in values.iter().enumerate() {
-            if !v.is_finite() || (log_y && v <= 0.0) {
-                previous = None;
-                continue;
-            }
-            let x = margin + (n as i64 * (plot_w - 1)) / (longest as i64 - 1);
-            let y = margin + plot_h - 1 - ((transform(v) - lo) / span * (plot_h - 1) as f64) as i64;
-            if let Some((px, py)) = previous {
-                let steps = (x - px).abs().max((y - py).abs()).max(1);
-                for t in 0..=steps {
-                    picture.put(px + (x - px) * t / steps, py + (y - py) * t / steps, colour);
-                }
-            } else {
-                picture.put(x, y, colour);
-            }
-            previous = Some((x, y));
-        }
-    }
-    picture
 }
 
 /// An H.264 MP4 of equally sized pictures at `fps` per second (see

@@ -1,0 +1,336 @@
+//! Line charts a person can read without the code: a title, axes with tick marks and tick
+//! labels, axis titles with units, a light grid and a legend. Text is drawn with the public
+//! 8x8 bitmap font of `font8x8`, so no font file or system library is involved.
+
+use font8x8::UnicodeFonts;
+
+use crate::visuals::Picture;
+
+/// Distinct colours of the series, in order (matplotlib's "tab10" start).
+pub const SERIES_COLOURS: [[u8; 3]; 6] = [
+    [31, 119, 180],
+    [255, 127, 14],
+    [44, 160, 44],
+    [214, 39, 40],
+    [148, 103, 189],
+    [140, 86, 75],
+];
+
+const INK: [u8; 3] = [40, 40, 40];
+const GRID: [u8; 3] = [228, 228, 228];
+const GLYPH: i64 = 8;
+
+/// One curve: `(x, y)` points in order; non-finite points (and non-positive ones on a log
+/// axis) break the line.
+pub struct Series {
+    pub label: String,
+    pub points: Vec<(f64, f64)>,
+}
+
+/// What a chart shows.
+pub struct Chart {
+    pub title: String,
+    /// Axis titles, units included, e.g. "frame" and "held-out PSNR (dB)".
+    pub x_label: String,
+    pub y_label: String,
+    pub log_y: bool,
+    pub series: Vec<Series>,
+}
+
+/// "Nice" tick positions (1, 2 or 5 times a power of ten) covering `[lo, hi]`.
+/// With `integers`, steps are whole numbers (frames, steps).
+fn linear_ticks(lo: f64, hi: f64, target: usize, integers: bool) -> Vec<f64> {
+    let span = (hi - lo).max(1e-12);
+    let raw = span / target.max(1) as f64;
+    let power = 10f64.powf(raw.log10().floor());
+    let mut step = [1.0, 2.0, 5.0, 10.0]
+        .iter()
+        .map(|m| m * power)
+        .find(|s| span / s <= target as f64)
+        .unwrap_or(10.0 * power);
+    if integers {
+        step = step.max(1.0).round();
+    }
+    let first = (lo / step).ceil() as i64;
+    let last = (hi / step).floor() as i64;
+    (first..=last).map(|k| k as f64 * step).collect()
+}
+
+/// Tick label: integers plainly, small or large magnitudes in `1e-3` form.
+fn tick_label(v: f64, log: bool) -> String {
+    if log {
+        return format!("1e{}", v.round() as i64);
+    }
+    if v == 0.0 {
+        return "0".into();
+    }
+    let a = v.abs();
+    if !(1e-3..1e5).contains(&a) {
+        return format!("{v:.0e}");
+    }
+    if (v - v.round()).abs() < 1e-9 * a.max(1.0) {
+        return format!("{}", v.round() as i64);
+    }
+    let text = format!("{v:.4}");
+    text.trim_end_matches('0').trim_end_matches('.').to_string()
+}
+
+/// Draws `text` with its top-left corner at `(x, y)`; `vertical` writes bottom to top.
+pub fn draw_text(
+    picture: &mut Picture,
+    x: i64,
+    y: i64,
+    text: &str,
+    colour: [u8; 3],
+    vertical: bool,
+) {
+    for (n, c) in text.chars().enumerate() {
+        let glyph = font8x8::BASIC_FONTS
+            .get(c)
+            .or_else(|| font8x8::LATIN_FONTS.get(c))
+            .unwrap_or([0; 8]);
+        for (row, bits) in glyph.iter().enumerate() {
+            for col in 0..8 {
+                if bits & (1 << col) != 0 {
+                    let (gx, gy) = (col as i64, row as i64);
+                    let offset = n as i64 * GLYPH;
+                    if vertical {
+                        picture.put(x + gy, y - offset - gx, colour);
+                    } else {
+                        picture.put(x + offset + gx, y + gy, colour);
+                    }
+                }
+            }
+        }
+    }
+}
+
+fn text_width(text: &str) -> i64 {
+    text.chars().count() as i64 * GLYPH
+}
+
+fn line(picture: &mut Picture, (x0, y0): (i64, i64), (x1, y1): (i64, i64), colour: [u8; 3]) {
+    let steps = (x1 - x0).abs().max((y1 - y0).abs()).max(1);
+    for t in 0..=steps {
+        picture.put(
+            x0 + (x1 - x0) * t / steps,
+            y0 + (y1 - y0) * t / steps,
+            colour,
+        );
+    }
+}
+
+/// The chart on a white `width` x `height` picture.
+pub fn draw(chart: &Chart, width: u32, height: u32) -> Picture {
+    let mut picture = Picture::blank(width, height, [255, 255, 255]);
+    let map_y = |v: f64| if chart.log_y { v.log10() } else { v };
+    let usable = |&(x, y): &(f64, f64)| x.is_finite() && y.is_finite() && (!chart.log_y || y > 0.0);
+    let points = || {
+        chart
+            .series
+            .iter()
+            .flat_map(|s| s.points.iter())
+            .filter(|p| usable(p))
+    };
+    let (mut x_lo, mut x_hi, mut y_lo, mut y_hi) = (
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+    );
+    for &(x, y) in points() {
+        let y = map_y(y);
+        (x_lo, x_hi, y_lo, y_hi) = (x_lo.min(x), x_hi.max(x), y_lo.min(y), y_hi.max(y));
+    }
+    if !x_lo.is_finite() {
+        (x_lo, x_hi, y_lo, y_hi) = (0.0, 1.0, 0.0, 1.0);
+    }
+    if x_hi - x_lo < 1e-12 {
+        (x_lo, x_hi) = (x_lo - 0.5, x_hi + 0.5);
+    }
+    if chart.log_y {
+        (y_lo, y_hi) = (y_lo.floor(), y_hi.ceil().max(y_lo.floor() + 1.0));
+    } else {
+        let pad = ((y_hi - y_lo) * 0.05).max(1e-9 * y_hi.abs().max(1.0));
+        (y_lo, y_hi) = (y_lo - pad, y_hi + pad);
+    }
+    let y_ticks: Vec<f64> = if chart.log_y {
+        let decades = (y_hi - y_lo) as i64;
+        let every = (decades / 6 + 1).max(1);
+        (y_lo as i64..=y_hi as i64)
+            .filter(|k| (k - y_lo as i64) % every == 0)
+            .map(|k| k as f64)
+            .collect()
+    } else {
+        linear_ticks(y_lo, y_hi, 6, false)
+    };
+    let integer_x = points().all(|&(x, _)| x.fract() == 0.0);
+    let x_ticks = linear_ticks(x_lo, x_hi, 8, integer_x);
+    let label_width = y_ticks
+        .iter()
+        .map(|&v| text_width(&tick_label(v, chart.log_y)))
+        .max()
+        .unwrap_or(0);
+    let has_legend =
+        chart.series.len() > 1 || chart.series.first().is_some_and(|s| !s.label.is_empty());
+    let (left, right, top, bottom) = (
+        label_width + 8 + GLYPH + 10,
+        width as i64 - 12,
+        if has_legend {
+            2 * GLYPH + 20
+        } else {
+            GLYPH + 16
+        },
+        height as i64 - (2 * GLYPH + 18),
+    );
+    if right - left < 20 || bottom - top < 20 {
+        return picture;
+    }
+    let px = |x: f64| left + ((x - x_lo) / (x_hi - x_lo) * (right - left) as f64).round() as i64;
+    let py = |y: f64| bottom - ((y - y_lo) / (y_hi - y_lo) * (bottom - top) as f64).round() as i64;
+
+    for &v in &y_ticks {
+        let y = py(v);
+        line(&mut picture, (left, y), (right, y), GRID);
+        line(&mut picture, (left - 4, y), (left, y), INK);
+        let label = tick_label(v, chart.log_y);
+        draw_text(
+            &mut picture,
+            left - 6 - text_width(&label),
+            y - GLYPH / 2,
+            &label,
+            INK,
+            false,
+        );
+    }
+    for &v in &x_ticks {
+        let x = px(v);
+        line(&mut picture, (x, top), (x, bottom), GRID);
+        line(&mut picture, (x, bottom), (x, bottom + 4), INK);
+        let label = tick_label(v, false);
+        draw_text(
+            &mut picture,
+            x - text_width(&label) / 2,
+            bottom + 7,
+            &label,
+            INK,
+            false,
+        );
+    }
+    line(&mut picture, (left, top), (left, bottom), INK);
+    line(&mut picture, (left, bottom), (right, bottom), INK);
+    draw_text(
+        &mut picture,
+        (left + right) / 2 - text_width(&chart.x_label) / 2,
+        height as i64 - GLYPH - 4,
+        &chart.x_label,
+        INK,
+        false,
+    );
+    draw_text(
+        &mut picture,
+        2,
+        (top + bottom) / 2 + text_width(&chart.y_label) / 2,
+        &chart.y_label,
+        INK,
+        true,
+    );
+    draw_text(
+        &mut picture,
+        (width as i64 - text_width(&chart.title)) / 2,
+        4,
+        &chart.title,
+        INK,
+        false,
+    );
+
+    // The first series is drawn last, on top: it is the one a chart is about.
+    for (s, series) in chart.series.iter().enumerate().rev() {
+        let colour = SERIES_COLOURS[s % SERIES_COLOURS.len()];
+        // Few points: mark each, so single frames show.
+        let marked = series.points.len() <= 60;
+        let mut previous: Option<(i64, i64)> = None;
+        for point in &series.points {
+            if !usable(point) {
+                previous = None;
+                continue;
+            }
+            let here = (px(point.0), py(map_y(point.1)));
+            if let Some(p) = previous {
+                line(&mut picture, p, here, colour);
+            }
+            let radius = if marked { 2 } else { 0 };
+            for dy in -radius..=radius {
+                for dx in -radius..=radius {
+                    picture.put(here.0 + dx, here.1 + dy, colour);
+                }
+            }
+            previous = Some(here);
+        }
+    }
+
+    // Legend: one row between the title and the axes, right-aligned, so it hides no data.
+    if has_legend {
+        let entry = |label: &str| text_width(label) + 30;
+        let mut x = right - chart.series.iter().map(|s| entry(&s.label)).sum::<i64>();
+        let y = GLYPH + 10;
+        for (s, series) in chart.series.iter().enumerate() {
+            let colour = SERIES_COLOURS[s % SERIES_COLOURS.len()];
+            for dy in 3..5 {
+                line(&mut picture, (x, y + dy), (x + 16, y + dy), colour);
+            }
+            draw_text(&mut picture, x + 20, y, &series.label, INK, false);
+            x += entry(&series.label);
+        }
+    }
+    picture
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ticks_are_round_numbers_inside_the_range() {
+        assert_eq!(
+            linear_ticks(0.0, 119.0, 8, true),
+            [0.0, 20.0, 40.0, 60.0, 80.0, 100.0]
+        );
+        assert_eq!(linear_ticks(27.3, 31.9, 6, false), [28.0, 29.0, 30.0, 31.0]);
+        assert_eq!(linear_ticks(0.0, 3.0, 8, true), [0.0, 1.0, 2.0, 3.0]);
+        assert_eq!(tick_label(0.2 * 3.0, false), "0.6");
+        assert_eq!(tick_label(0.25, false), "0.25");
+        assert_eq!(tick_label(120.0, false), "120");
+        assert_eq!(tick_label(-3.0, true), "1e-3");
+    }
+
+    #[test]
+    fn a_chart_has_ink_for_its_axes_text_and_each_series() {
+        let chart = Chart {
+            title: "held-out view".into(),
+            x_label: "frame".into(),
+            y_label: "PSNR (dB)".into(),
+            log_y: false,
+            series: vec![
+                Series {
+                    label: "sequential".into(),
+                    points: (0..50)
+                        .map(|t| (t as f64, 30.0 + (t as f64 / 7.0).sin()))
+                        .collect(),
+                },
+                Series {
+                    label: "alone".into(),
+                    points: vec![(0.0, 29.0), (25.0, f64::NAN), (49.0, 28.0)],
+                },
+            ],
+        };
+        let picture = draw(&chart, 400, 240);
+        let count = |colour: [u8; 3]| picture.pixels.chunks(3).filter(|p| *p == colour).count();
+        assert!(count(INK) > 500, "axes, ticks and text are drawn");
+        assert!(count(SERIES_COLOURS[0]) > 100, "the first series is drawn");
+        assert!(
+            count(SERIES_COLOURS[1]) > 10,
+            "the second series and its legend"
+        );
+    }
+}
