@@ -22,6 +22,8 @@ pub enum Format {
     Pinf,
     /// D-NeRF / 4D-GS `transforms_*.json`.
     DNerf,
+    /// nerfstudio `transforms.json`.
+    Nerfstudio,
 }
 
 /// Axis-aligned box in world space.

@@ -7,6 +7,8 @@
 //! * [`load_pinf`]: PINF / HyFluid `info.json` with per-camera `.mp4` videos (decoded
 //!   in-process, see [`video`]) or folders of PNG frames.
 //! * [`load_dnerf`]: D-NeRF / 4D-GS `transforms_{train,val,test}.json` with RGBA PNGs.
+//! * [`load_nerfstudio`]: nerfstudio `transforms.json` (per-frame or shared `fl_x`, `fl_y`,
+//!   `cx`, `cy`; fixed cameras over time).
 //! * [`synth`]: a synthetic smoke scene generator with ground-truth density and velocity,
 //!   written in the PINF format.
 //!
@@ -23,6 +25,7 @@ use std::path::Path;
 
 pub mod inspect;
 mod json;
+mod nerfstudio;
 mod pinf;
 pub mod synth;
 pub mod video;
@@ -33,6 +36,7 @@ pub use dataset::{Aabb, Dataset, Format, Frame, LoadOptions, PlannedView, Split,
 pub use dnerf::{load_dnerf, plan_dnerf};
 pub use error::{DataError, Result};
 pub use image::{Image, read_png_over, resize_area};
+pub use nerfstudio::{is_nerfstudio, load_nerfstudio, plan_nerfstudio};
 pub use pinf::{load_pinf, plan_pinf};
 
 pub use gausmoke_core::{Camera, Intrinsics, glam};
@@ -42,6 +46,8 @@ pub use gausmoke_core::{Camera, Intrinsics, glam};
 pub fn plan(path: &Path, options: &LoadOptions) -> Result<Vec<PlannedView>> {
     if path.join("transforms_train.json").is_file() {
         plan_dnerf(path, options)
+    } else if is_nerfstudio(path) {
+        plan_nerfstudio(path, options)
     } else {
         plan_pinf(path, options)
     }

@@ -49,7 +49,8 @@ enum Command {
     },
     /// Print what a data set holds and write a contact sheet PNG.
     Inspect {
-        /// PINF/HyFluid folder (info.json) or D-NeRF folder (transforms_train.json).
+        /// PINF/HyFluid folder (info.json), D-NeRF folder (transforms_train.json) or
+        /// nerfstudio folder (transforms.json).
         dataset: PathBuf,
         /// Contact sheet path.
         #[arg(long, default_value = "contact_sheet.png")]
@@ -391,6 +392,8 @@ fn inspect_dataset(dataset: &Path, out: &Path, size: Option<String>) -> Result<(
     let start = Instant::now();
     let loaded = if dataset.join("transforms_train.json").is_file() {
         load_dnerf(dataset, &options)?
+    } else if gausmoke_data::is_nerfstudio(dataset) {
+        gausmoke_data::load_nerfstudio(dataset, &options)?
     } else {
         load_pinf(dataset, &options)?
     };

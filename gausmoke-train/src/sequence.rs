@@ -80,11 +80,13 @@ impl Sequence {
             load_pinf(path, &options)?
         } else if path.join("transforms_train.json").is_file() {
             load_dnerf(path, &options)?
+        } else if gausmoke_data::is_nerfstudio(path) {
+            gausmoke_data::load_nerfstudio(path, &options)?
         } else {
             return Err(TrainError::Dataset {
                 path: path.to_path_buf(),
-                reason: "neither info.json (PINF/HyFluid) nor transforms_train.json (D-NeRF) \
-                         found"
+                reason: "neither info.json (PINF/HyFluid), transforms_train.json (D-NeRF) nor \
+                         transforms.json (nerfstudio) found"
                     .into(),
             });
         };
@@ -170,7 +172,11 @@ impl Sequence {
             return Err(fail(format!("frame {t} has no training image")));
         }
         let bbox = dataset.bbox.ok_or_else(|| {
-            fail("the data set gives no smoke box (PINF voxel_matrix/voxel_scale)".into())
+            fail(
+                "the data set gives no smoke box (PINF voxel_matrix/voxel_scale, nerfstudio \
+                 `aabb`)"
+                    .into(),
+            )
         })?;
         // Every view must see every frame: a shorter video would silently train later frames
         // on fewer views and leave their held-out metrics empty.
