@@ -66,6 +66,18 @@ pub enum ProjectionKind {
     Penalty,
 }
 
+/// The axes of the exported `.ply` files.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PlyAxes {
+    /// The data set's world axes, as the grids and cameras use them.
+    World,
+    /// The world turned half a turn about x (y and z negated): the OpenCV/COLMAP camera
+    /// frame that 3DGS training produces and splat viewers assume (SuperSplat shows such a
+    /// file upright by turning it back), so a y-up world opens upright there.
+    YDown,
+}
+
 /// Keys that may differ when a run is resumed: they change how the rest of the run trains or
 /// what it writes, not the shape or meaning of what is already trained. `frames` extends (or
 /// shortens) the run; the learning rates let a run that diverged continue more gently.
@@ -76,6 +88,7 @@ pub const RESUMABLE_KEYS: &[&str] = &[
     "lr_decay",
     "lr_decay_every",
     "output_every",
+    "ply_axes",
     "sync_phase_timings",
 ];
 
@@ -166,6 +179,9 @@ pub struct TrainConfig {
     pub seed: u64,
     /// Write renders, exports and velocity slices every this many frames (1 = all).
     pub output_every: usize,
+    /// Axes of the exported Gaussians (`exports/gaussians_TTT.ply`): `"world"` or
+    /// `"y-down"` (for splat viewers; see [`PlyAxes`]).
+    pub ply_axes: PlyAxes,
     /// Wait for the device at both ends of every timed phase, so the per-phase times in
     /// `metrics.json` charge GPU work to the phase that queued it. Slows GPU runs; changes
     /// nothing on the CPU backends, which run eagerly.
@@ -212,6 +228,7 @@ impl Default for TrainConfig {
             respawn_near_smoke: 0.0,
             seed: 2026,
             output_every: 1,
+            ply_axes: PlyAxes::World,
             sync_phase_timings: false,
         }
     }

@@ -8,6 +8,7 @@ use std::path::Path;
 use gausmoke_model::GridSpec;
 
 use crate::TrainError;
+use crate::config::PlyAxes;
 use gausmoke_render::HostGaussians;
 
 /// Zeroth-order spherical-harmonic constant: 3DGS stores colour as `(rgb - 0.5) / C0`.
@@ -48,7 +49,10 @@ pub fn sync_to_disk(path: &Path) -> Result<(), TrainError> {
 /// which common splat viewers read. Volumetric density has no exact 3DGS counterpart: the
 /// `opacity` written is the logit of the alpha of a ray through the centre along a
 /// direction of the geometric-mean scale, `1 - exp(-sigma sqrt(2 pi) s)`.
-pub fn write_ply(path: &Path, gaussians: &HostGaussians) -> Result<(), TrainError> {
+///
+/// With [`PlyAxes::YDown`] every Gaussian is turned half a turn about x: centre
+/// `(x, -y, -z)`, rotation `q_x(pi) q` (the scales, along the Gaussian's own axes, stay).
+pub fn write_ply(path: &Path, gaussians: &HostGaussians, axes: PlyAxes) -> Result<(), TrainError> {
     let n = gaussians.len();
     let mut header = format!(
         "ply\nformat binary_little_endian 1.0\nelement vertex {n}\n\
@@ -74,8 +78,12 @@ pub fn write_ply(path: &Path, gaussians: &HostGaussians) -> Result<(), TrainErro
     bytes.extend_from_slice(header.as_bytes());
     let mut push = |v: f32| bytes.extend_from_slice(&v.to_le_bytes());
     for i in 0..n {
-        for a in 0..3 {
-            push(gaussians.means[3 * i + a]);
+        let turn = match axes {
+            PlyAxes::World => [1.0, 1.0, 1.0],
+            PlyAxes::YDown => [1.0, -1.0, -1.0],
+        };
+        for (sign, mean) in turn.iter().zip(&gaussians.means[3 * i..3 * i + 3]) {
+            push(sign * mean);
         }
         for _ in 0..3 {
             push(0.0);
@@ -96,8 +104,14 @@ pub fn write_ply(path: &Path, gaussians: &HostGaussians) -> Result<(), TrainErro
         for a in 0..3 {
             push(gaussians.log_scales[3 * i + a]);
         }
-        for a in 0..4 {
-            push(gaussians.rotations[4 * i + a]);
+        let q = &gaussians.rotations[4 * i..4 * i + 4];
+        let rotation = match axes {
+            PlyAxes::World => [q[0], q[1], q[2], q[3]],
+            // (0, 1, 0, 0) * (w, x, y, z) = (-x, w, -z, y).
+            PlyAxes::YDown => [-q[1], q[0], -q[3], q[2]],
+        };
+        for v in rotation {
+            push(v);
         }
     }
     write_atomic(path, &bytes)
@@ -277,7 +291,7 @@ mod tests {
             raw_densities: vec![0.0, 5.0],
             colors: vec![0.5; 6],
         };
-        write_ply(&path, &gaussians).unwrap();
+        write_ply(&path, &gaussians, PlyAxes::World).unwrap();
         let bytes = std::fs::read(&path).unwrap();
         let end = b"end_header\n";
         let at = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
@@ -293,6 +307,42 @@ mod tests {
         let second = &bytes[at + 62 * 4..];
         let x = f32::from_le_bytes(second[..4].try_into().unwrap());
         assert_eq!(x, 3.0);
+    }
+
+    #[test]
+    fn y_down_ply_turns_centres_and_orientations_half_a_turn_about_x() {
+        use gausmoke_core::glam::{Mat3, Quat};
+        let dir = tempfile::tempdir().unwrap();
+        let q = Quat::from_euler(gausmoke_core::glam::EulerRot::XYZ, 0.3, -0.7, 1.1);
+        let gaussians = HostGaussians {
+            means: vec![0.5, 1.5, -2.0],
+            rotations: vec![q.w, q.x, q.y, q.z],
+            log_scales: vec![-3.0, -2.0, -1.0],
+            raw_densities: vec![1.0],
+            colors: vec![0.5; 3],
+        };
+        let read = |axes: PlyAxes| -> Vec<f32> {
+            let path = dir.path().join("g.ply");
+            write_ply(&path, &gaussians, axes).unwrap();
+            let bytes = std::fs::read(&path).unwrap();
+            let end = b"end_header\n";
+            let at = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
+            bytes[at..]
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+                .collect()
+        };
+        let (world, down) = (read(PlyAxes::World), read(PlyAxes::YDown));
+        assert_eq!(&down[..3], &[0.5, -1.5, 2.0]);
+        assert_eq!(&down[55..58], &world[55..58], "scales stay");
+        let rotation = |v: &[f32]| Mat3::from_quat(Quat::from_xyzw(v[1], v[2], v[3], v[0]));
+        let turned = Mat3::from_rotation_x(std::f32::consts::PI) * rotation(&world[58..62]);
+        let written = rotation(&down[58..62]);
+        let error = (turned - written)
+            .to_cols_array()
+            .iter()
+            .fold(0.0f32, |m, d| m.max(d.abs()));
+        assert!(error < 1e-6, "{error}");
     }
 
     #[test]

@@ -334,7 +334,13 @@ impl Run {
                     render,
                 })
                 .collect();
-            self.folder.write_frame_outputs(t, &grid, &state, &views)?;
+            self.folder.write_frame_outputs(
+                t,
+                &grid,
+                &state,
+                &views,
+                self.trainer.config.ply_axes,
+            )?;
         }
 
         tracing::info!(

@@ -9,7 +9,7 @@ use gausmoke_render::HostGaussians;
 use serde::{Deserialize, Serialize};
 
 use crate::arrays::{HostArrays, read_arrays, take_array, write_arrays};
-use crate::config::TrainConfig;
+use crate::config::{PlyAxes, TrainConfig};
 use crate::export::{self, write_atomic};
 pub use crate::state::PhaseSeconds;
 use crate::state::{FrameReport, LossRow};
@@ -226,6 +226,7 @@ impl RunFolder {
         grid: &GridSpec,
         state: &FrameState,
         renders: &[ViewRender],
+        ply_axes: PlyAxes,
     ) -> Result<(), TrainError> {
         for view in renders {
             let dir = self.root.join("renders").join(view.name);
@@ -252,7 +253,11 @@ impl RunFolder {
             .save_png(&dir.join(frame_file(t, "png")))?;
         let dir = self.root.join("exports");
         Self::create_dir(&dir)?;
-        export::write_ply(&dir.join(format!("gaussians_{t:03}.ply")), &state.gaussians)?;
+        export::write_ply(
+            &dir.join(format!("gaussians_{t:03}.ply")),
+            &state.gaussians,
+            ply_axes,
+        )?;
         export::write_vti(
             &dir.join(format!("grid_{t:03}.vti")),
             grid,
@@ -412,7 +417,8 @@ comparison/        per frame: held-out reference | render; comparison.gif and
 slices/            per frame, middle z slice: density (grey) | speed (viridis, each frame
                    scaled to its own maximum);
                    slices.mp4 animates them
-exports/           per frame: gaussians_TTT.ply (3DGS layout), grid_TTT.vti (ParaView;
+exports/           per frame: gaussians_TTT.ply (3DGS layout; world axes, or y down for
+                   splat viewers with ply_axes = 'y-down'), grid_TTT.vti (ParaView;
                    open grid.pvd to play them as a time series, time = frame index),
                    grid_TTT.npz (density [nx,ny,nz], velocity [nx,ny,nz,3], lo, hi)
 frames/            per frame: Gaussians, velocity and density grids (safetensors), read by
