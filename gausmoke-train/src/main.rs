@@ -44,7 +44,7 @@ enum Command {
         /// default: the file `cargo xtask lpips-weights` caches, when present.
         #[arg(long)]
         lpips_weights: Option<PathBuf>,
-        #[arg(long, default_value = "flex")]
+        #[arg(long, default_value = "flex", value_parser = compiled_device, help = device_help())]
         device: String,
     },
     /// Print what a data set holds and write a contact sheet PNG.
@@ -61,17 +61,40 @@ enum Command {
     },
     /// Write a synthetic smoke scene with ground-truth density and velocity.
     Synth {
-        /// `tiny` (24^3, 3 views, 8 frames, 64x96), `long` (32^3, 5 views, 72 frames,
-        /// 64x96; the plume leaves through the top) or `scalarflow` (64^3, 5 views, 120
-        /// frames, 270x480).
-        preset: String,
+        preset: SynthPreset,
         /// Output folder (must not exist or be empty).
         out: PathBuf,
+        /// Seed of the inflow noise (default: the preset's).
         #[arg(long)]
         seed: Option<u64>,
     },
     /// Render a procedural smoke plume to PNG (a check of the build and the renderer).
     Render(RenderArgs),
+}
+
+/// The synthetic scenes `synth` writes.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum SynthPreset {
+    /// 24^3 grid, 3 views, 8 frames at 64x96 (tests).
+    Tiny,
+    /// 32^3, 5 views, 72 frames at 64x96; the plume leaves through the open top.
+    Long,
+    /// 64^3, 5 views, 120 frames at 270x480, ScalarFlow-sized.
+    Scalarflow,
+}
+
+/// `--device`: the backends compiled into this build.
+fn device_help() -> String {
+    let names: Vec<&str> = backends::all_devices().iter().map(|(n, _)| *n).collect();
+    format!(
+        "Backend to run on: {} in this build (GPU backends come with a build with --features \
+         wgpu, vulkan or cuda)",
+        names.join(", ")
+    )
+}
+
+fn compiled_device(name: &str) -> Result<String, String> {
+    backends::device_by_name(name).map(|_| name.to_string())
 }
 
 #[derive(Debug, Args)]
@@ -91,8 +114,7 @@ struct TrainArgs {
     /// Continue from the newest complete checkpoint in --out.
     #[arg(long)]
     resume: bool,
-    /// Compiled backend to train on.
-    #[arg(long, default_value = "flex")]
+    #[arg(long, default_value = "flex", value_parser = compiled_device, help = device_help())]
     device: String,
     /// Shortcut for `--set frames=N`.
     #[arg(long)]
@@ -146,7 +168,7 @@ struct RenderArgs {
     /// Output folder (default: RUN/render, or out/demo for the procedural plume).
     #[arg(long)]
     out: Option<PathBuf>,
-    #[arg(long, default_value = "flex")]
+    #[arg(long, default_value = "flex", value_parser = compiled_device, help = device_help())]
     device: String,
     /// Procedural plume only: number of Gaussians.
     #[arg(long, default_value_t = 30_000, conflicts_with = "run")]
@@ -216,11 +238,10 @@ fn run_command(cli: Cli) -> Result<()> {
         }
         Some(Command::Inspect { dataset, out, size }) => inspect_dataset(&dataset, &out, size),
         Some(Command::Synth { preset, out, seed }) => {
-            let mut config = match preset.as_str() {
-                "tiny" => SynthConfig::tiny(),
-                "long" => SynthConfig::long_plume(),
-                "scalarflow" => SynthConfig::scalarflow(),
-                other => bail!("unknown preset `{other}`: use `tiny`, `long` or `scalarflow`"),
+            let mut config = match preset {
+                SynthPreset::Tiny => SynthConfig::tiny(),
+                SynthPreset::Long => SynthConfig::long_plume(),
+                SynthPreset::Scalarflow => SynthConfig::scalarflow(),
             };
             if let Some(seed) = seed {
                 config.seed = seed;
