@@ -89,6 +89,7 @@ pub const RESUMABLE_KEYS: &[&str] = &[
     "lr_decay_every",
     "output_every",
     "ply_axes",
+    "tensorboard",
     "sync_phase_timings",
 ];
 
@@ -182,6 +183,9 @@ pub struct TrainConfig {
     /// Axes of the exported Gaussians (`exports/gaussians_TTT.ply`): `"world"` or
     /// `"y-down"` (for splat viewers; see [`PlyAxes`]).
     pub ply_axes: PlyAxes,
+    /// Also write TensorBoard event files (`RUN/tensorboard/`): per-frame metrics, every
+    /// optimisation step's losses and the held-out comparison picture of each output frame.
+    pub tensorboard: bool,
     /// Wait for the device at both ends of every timed phase, so the per-phase times in
     /// `metrics.json` charge GPU work to the phase that queued it. Slows GPU runs; changes
     /// nothing on the CPU backends, which run eagerly.
@@ -229,6 +233,7 @@ impl Default for TrainConfig {
             seed: 2026,
             output_every: 1,
             ply_axes: PlyAxes::World,
+            tensorboard: false,
             sync_phase_timings: false,
         }
     }

@@ -17,6 +17,7 @@ use crate::run_folder::{FrameState, Metrics, RunFolder, RunInfo, ViewRender};
 use crate::run_lock::{LOCK_FILE, RunLock};
 use crate::sequence::{Observation, Sequence};
 use crate::state::{FrameReport, LossRow, PhaseSeconds};
+use crate::tensorboard::EventWriter;
 use crate::trainer::{FrameOutcome, Trainer};
 use crate::{TrainConfig, TrainError, metrics};
 
@@ -35,6 +36,8 @@ pub struct Run {
     phase_times: Vec<PhaseTime>,
     /// Phase totals of earlier sessions of a resumed run.
     phases_before: BTreeMap<String, PhaseSeconds>,
+    /// TensorBoard events (`tensorboard = true`), opened at the first frame of this session.
+    events: Option<EventWriter>,
     /// Keeps a second process from training into the same folder.
     _lock: RunLock,
 }
@@ -89,6 +92,7 @@ impl Run {
             session_start: Instant::now(),
             phase_times: Vec::new(),
             phases_before: BTreeMap::new(),
+            events: None,
             _lock: lock,
         };
         let sequence = &run.trainer.sequence;
@@ -294,6 +298,61 @@ impl Run {
         Ok(self.reports.last().expect("a frame was just reported"))
     }
 
+    /// Frame `t`'s metrics, its optimisation steps' losses (numbered after the steps before)
+    /// and its comparison picture, when one was written, as TensorBoard events.
+    fn log_events(
+        &mut self,
+        t: usize,
+        losses: &[LossRow],
+        report: &FrameReport,
+    ) -> Result<(), TrainError> {
+        if self.events.is_none() {
+            self.events = Some(EventWriter::create(
+                &self.folder.root().join("tensorboard"),
+            )?);
+        }
+        let events = self.events.as_mut().expect("opened above");
+        let first_step = self.losses.len();
+        for (k, row) in losses.iter().enumerate() {
+            events.scalars(
+                (first_step + k) as i64,
+                &[
+                    ("loss/total", row.total as f64),
+                    ("loss/render", row.render as f64),
+                    ("loss/divergence", row.divergence as f64),
+                    ("loss/advection", row.advection as f64),
+                    ("loss/refine", row.refine as f64),
+                ],
+            )?;
+        }
+        events.scalars(
+            t as i64,
+            &[
+                (
+                    "frame/held_out_psnr_db",
+                    report.test_psnr.unwrap_or(f64::NAN),
+                ),
+                ("frame/held_out_ssim", report.test_ssim.unwrap_or(f64::NAN)),
+                ("frame/train_l1", report.train_l1),
+                ("frame/mean_abs_divergence", report.mean_abs_divergence),
+                ("frame/mean_speed", report.mean_speed),
+                ("frame/max_speed", report.max_speed),
+                ("frame/clamped_to_box", report.clamped_to_box as f64),
+                ("frame/respawned", report.respawned as f64),
+                ("frame/seconds", report.seconds),
+            ],
+        )?;
+        let comparison = self
+            .folder
+            .root()
+            .join("comparison")
+            .join(format!("frame_{t:03}.png"));
+        if let Some(picture) = crate::visuals::Picture::open_png(&comparison) {
+            events.image(t as i64, "held_out/reference_vs_render", &picture)?;
+        }
+        events.flush()
+    }
+
     /// Evaluates the frame `outcome` reports, writes its outputs and checkpoints it.
     fn finish_frame(&mut self, outcome: FrameOutcome, start: Instant) -> Result<(), TrainError> {
         let t = outcome.frame;
@@ -353,6 +412,9 @@ impl Run {
             eta_seconds = format!("{:.0}", report.seconds * (frames - 1 - t) as f64),
             "frame done"
         );
+        if self.trainer.config.tensorboard {
+            self.log_events(t, &outcome.losses, &report)?;
+        }
         self.losses.extend(outcome.losses);
         self.reports.push(report);
         self.frame = Some(t);
