@@ -27,6 +27,9 @@ pub struct FrameEval {
     /// above 1% of its maximum: RMS of `u - u_true` and that RMS relative to RMS `u_true`.
     pub velocity_rmse: Option<f64>,
     pub velocity_relative_error: Option<f64>,
+    /// Mean over the same cells of the cosine between `u` and `u_true`: the direction alone
+    /// (the relative error mixes direction and speed).
+    pub velocity_cosine: Option<f64>,
     /// `|sigma - s rho_true| / |s rho_true|` over all cells (`s` the generator's density
     /// scale, `rho_true` its density).
     pub density_relative_error: Option<f64>,
@@ -43,6 +46,7 @@ pub struct EvalReport {
     pub test_ssim_mean: Option<f64>,
     pub mean_abs_divergence: f64,
     pub velocity_relative_error_mean: Option<f64>,
+    pub velocity_cosine_mean: Option<f64>,
     pub density_relative_error_mean: Option<f64>,
     pub density_correlation_mean: Option<f64>,
     pub test_lpips_mean: Option<f64>,
@@ -93,6 +97,7 @@ fn sample_grid(grid: &GridSpec, values: &[f32], channels: usize, p: Vec3, out: &
 struct TruthErrors {
     velocity_rmse: f64,
     velocity_relative_error: f64,
+    velocity_cosine: f64,
     density_relative_error: f64,
     density_correlation: f64,
 }
@@ -122,6 +127,7 @@ fn ground_truth_errors(
     let threshold = 0.01 * true_density.iter().cloned().fold(0.0, f32::max);
     let extent = scene.hi - scene.lo;
     let (mut error2, mut truth2, mut smoke_cells) = (0.0, 0.0, 0usize);
+    let mut cosine_sum = 0.0;
     let (mut density_error2, mut density_truth2) = (0.0, 0.0);
     let mut ours = [0.0f64; 3];
     let mut ours_density = [0.0f64];
@@ -150,11 +156,17 @@ fn ground_truth_errors(
                 }
                 if true_density[cell] > threshold {
                     sample_grid(grid, velocity, 3, p, &mut ours);
+                    let (mut dot, mut ours2, mut true2) = (0.0, 0.0, 0.0);
                     for a in 0..3 {
                         let truth = true_velocity[3 * cell + a] as f64;
                         error2 += (ours[a] - truth).powi(2);
                         truth2 += truth * truth;
+                        dot += ours[a] * truth;
+                        ours2 += ours[a] * ours[a];
+                        true2 += truth * truth;
                     }
+                    let lengths = (ours2 * true2).sqrt();
+                    cosine_sum += if lengths > 0.0 { dot / lengths } else { 0.0 };
                     smoke_cells += 1;
                 }
             }
@@ -167,6 +179,7 @@ fn ground_truth_errors(
     Ok(Some(TruthErrors {
         velocity_rmse: (error2 / cells).sqrt(),
         velocity_relative_error: (error2 / truth2.max(1e-30)).sqrt(),
+        velocity_cosine: cosine_sum / cells,
         density_relative_error: (density_error2 / density_truth2.max(1e-30)).sqrt(),
         // An empty (constant) reconstruction is uncorrelated.
         density_correlation: if spread > 0.0 {
@@ -250,6 +263,7 @@ pub fn evaluate(
             mean_abs_divergence: metrics::mean_abs_divergence(&grid, open_faces, velocity),
             velocity_rmse: velocity_truth.map(|e| e.velocity_rmse),
             velocity_relative_error: velocity_truth.map(|e| e.velocity_relative_error),
+            velocity_cosine: velocity_truth.map(|e| e.velocity_cosine),
             density_relative_error: truth.map(|e| e.density_relative_error),
             density_correlation: truth.map(|e| e.density_correlation),
         });
@@ -266,6 +280,7 @@ pub fn evaluate(
         mean_abs_divergence: mean(frames.iter().map(|f| Some(f.mean_abs_divergence)))
             .unwrap_or(f64::NAN),
         velocity_relative_error_mean: mean(frames.iter().map(|f| f.velocity_relative_error)),
+        velocity_cosine_mean: mean(frames.iter().map(|f| f.velocity_cosine)),
         density_relative_error_mean: mean(frames.iter().map(|f| f.density_relative_error)),
         density_correlation_mean: mean(frames.iter().map(|f| f.density_correlation)),
         test_lpips_mean: mean(frames.iter().map(|f| f.test_lpips)),

@@ -223,6 +223,7 @@ fn run_command(cli: Cli) -> Result<()> {
                 "velocity rel. error  {}",
                 show(report.velocity_relative_error_mean)
             );
+            println!("velocity cosine      {}", show(report.velocity_cosine_mean));
             println!(
                 "density rel. error   {}",
                 show(report.density_relative_error_mean)

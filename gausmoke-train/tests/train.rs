@@ -169,10 +169,14 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
         velocity_error < 0.95,
         "velocity relative error {velocity_error}"
     );
+    // Direction alone: random directions average 0, the truth 1.
+    let cosine = report.velocity_cosine_mean.unwrap();
+    eprintln!("velocity cosine {cosine:.3}");
+    assert!(cosine > 0.3 && cosine <= 1.0, "velocity cosine {cosine}");
     // Density against the truth from frame 0 on (the frame-alone baseline has only frame 0);
     // velocity from frame 1, since u^0 = 0 by construction.
     let first = &report.frames[0];
-    assert!(first.velocity_relative_error.is_none());
+    assert!(first.velocity_relative_error.is_none() && first.velocity_cosine.is_none());
     let density_error = first.density_relative_error.unwrap();
     // An empty reconstruction scores exactly 1.0.
     assert!(

