@@ -135,6 +135,12 @@ pub struct TrainConfig {
     pub lambda_div: f32,
     pub lambda_adv: f32,
     pub lambda_refine: f32,
+    /// Weight of a look-ahead render term in the joint iterations (ours; 0 = the paper's
+    /// method): the Gaussians carried to frame t are carried on by the same velocity to
+    /// frame t+1 and rendered against frame t+1's training views, so the velocity of frame t
+    /// must also explain the next frame's pictures (their attributes are held fixed in that
+    /// term: it trains the velocity only). Not applied at the last frame.
+    pub lambda_lookahead: f32,
     /// Time step of the velocity update and advection, in frames.
     pub dt: f32,
     /// Channels of the U-Net's first level.
@@ -214,6 +220,7 @@ impl Default for TrainConfig {
             lambda_div: 0.02,
             lambda_adv: 0.02,
             lambda_refine: 0.01,
+            lambda_lookahead: 0.0,
             dt: 1.0,
             unet_channels: 16,
             time_frequencies: 4,
@@ -394,6 +401,7 @@ impl TrainConfig {
             ("lambda_div", self.lambda_div),
             ("lambda_adv", self.lambda_adv),
             ("lambda_refine", self.lambda_refine),
+            ("lambda_lookahead", self.lambda_lookahead),
         ];
         for (name, value) in weights {
             if !(value.is_finite() && value >= 0.0) {

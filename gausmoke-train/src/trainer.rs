@@ -6,6 +6,9 @@
 //!   from `p^{t-1}` through `u^t`, rendered against frame t, loss
 //!   `L_render + lambda_div L_div + lambda_adv L_adv`; Adam steps on Phi and on the Gaussians'
 //!   shape, density and colour (the centres are the advected ones, so `p^{t-1}` stays).
+//!   With `lambda_lookahead > 0` (ours, off by default) the loss also renders the centres
+//!   carried one frame further by the same `u^t` against frame t+1's views, the other
+//!   attributes held fixed, so `u^t` is fitted to two frames' pictures.
 //! * Then K' refinement iterations (lines 11-13): the centres become free parameters tied to
 //!   the advected ones by `lambda_refine L_refine`, with `L_render`.
 //!
@@ -341,6 +344,16 @@ impl Trainer {
         };
         let bar = self.progress(t, config.advect_iterations + refine_iterations);
         let mut losses = Vec::with_capacity(config.advect_iterations + refine_iterations);
+        // The next frame's training views, for the look-ahead term.
+        let ahead: Option<(Vec<Observation>, Vec<Tensor<3>>)> =
+            (config.lambda_lookahead > 0.0 && t + 1 < self.sequence.frames()).then(|| {
+                let views = self.sequence.train[t + 1].clone();
+                let targets = views
+                    .iter()
+                    .map(|o| image_tensor(o, &self.device))
+                    .collect();
+                (views, targets)
+            });
 
         // K joint iterations (Algorithm 1, lines 3-9).
         let mut velocity = previous_velocity.clone();
@@ -378,6 +391,27 @@ impl Trainer {
             let next = self.state.gaussians.tensors_at(moved.positions.clone());
             let render = self.render_loss(&next, &observations, &targets)?;
             let mut loss = render.clone();
+            if let Some((views, ahead_targets)) = &ahead {
+                // One frame further along the same velocity; only the velocity learns here.
+                let further = advect(
+                    &self.grid,
+                    &projected,
+                    &moved.positions,
+                    config.dt,
+                    self.integrator(),
+                    interpolation,
+                );
+                let live = self.state.gaussians.tensors();
+                let carried = Gaussians {
+                    means: further.positions,
+                    rotations: live.rotations.detach(),
+                    log_scales: live.log_scales.detach(),
+                    raw_densities: live.raw_densities.detach(),
+                    colors: live.colors.detach(),
+                };
+                let lookahead = self.render_loss(&carried, views, ahead_targets)?;
+                loss = loss + lookahead * config.lambda_lookahead;
+            }
             let (mut divergence_value, mut advection_value) = (0.0, 0.0);
             if let Some(gradient_previous) = gradient_previous {
                 let divergence = divergence_loss_of(&moved.start);

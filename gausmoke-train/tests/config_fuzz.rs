@@ -30,6 +30,7 @@ const KEYS: &[(&str, bool)] = &[
     ("lambda_div", true),
     ("lambda_adv", true),
     ("lambda_refine", true),
+    ("lambda_lookahead", true),
     ("dt", true),
     ("unet_channels", false),
     ("time_frequencies", true),
