@@ -196,16 +196,17 @@ pub fn render_run(
     let mut paths: Vec<(String, Vec<Camera>)> = Vec::new();
     match &request.cameras {
         CameraPath::DatasetViews => {
-            for (k, observation) in scene.train[0].iter().chain(&scene.test[0]).enumerate() {
+            for observation in scene.train[0].iter().chain(&scene.test[0]) {
+                // A D-NeRF camera moves: each frame has its own pose for the view.
                 let cameras = frames
                     .clone()
                     .map(|t| {
-                        let list = scene.train[t].iter().chain(&scene.test[t]);
-                        list.clone()
+                        scene.train[t]
+                            .iter()
+                            .chain(&scene.test[t])
                             .find(|o| o.view == observation.view)
-                            .or_else(|| list.clone().nth(k))
                             .map(|o| o.camera)
-                            .expect("every frame has the same views")
+                            .expect("Sequence checks that every view covers every frame")
                     })
                     .collect();
                 paths.push((observation.view.clone(), cameras));
