@@ -78,6 +78,17 @@ pub enum PlyAxes {
     YDown,
 }
 
+/// Which velocity carries the Gaussians from frame t+1's look-ahead step (see
+/// `lambda_lookahead`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LookaheadVelocity {
+    /// Frame t's velocity, held for a second frame.
+    Held,
+    /// The velocity Phi predicts for frame t+1 from the carried Gaussians' density, projected.
+    Predicted,
+}
+
 /// Keys that may differ when a run is resumed: they change how the rest of the run trains or
 /// what it writes, not the shape or meaning of what is already trained. `frames` extends (or
 /// shortens) the run; the learning rates let a run that diverged continue more gently.
@@ -141,6 +152,8 @@ pub struct TrainConfig {
     /// must also explain the next frame's pictures (their attributes are held fixed in that
     /// term: it trains the velocity only). Not applied at the last frame.
     pub lambda_lookahead: f32,
+    /// The velocity of the look-ahead's second step: `"held"` or `"predicted"`.
+    pub lookahead_velocity: LookaheadVelocity,
     /// Time step of the velocity update and advection, in frames.
     pub dt: f32,
     /// Channels of the U-Net's first level.
@@ -221,6 +234,7 @@ impl Default for TrainConfig {
             lambda_adv: 0.02,
             lambda_refine: 0.01,
             lambda_lookahead: 0.0,
+            lookahead_velocity: LookaheadVelocity::Held,
             dt: 1.0,
             unet_channels: 16,
             time_frequencies: 4,

@@ -8,7 +8,9 @@
 //!   shape, density and colour (the centres are the advected ones, so `p^{t-1}` stays).
 //!   With `lambda_lookahead > 0` (ours, off by default) the loss also renders the centres
 //!   carried one frame further by the same `u^t` against frame t+1's views, the other
-//!   attributes held fixed, so `u^t` is fitted to two frames' pictures.
+//!   attributes held fixed, so `u^t` is fitted to two frames' pictures; the second step
+//!   moves them along `u^t` again or (`lookahead_velocity = "predicted"`) along Phi's
+//!   projected prediction for frame t+1 from their density there.
 //! * Then K' refinement iterations (lines 11-13): the centres become free parameters tied to
 //!   the advected ones by `lambda_refine L_refine`, with `L_render`.
 //!
@@ -32,7 +34,9 @@ use gausmoke_render::{GaussianTensors, Gaussians, RasterOptions, render_volume};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::TrainError;
-use crate::config::{IntegratorKind, InterpolationKind, ProjectionKind, TrainConfig};
+use crate::config::{
+    IntegratorKind, InterpolationKind, LookaheadVelocity, ProjectionKind, TrainConfig,
+};
 use crate::respawn::{DeficitView, RespawnOptions, RespawnReport, SpawnLattice, respawn};
 use crate::sequence::{Observation, Sequence};
 use crate::state::{LossRow, Phase, TrainState};
@@ -392,10 +396,23 @@ impl Trainer {
             let render = self.render_loss(&next, &observations, &targets)?;
             let mut loss = render.clone();
             if let Some((views, ahead_targets)) = &ahead {
-                // One frame further along the same velocity; only the velocity learns here.
+                // One frame further; only the velocity learns here.
+                let carrier = match config.lookahead_velocity {
+                    LookaheadVelocity::Held => projected.clone(),
+                    LookaheadVelocity::Predicted => {
+                        let sigma = density_grid(&next, &self.grid, splat.cutoff).detach();
+                        let frames = (self.sequence.frames() - 1).max(1) as f32;
+                        let delta = self.state.phi.forward(
+                            projected.clone(),
+                            sigma,
+                            (t + 1) as f32 / frames,
+                        )?;
+                        self.project(projected.clone() + delta)
+                    }
+                };
                 let further = advect(
                     &self.grid,
-                    &projected,
+                    &carrier,
                     &moved.positions,
                     config.dt,
                     self.integrator(),

@@ -881,3 +881,52 @@ fn first_frame_starts_the_run_later_in_the_data() {
     let err = unbounded.validate().unwrap_err().to_string();
     assert!(err.contains("first_frame = 2 needs frames"), "{err}");
 }
+
+#[test]
+fn the_look_ahead_changes_the_velocity_and_both_carriers_train() {
+    use gausmoke_train::config::LookaheadVelocity;
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let base = TrainConfig {
+        gaussians: 400,
+        grid_resolution: 8,
+        frames: Some(3),
+        init_iterations: 10,
+        advect_iterations: 3,
+        refine_iterations: 1,
+        unet_channels: 4,
+        time_frequencies: 2,
+        ..TrainConfig::default()
+    };
+    let velocity_after = |config: TrainConfig, name: &str| -> Vec<f32> {
+        let scene = Sequence::open(&data, &config).unwrap();
+        let device = device_by_name("flex").unwrap().autodiff();
+        let mut run = Run::new(scene, config, device, &dir.path().join(name), false)
+            .unwrap()
+            .quiet(true);
+        run.run().unwrap();
+        let velocity = run.trainer.state.velocity.clone().into_data();
+        velocity.try_into_vec_as::<f32>().unwrap()
+    };
+    let without = velocity_after(base.clone(), "without");
+    for carrier in [LookaheadVelocity::Held, LookaheadVelocity::Predicted] {
+        let with = velocity_after(
+            TrainConfig {
+                lambda_lookahead: 1.0,
+                lookahead_velocity: carrier,
+                ..base.clone()
+            },
+            &format!("{carrier:?}"),
+        );
+        assert!(with.iter().all(|v| v.is_finite()), "{carrier:?}");
+        let change = with
+            .iter()
+            .zip(&without)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        assert!(
+            change > 0.0,
+            "{carrier:?}: the look-ahead term changed nothing"
+        );
+    }
+}
