@@ -4,6 +4,7 @@
 
 use std::path::Path;
 
+use gausmoke_train::arrays::read_arrays;
 use gausmoke_train::metrics::{psnr, ssim};
 
 #[test]
@@ -13,15 +14,10 @@ fn ssim_and_psnr_match_scikit_image() {
     let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).unwrap();
     let meta = header.metadata().as_ref().expect("golden metadata");
-    let file = safetensors::SafeTensors::deserialize(&bytes).unwrap();
-    let image = |name: &str| -> (Vec<f32>, usize, usize) {
-        let view = file.tensor(name).unwrap();
-        let values = view
-            .data()
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect();
-        (values, view.shape()[1], view.shape()[0])
+    let arrays = read_arrays(&path).unwrap();
+    let image = |name: &str| -> (&[f32], usize, usize) {
+        let (shape, values) = &arrays[name];
+        (values, shape[1], shape[0])
     };
     let pairs: Vec<&str> = meta["pairs"].split(',').collect();
     assert_eq!(pairs.len(), 4);
@@ -30,8 +26,8 @@ fn ssim_and_psnr_match_scikit_image() {
         let (b, _, _) = image(&format!("{pair}.b"));
         let expected_ssim: f64 = meta[&format!("{pair}.ssim")].parse().unwrap();
         let expected_psnr: f64 = meta[&format!("{pair}.psnr")].parse().unwrap();
-        let ours_ssim = ssim(&a, &b, width, height);
-        let ours_psnr = psnr(&a, &b);
+        let ours_ssim = ssim(a, b, width, height);
+        let ours_psnr = psnr(a, b);
         eprintln!(
             "{pair}: SSIM {ours_ssim:.10} vs {expected_ssim:.10}, PSNR {ours_psnr:.8} vs {expected_psnr:.8}"
         );
