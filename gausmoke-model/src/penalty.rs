@@ -117,7 +117,7 @@ pub fn penalty_projection_with_report(
 ) -> (Tensor<4>, ProjectionReport) {
     let rms = |t: &Tensor<4>| -> f64 {
         let d = grid_divergence(grid, t);
-        (d.clone() * d).mean().into_scalar::<f32>() as f64
+        gausmoke_render::device_traffic::read_scalar((d.clone() * d).mean()) as f64
     };
     let before = rms(&velocity).sqrt();
     let projected = penalty_projection(grid, velocity, options);

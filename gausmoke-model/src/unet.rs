@@ -191,6 +191,7 @@ impl VelocityUNet {
 }
 
 #[cfg(test)]
+#[allow(clippy::disallowed_methods)] // tests read tensors freely
 mod tests {
     use super::*;
     use gausmoke_render::backends::cpu_devices;

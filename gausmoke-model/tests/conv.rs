@@ -5,6 +5,7 @@
 //! Tolerance: both sum the same products in different orders (ours tiles im2col through
 //! `gemm`): measured within 6e-7 of each tensor's largest magnitude (2026-11-23,
 //! `GAUSMOKE_PRINT_ERRORS=1 ... -- --nocapture`); bound 1e-5.
+#![allow(clippy::disallowed_methods)] // tests read tensors freely; the library counts its reads
 
 use burn::nn::PaddingConfig3d;
 use burn::nn::conv::{Conv3dConfig, ConvTranspose3dConfig};

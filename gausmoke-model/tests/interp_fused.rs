@@ -6,6 +6,7 @@
 //! Measured (2026-11-23, `GAUSMOKE_PRINT_ERRORS=1 ... -- --nocapture`): velocity, Jacobian and
 //! grid gradient within 2e-6, point gradient within 5e-6 of each tensor's largest magnitude
 //! (points outside the box amplify rounding); bound 2e-5.
+#![allow(clippy::disallowed_methods)] // tests read tensors freely; the library counts its reads
 
 use burn::tensor::{Device, Tensor, TensorData};
 use gausmoke_core::SplitMix64;

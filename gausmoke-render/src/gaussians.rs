@@ -298,10 +298,7 @@ impl GaussianTensors {
     /// Reads every attribute back to the host.
     pub fn to_host(&self) -> HostGaussians {
         fn host<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
-            t.clone()
-                .into_data()
-                .try_into_vec_as::<f32>()
-                .expect("float tensors read back as f32")
+            crate::device_traffic::read_floats(t.clone())
         }
         Gaussians {
             means: host(&self.means),

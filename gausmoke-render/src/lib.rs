@@ -18,6 +18,7 @@
 
 pub mod backends;
 pub mod cpu;
+pub mod device_traffic;
 pub mod gaussians;
 #[cfg(feature = "cube")]
 pub mod kernels;
@@ -47,11 +48,8 @@ pub struct RenderOutput {
     pub transmittance: Tensor<2>,
 }
 
-/// Checks shapes on the host, then finiteness, quaternion norms and scale range with one
-/// backend op and one small device read-back (8 numbers), so a bad parameter is named instead
-/// of becoming a NaN image or a panic inside a backend. (Composing this from ~20 burn tensor
-/// ops cost 11 ms per render on an H100 through wgpu, four times the render itself.)
-fn validate(gaussians: &GaussianTensors, background: &Tensor<1>) -> Result<(), RenderError> {
+/// Checks the shapes on the host (no device work).
+fn check_shapes(gaussians: &GaussianTensors, background: &Tensor<1>) -> Result<(), RenderError> {
     let n = gaussians.len();
     for (attribute, got) in gaussians.shapes().map(|a, shape| (a, shape)).into_array() {
         let expected = attribute.shape(n);
@@ -70,41 +68,86 @@ fn validate(gaussians: &GaussianTensors, background: &Tensor<1>) -> Result<(), R
             got: background.dims().to_vec(),
         });
     }
-
-    let stats = Tensor::<1>::from_dispatch(
-        <Dispatch as VolumeRenderBackend>::volume_render_input_stats(
-            gaussians.clone().into_dispatch(),
-            background.clone().into_dispatch(),
-        ),
-    )
-    .into_data()
-    .try_into_vec_as::<f32>()
-    .expect("validation statistics are floats");
-    let names = ["background"]
-        .into_iter()
-        .chain(ATTRIBUTES.iter().map(|attribute| attribute.name));
-    for (name, &ok) in names.zip(&stats) {
-        if ok < 0.5 {
-            return Err(RenderError::NonFinite { name });
-        }
-    }
-    if n > 0 {
-        let min_norm_sq = stats[6];
-        if min_norm_sq.is_nan() || min_norm_sq <= 1e-12 {
-            return Err(RenderError::ZeroQuaternion { min_norm_sq });
-        }
-        let max_abs = stats[7];
-        if max_abs > LOG_SCALE_LIMIT {
-            return Err(RenderError::ScaleOutOfRange { max_abs });
-        }
-    }
     Ok(())
+}
+
+/// The renderer's input checks that need the values (finiteness of every attribute and the
+/// background, quaternion norms, scale range), computed on the device by one backend op into
+/// [`InputCheck::LEN`] numbers and judged on the host by [`InputCheck::verify`]. A caller that
+/// must not wait for the device keeps [`InputCheck::values`] with its other diagnostics and
+/// reads them all at once. (Composing this from ~20 burn tensor ops cost 11 ms per render on an
+/// H100 through wgpu, four times the render itself.)
+#[derive(Debug, Clone)]
+pub struct InputCheck {
+    values: Tensor<1>,
+    gaussians: usize,
+}
+
+impl InputCheck {
+    /// How many numbers [`InputCheck::values`] holds.
+    pub const LEN: usize = 8;
+
+    /// Shapes checked now; the value checks queued on the device.
+    pub fn new(gaussians: &GaussianTensors, background: &Tensor<1>) -> Result<Self, RenderError> {
+        check_shapes(gaussians, background)?;
+        let values = Tensor::<1>::from_dispatch(
+            <Dispatch as VolumeRenderBackend>::volume_render_input_stats(
+                gaussians.clone().into_dispatch(),
+                background.clone().into_dispatch(),
+            ),
+        );
+        Ok(Self {
+            values,
+            gaussians: gaussians.len(),
+        })
+    }
+
+    /// How many Gaussians were checked.
+    pub fn gaussians(&self) -> usize {
+        self.gaussians
+    }
+
+    /// The `[LEN]` numbers on the device, for a caller that reads them later.
+    pub fn values(&self) -> Tensor<1> {
+        self.values.clone()
+    }
+
+    /// Reads the numbers back (one device read) and judges them.
+    pub fn verify_now(self) -> Result<(), RenderError> {
+        let gaussians = self.gaussians;
+        Self::verify(&device_traffic::read_floats(self.values), gaussians)
+    }
+
+    /// Judges numbers read from [`InputCheck::values`] of a check on `gaussians` Gaussians: a
+    /// bad parameter is named instead of becoming a NaN image.
+    pub fn verify(stats: &[f32], gaussians: usize) -> Result<(), RenderError> {
+        let names = ["background"]
+            .into_iter()
+            .chain(ATTRIBUTES.iter().map(|attribute| attribute.name));
+        for (name, &ok) in names.zip(stats) {
+            if ok < 0.5 {
+                return Err(RenderError::NonFinite { name });
+            }
+        }
+        if gaussians > 0 {
+            let min_norm_sq = stats[6];
+            if min_norm_sq.is_nan() || min_norm_sq <= 1e-12 {
+                return Err(RenderError::ZeroQuaternion { min_norm_sq });
+            }
+            let max_abs = stats[7];
+            if max_abs > LOG_SCALE_LIMIT {
+                return Err(RenderError::ScaleOutOfRange { max_abs });
+            }
+        }
+        Ok(())
+    }
 }
 
 /// Renders `gaussians` seen by `camera` over `background` (`[3]`, linear RGB).
 ///
 /// Differentiable with respect to every Gaussian tensor and the background when they are
-/// tracked by `Autodiff`. Inputs are validated first; see [`RenderError`].
+/// tracked by `Autodiff`. Inputs are validated first, which reads 8 numbers back from the
+/// device (see [`RenderError`]); [`render_volume_deferred`] leaves that read to the caller.
 pub fn render_volume(
     gaussians: &GaussianTensors,
     camera: &Camera,
@@ -114,8 +157,35 @@ pub fn render_volume(
     options.validate()?;
     {
         let _phase = gausmoke_core::phase!("render input validation");
-        validate(gaussians, background)?;
+        InputCheck::new(gaussians, background)?.verify_now()?;
     }
+    Ok(render_unverified(gaussians, camera, background, options))
+}
+
+/// [`render_volume`] without waiting for the value checks: shapes and options are checked
+/// now, and the returned [`InputCheck`] holds the value checks on the device for the caller to
+/// read with its other diagnostics (a training loop that reads nothing back per iteration).
+/// Until then, a bad parameter makes a NaN image instead of an error.
+pub fn render_volume_deferred(
+    gaussians: &GaussianTensors,
+    camera: &Camera,
+    background: &Tensor<1>,
+    options: &RasterOptions,
+) -> Result<(RenderOutput, InputCheck), RenderError> {
+    options.validate()?;
+    let check = InputCheck::new(gaussians, background)?;
+    Ok((
+        render_unverified(gaussians, camera, background, options),
+        check,
+    ))
+}
+
+fn render_unverified(
+    gaussians: &GaussianTensors,
+    camera: &Camera,
+    background: &Tensor<1>,
+    options: &RasterOptions,
+) -> RenderOutput {
     let image = Tensor::<3>::from_dispatch(<Dispatch as VolumeRenderBackend>::volume_render(
         gaussians.clone().into_dispatch(),
         background.clone().into_dispatch(),
@@ -123,8 +193,8 @@ pub fn render_volume(
         *options,
     ));
     let [h, w, _] = image.dims();
-    Ok(RenderOutput {
+    RenderOutput {
         rgb: image.clone().slice([0..h, 0..w, 0..3]),
         transmittance: image.slice([0..h, 0..w, 3..4]).reshape([h, w]),
-    })
+    }
 }

@@ -174,10 +174,7 @@ fn write_files(dir: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<
         .map_err(record)?;
     let velocity = state.velocity.clone();
     let shape = velocity.dims().to_vec();
-    let values = velocity
-        .into_data()
-        .try_into_vec_as::<f32>()
-        .map_err(|e| checkpoint_error(dir, format!("{e:?}")))?;
+    let values = gausmoke_render::device_traffic::read_floats(velocity);
     write_arrays(
         &dir.join(VELOCITY_FILE),
         &HostArrays::from([("velocity".to_string(), (shape, values))]),

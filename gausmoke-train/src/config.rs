@@ -99,6 +99,7 @@ pub const RESUMABLE_KEYS: &[&str] = &[
     "lr_decay",
     "lr_decay_every",
     "output_every",
+    "log_every",
     "ply_axes",
     "tensorboard",
     "sync_phase_timings",
@@ -199,6 +200,11 @@ pub struct TrainConfig {
     pub seed: u64,
     /// Write renders, exports and velocity slices every this many frames (1 = all).
     pub output_every: usize,
+    /// Read the losses and checks of the optimisation steps back from the device every this
+    /// many steps (and at the end of each frame's loops), in one read: a read waits for the
+    /// GPU to drain its queue. A non-finite loss or a bad parameter is reported at that read,
+    /// naming the step where it first appeared. Every step's losses are still logged.
+    pub log_every: usize,
     /// Axes of the exported Gaussians (`exports/gaussians_TTT.ply`): `"world"` or
     /// `"y-down"` (for splat viewers; see [`PlyAxes`]).
     pub ply_axes: PlyAxes,
@@ -253,6 +259,7 @@ impl Default for TrainConfig {
             respawn_near_smoke: 0.0,
             seed: 2026,
             output_every: 1,
+            log_every: 10,
             ply_axes: PlyAxes::World,
             tensorboard: false,
             sync_phase_timings: false,
@@ -440,8 +447,14 @@ impl TrainConfig {
                 self.respawn_threshold
             ));
         }
-        if self.lr_decay_every == 0 || self.output_every == 0 || self.unet_channels == 0 {
-            return bad("lr_decay_every, output_every and unet_channels must be >= 1".into());
+        if self.lr_decay_every == 0
+            || self.output_every == 0
+            || self.log_every == 0
+            || self.unet_channels == 0
+        {
+            return bad(
+                "lr_decay_every, output_every, log_every and unet_channels must be >= 1".into(),
+            );
         }
         if let Some([w, h]) = self.image_size
             && (w == 0 || h == 0)

@@ -236,11 +236,7 @@ pub fn evaluate(
                 &background,
                 &config.raster_options(),
             )?;
-            let rgb = out
-                .rgb
-                .into_data()
-                .try_into_vec_as::<f32>()
-                .expect("f32 image");
+            let rgb = gausmoke_render::device_traffic::read_floats(out.rgb);
             let (w, h) = (
                 observation.image.width() as usize,
                 observation.image.height() as usize,

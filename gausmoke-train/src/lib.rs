@@ -34,6 +34,7 @@ pub mod run_folder;
 pub mod run_lock;
 pub mod sequence;
 pub mod state;
+mod step_log;
 pub mod tensorboard;
 pub mod trainer;
 pub mod viridis;

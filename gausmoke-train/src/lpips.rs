@@ -175,7 +175,7 @@ impl Lpips {
             };
             let difference = (unit(xa) - unit(xb)).powi_scalar(2);
             let weighted = (difference * head.clone()).sum_dim(1);
-            total += weighted.mean().into_scalar::<f32>() as f64;
+            total += gausmoke_render::device_traffic::read_scalar(weighted.mean()) as f64;
         }
         total
     }

@@ -527,8 +527,8 @@ fn render_demo(args: RenderArgs) -> Result<()> {
     let background = Tensor::<1>::from_data(TensorData::new(vec![0.0f32; 3], [3]), &device);
     let start = Instant::now();
     let out = render_volume(&tensors, &camera, &background, &RasterOptions::default())?;
-    let rgb = out.rgb.into_data().try_into_vec_as::<f32>()?;
-    let transmittance = out.transmittance.into_data().try_into_vec_as::<f32>()?;
+    let rgb = gausmoke_render::device_traffic::read_floats(out.rgb);
+    let transmittance = gausmoke_render::device_traffic::read_floats(out.transmittance);
     let elapsed = start.elapsed();
     std::fs::create_dir_all(&out_dir)
         .with_context(|| format!("creating output directory {}", out_dir.display()))?;

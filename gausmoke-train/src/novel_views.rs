@@ -307,11 +307,9 @@ pub fn render_run(
             }
             let gaussians = &loaded.as_ref().expect("loaded above").1;
             let camera = &cameras[c];
-            let rgb = render_volume(gaussians, camera, &background, &config.raster_options())?
-                .rgb
-                .into_data()
-                .try_into_vec_as::<f32>()
-                .expect("f32 image");
+            let rgb = gausmoke_render::device_traffic::read_floats(
+                render_volume(gaussians, camera, &background, &config.raster_options())?.rgb,
+            );
             let picture = Picture::from_rgb(&rgb, width, height);
             writer.push_rgb(&picture.pixels)?;
             if request.png {

@@ -360,13 +360,7 @@ impl Run {
         let grid = trainer.grid;
         let state = FrameState {
             gaussians: trainer.state.gaussians.to_host(),
-            velocity: trainer
-                .state
-                .velocity
-                .clone()
-                .into_data()
-                .try_into_vec_as::<f32>()
-                .expect("float tensors read back as f32"),
+            velocity: gausmoke_render::device_traffic::read_floats(trainer.state.velocity.clone()),
             density: trainer.density_host(),
         };
         let test = &trainer.sequence.test[t];
@@ -508,6 +502,7 @@ fn frame_report(
         mean_speed: speeds.iter().sum::<f64>() / speeds.len().max(1) as f64,
         max_speed: speeds.iter().cloned().fold(0.0, f64::max),
         seconds: start.elapsed().as_secs_f64(),
+        device_traffic: outcome.traffic.clone(),
     }
 }
 

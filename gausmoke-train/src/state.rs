@@ -45,6 +45,39 @@ impl Phase {
     }
 }
 
+/// Device-to-host reads and kernel launches of one of a frame's optimisation loops (see
+/// `gausmoke_render::device_traffic`; launches are 0 on the CPU backends).
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+pub struct LoopTraffic {
+    pub phase: Phase,
+    pub iterations: usize,
+    /// Reads of every kind, and of them the renderer's tile-list lengths and the projection
+    /// solver's convergence tests.
+    pub reads: u64,
+    pub tile_list_reads: u64,
+    pub solver_reads: u64,
+    pub launches: u64,
+}
+
+impl LoopTraffic {
+    /// The traffic since `start` of a loop of `iterations` steps.
+    pub fn of(
+        phase: Phase,
+        iterations: usize,
+        start: gausmoke_render::device_traffic::Traffic,
+    ) -> Self {
+        let counted = gausmoke_render::device_traffic::Traffic::now().since(start);
+        Self {
+            phase,
+            iterations,
+            reads: counted.reads,
+            tile_list_reads: counted.tile_list_reads,
+            solver_reads: counted.solver_reads,
+            launches: counted.launches,
+        }
+    }
+}
+
 /// One optimisation step's losses (the CSV row of `losses.csv`).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct LossRow {
@@ -86,6 +119,9 @@ pub struct FrameReport {
     pub mean_speed: f64,
     pub max_speed: f64,
     pub seconds: f64,
+    /// Device reads and kernel launches of the frame's optimisation loops.
+    #[serde(default)]
+    pub device_traffic: Vec<LoopTraffic>,
 }
 
 #[cfg(test)]

@@ -30,7 +30,10 @@ use gausmoke_model::{
     density_and_gradient_grid, density_grid, divergence_loss_of, penalty_projection,
     project_direct, project_velocity, refine_loss,
 };
-use gausmoke_render::{GaussianTensors, Gaussians, RasterOptions, render_volume};
+use gausmoke_render::device_traffic::{Traffic, read_floats};
+use gausmoke_render::{
+    GaussianTensors, Gaussians, InputCheck, RasterOptions, render_volume, render_volume_deferred,
+};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::TrainError;
@@ -39,7 +42,8 @@ use crate::config::{
 };
 use crate::respawn::{DeficitView, RespawnOptions, RespawnReport, SpawnLattice, respawn};
 use crate::sequence::{Observation, Sequence};
-use crate::state::{LossRow, Phase, TrainState};
+use crate::state::{LoopTraffic, LossRow, Phase, TrainState};
+use crate::step_log::{StepLog, StepLosses};
 
 /// What training one frame produced.
 #[derive(Debug, Clone)]
@@ -55,6 +59,31 @@ pub struct FrameOutcome {
     pub clamped_to_box: usize,
     /// Gaussians recycled between the joint iterations and the refinement.
     pub respawned: usize,
+    /// Device reads and kernel launches of the frame's optimisation loops, loop by loop.
+    pub traffic: Vec<LoopTraffic>,
+}
+
+/// Reads `log` (and `tail` with it), appends its rows to `losses` and shows the last one on
+/// `bar`; returns `tail`'s values.
+fn read_log(
+    log: &mut StepLog,
+    losses: &mut Vec<LossRow>,
+    bar: &ProgressBar,
+    tail: Option<Tensor<1>>,
+) -> Result<Vec<f32>, TrainError> {
+    let flushed = log.flush(tail)?;
+    if let Some(row) = flushed.rows.last() {
+        bar.set_message(match row.phase {
+            Phase::Init => format!("L1 {:.5}", row.render),
+            Phase::Advect => format!(
+                "L1 {:.5} div {:.2e} adv {:.2e}",
+                row.render, row.divergence, row.advection
+            ),
+            Phase::Refine => format!("L1 {:.5} refine {:.2e}", row.render, row.refine),
+        });
+    }
+    losses.extend(flushed.rows);
+    Ok(flushed.tail)
 }
 
 /// Runs Algorithm 1 on a [`Sequence`].
@@ -69,18 +98,8 @@ pub struct Trainer {
     quiet: bool,
 }
 
-fn scalar(t: &Tensor<1>) -> f32 {
-    t.clone()
-        .into_data()
-        .try_into_vec_as::<f32>()
-        .map(|v| v[0])
-        .unwrap_or(f32::NAN)
-}
-
 fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data()
-        .try_into_vec_as::<f32>()
-        .expect("float tensors read back as f32")
+    read_floats(t)
 }
 
 fn image_tensor(observation: &Observation, device: &Device) -> Tensor<3> {
@@ -102,6 +121,8 @@ impl Trainer {
         device: Device,
     ) -> Result<Self, TrainError> {
         config.validate()?;
+        // Each frame reports its loops' kernel launches (no-op without a cube backend).
+        gausmoke_render::device_traffic::count_launches();
         let grid = config.grid(sequence.lo, sequence.hi)?;
         let background =
             Tensor::<1>::from_data(TensorData::new(sequence.background.to_vec(), [3]), &device);
@@ -184,22 +205,28 @@ impl Trainer {
         gaussians: &GaussianTensors,
         observations: &[Observation],
         targets: &[Tensor<3>],
-    ) -> Result<Tensor<1>, TrainError> {
+    ) -> Result<(Tensor<1>, InputCheck), TrainError> {
         let mut total: Option<Tensor<1>> = None;
+        let mut check = None;
         for (observation, target) in observations.iter().zip(targets) {
-            let out = render_volume(
+            let (out, view_check) = render_volume_deferred(
                 gaussians,
                 &observation.camera,
                 &self.background,
                 &self.raster,
             )?;
+            // Every view renders the same Gaussians: one check covers them.
+            check.get_or_insert(view_check);
             let l1 = (out.rgb - target.clone()).abs().mean();
             total = Some(match total {
                 Some(t) => t + l1,
                 None => l1,
             });
         }
-        Ok(total.expect("at least one training view") / observations.len() as f32)
+        Ok((
+            total.expect("at least one training view") / observations.len() as f32,
+            check.expect("at least one training view"),
+        ))
     }
 
     /// One Adam step per Gaussian attribute, each with its own learning rate (0 skips it).
@@ -214,35 +241,6 @@ impl Trainer {
             }
         }
         self.state.gaussians = model.clamped();
-    }
-
-    /// Refuses a step whose losses, or `extra` (a named quantity such as the largest
-    /// velocity, checked first so the report names the earliest thing that went wrong), are
-    /// not finite.
-    fn check_finite(
-        &self,
-        row: &LossRow,
-        extra: Option<(&'static str, f32)>,
-    ) -> Result<(), TrainError> {
-        let terms = [
-            ("the render loss", row.render),
-            ("L_div", row.divergence),
-            ("L_adv", row.advection),
-            ("L_refine", row.refine),
-            ("the total loss", row.total),
-        ];
-        if let Some((quantity, value)) =
-            extra.into_iter().chain(terms).find(|(_, v)| !v.is_finite())
-        {
-            return Err(TrainError::NonFinite {
-                quantity,
-                value,
-                frame: row.frame,
-                phase: row.phase.name(),
-                iteration: row.iteration,
-            });
-        }
-        Ok(())
     }
 
     fn progress(&self, frame: usize, length: usize) -> ProgressBar {
@@ -290,31 +288,35 @@ impl Trainer {
         let iterations = self.config.init_iterations;
         let bar = self.progress(0, iterations);
         let mut losses = Vec::with_capacity(iterations);
+        let mut log = StepLog::new(self.config.log_every);
+        let start = Traffic::now();
         for iteration in 0..iterations {
-            let loss =
+            let (loss, check) =
                 self.render_loss(&self.state.gaussians.tensors(), &observations, &targets)?;
-            let value = scalar(&loss);
-            let row = LossRow {
-                frame: 0,
-                phase: Phase::Init,
-                iteration,
-                total: value,
-                render: value,
-                divergence: 0.0,
-                advection: 0.0,
-                refine: 0.0,
-            };
-            self.check_finite(&row, None)?;
-            losses.push(row);
+            log.push(
+                (0, Phase::Init, iteration),
+                StepLosses {
+                    total: loss.clone(),
+                    render: loss.clone(),
+                    divergence: None,
+                    advection: None,
+                    refine: None,
+                },
+                None,
+                vec![check],
+            );
             let mut grads = {
                 let _phase = phase!("backward (all ops)");
                 loss.backward()
             };
             self.step_gaussians(&mut grads, learning_rates);
-            bar.set_message(format!("L1 {value:.5}"));
+            if log.due() || iteration + 1 == iterations {
+                read_log(&mut log, &mut losses, &bar, None)?;
+            }
             bar.inc(1);
         }
         bar.finish_and_clear();
+        let traffic = vec![LoopTraffic::of(Phase::Init, iterations, start)];
         Ok(FrameOutcome {
             frame: 0,
             train_l1: losses.last().map_or(f32::NAN, |r| r.render) as f64,
@@ -322,6 +324,7 @@ impl Trainer {
             projection: None,
             clamped_to_box: 0,
             respawned: 0,
+            traffic,
         })
     }
 
@@ -364,6 +367,8 @@ impl Trainer {
         let mut unprojected = previous_velocity.clone();
         let mut advected = previous_means.clone();
         let mut clamped = 0;
+        let mut log = StepLog::new(config.log_every);
+        let start = Traffic::now();
         for iteration in 0..config.advect_iterations {
             let previous = self.state.gaussians.tensors_at(previous_means.clone());
             // The density and (for L_adv) its gradient, in one pass over the Gaussians.
@@ -393,7 +398,8 @@ impl Trainer {
                 interpolation,
             );
             let next = self.state.gaussians.tensors_at(moved.positions.clone());
-            let render = self.render_loss(&next, &observations, &targets)?;
+            let (render, check) = self.render_loss(&next, &observations, &targets)?;
+            let mut checks = vec![check];
             let mut loss = render.clone();
             if let Some((views, ahead_targets)) = &ahead {
                 // One frame further; only the velocity learns here.
@@ -426,10 +432,11 @@ impl Trainer {
                     raw_densities: live.raw_densities.detach(),
                     colors: live.colors.detach(),
                 };
-                let lookahead = self.render_loss(&carried, views, ahead_targets)?;
+                let (lookahead, check) = self.render_loss(&carried, views, ahead_targets)?;
+                checks.push(check);
                 loss = loss + lookahead * config.lambda_lookahead;
             }
-            let (mut divergence_value, mut advection_value) = (0.0, 0.0);
+            let mut physical = None;
             if let Some(gradient_previous) = gradient_previous {
                 let divergence = divergence_loss_of(&moved.start);
                 let (sigma_next, gradient_next) =
@@ -442,32 +449,30 @@ impl Trainer {
                     &projected,
                     config.dt,
                 );
-                divergence_value = scalar(&divergence);
-                advection_value = scalar(&advection);
+                physical = Some((divergence.clone(), advection.clone()));
                 loss = loss + divergence * config.lambda_div + advection * config.lambda_adv;
             }
-            let render_value = scalar(&render);
-            let row = LossRow {
-                frame: t,
-                phase: Phase::Advect,
-                iteration,
-                total: scalar(&loss),
-                render: render_value,
-                divergence: divergence_value,
-                advection: advection_value,
-                refine: 0.0,
-            };
-            let speed = scalar(&projected.clone().abs().max());
-            self.check_finite(&row, Some(("the velocity grid (max |u|)", speed)))?;
-            bar.set_message(format!(
-                "L1 {render_value:.5} div {divergence_value:.2e} adv {advection_value:.2e}"
-            ));
-            losses.push(row);
+            let (divergence, advection) = physical.unzip();
+            log.push(
+                (t, Phase::Advect, iteration),
+                StepLosses {
+                    total: loss.clone(),
+                    render,
+                    divergence,
+                    advection,
+                    refine: None,
+                },
+                Some((
+                    "the velocity grid (max |u|)",
+                    projected.clone().abs().max().reshape([1]),
+                )),
+                checks,
+            );
 
             velocity = projected.clone().detach();
             unprojected = update.detach();
             advected = moved.positions.detach();
-            clamped = scalar(&moved.left_box.float().sum()) as usize;
+            let left_box = moved.left_box.float().sum().reshape([1]);
 
             let mut grads = {
                 let _phase = phase!("backward (all ops)");
@@ -489,8 +494,20 @@ impl Trainer {
                     colors: lr_gaussians,
                 },
             );
+            if log.due() || iteration + 1 == config.advect_iterations {
+                // The clamped count of the last step is read with its losses.
+                let tail = (iteration + 1 == config.advect_iterations).then_some(left_box);
+                if let Some(&count) = read_log(&mut log, &mut losses, &bar, tail)?.first() {
+                    clamped = count as usize;
+                }
+            }
             bar.inc(1);
         }
+        let mut traffic = vec![LoopTraffic::of(
+            Phase::Advect,
+            config.advect_iterations,
+            start,
+        )];
         if config.advect_iterations == 0 {
             // No joint iterations: carry the Gaussians along the previous velocity.
             let moved = advect(
@@ -510,33 +527,36 @@ impl Trainer {
         // the box (or was never fitted), and the refinement fits the recycled ones.
         let respawned = self.respawn(t)?.indices.len();
         let anchor = self.state.gaussians.means.val().detach();
+        let start = Traffic::now();
         for iteration in 0..refine_iterations {
             let gaussians = self.state.gaussians.tensors();
-            let render = self.render_loss(&gaussians, &observations, &targets)?;
+            let (render, check) = self.render_loss(&gaussians, &observations, &targets)?;
             let refine = refine_loss(&gaussians.means, &anchor);
-            let (render_value, refine_value) = (scalar(&render), scalar(&refine));
-            let loss = render + refine * config.lambda_refine;
-            let row = LossRow {
-                frame: t,
-                phase: Phase::Refine,
-                iteration,
-                total: scalar(&loss),
-                render: render_value,
-                divergence: 0.0,
-                advection: 0.0,
-                refine: refine_value,
-            };
-            self.check_finite(&row, None)?;
-            bar.set_message(format!("L1 {render_value:.5} refine {refine_value:.2e}"));
-            losses.push(row);
+            let loss = render.clone() + refine.clone() * config.lambda_refine;
+            log.push(
+                (t, Phase::Refine, iteration),
+                StepLosses {
+                    total: loss.clone(),
+                    render,
+                    divergence: None,
+                    advection: None,
+                    refine: Some(refine),
+                },
+                None,
+                vec![check],
+            );
             let mut grads = {
                 let _phase = phase!("backward (all ops)");
                 loss.backward()
             };
             self.step_gaussians(&mut grads, Gaussians::default().map(|_, ()| lr_gaussians));
+            if log.due() || iteration + 1 == refine_iterations {
+                read_log(&mut log, &mut losses, &bar, None)?;
+            }
             bar.inc(1);
         }
         bar.finish_and_clear();
+        traffic.push(LoopTraffic::of(Phase::Refine, refine_iterations, start));
         self.state.velocity = velocity;
         Ok(FrameOutcome {
             frame: t,
@@ -545,6 +565,7 @@ impl Trainer {
             projection: Some(self.projection_report(unprojected)),
             clamped_to_box: clamped,
             respawned,
+            traffic,
         })
     }
 

@@ -42,6 +42,7 @@ const KEYS: &[(&str, bool)] = &[
     ("respawn_near_smoke", true),
     ("seed", true),
     ("output_every", true),
+    ("log_every", true),
 ];
 
 const VALUES: &[&str] = &[

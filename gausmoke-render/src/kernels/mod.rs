@@ -75,6 +75,7 @@ pub fn bin(projection: &Projection, num_gaussians: usize, width: u32, height: u3
             num_tiles as u32,
         );
         // The one read-back of the forward pass: the list length sizes its buffer.
+        crate::device_traffic::note_read(crate::device_traffic::ReadKind::TileListLength);
         let bytes = alloc
             .client
             .read_one(offsets.handle.clone())

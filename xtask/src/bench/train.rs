@@ -54,6 +54,26 @@ struct Measurement {
     seconds_per_iteration: f64,
     /// The run's phase totals: name, seconds.
     phases: Vec<(String, f64)>,
+    /// Frame 1's loops: device reads and kernel launches (`None`: the build does not report
+    /// them).
+    traffic: Option<Vec<LoopCounts>>,
+}
+
+/// One loop's `device_traffic` entry of `metrics.json`.
+#[derive(Debug, Clone, serde::Deserialize)]
+struct LoopCounts {
+    phase: String,
+    iterations: usize,
+    reads: u64,
+    tile_list_reads: u64,
+    solver_reads: u64,
+    launches: u64,
+}
+
+impl LoopCounts {
+    fn per_iteration(&self, count: u64) -> f64 {
+        count as f64 / self.iterations.max(1) as f64
+    }
 }
 
 /// Runs `binary`'s reproduce on two frames and reads what frame 1 took.
@@ -124,9 +144,15 @@ fn measure(binary: &Path, args: &TrainArgs, scratch: &Path, label: &str) -> Resu
                 .collect()
         })
         .unwrap_or_default();
+    let traffic = metrics["per_frame"][1]
+        .get("device_traffic")
+        .map(|t| serde_json::from_value::<Vec<LoopCounts>>(t.clone()))
+        .transpose()
+        .context("metrics.json: device_traffic of frame 1")?;
     Ok(Measurement {
         seconds_per_iteration: frame1 / iterations as f64,
         phases,
+        traffic,
     })
 }
 
@@ -203,6 +229,32 @@ pub fn train(args: TrainArgs) -> Result<()> {
             .map(|(phase, s)| format!("{phase} {s:.2}"))
             .collect();
         println!("- {name}: {}", parts.join(", "));
+    }
+    println!();
+    println!("Device reads and kernel launches per iteration of frame 1 (last round; reads of");
+    println!("every kind, and of them tile-list lengths and projection-solver tests):");
+    println!();
+    println!("| build | loop | iterations | reads | tile lists | solver | other | launches |");
+    println!("|---|---|---:|---:|---:|---:|---:|---:|");
+    for ((name, _), runs) in builds.iter().zip(&results) {
+        match runs.last().and_then(|m| m.traffic.as_ref()) {
+            None => println!("| {name} | not reported by this build | | | | | | |"),
+            Some(loops) => {
+                for l in loops {
+                    let other = l.reads - l.tile_list_reads - l.solver_reads;
+                    println!(
+                        "| {name} | {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {:.1} |",
+                        l.phase,
+                        l.iterations,
+                        l.per_iteration(l.reads),
+                        l.per_iteration(l.tile_list_reads),
+                        l.per_iteration(l.solver_reads),
+                        l.per_iteration(other),
+                        l.per_iteration(l.launches),
+                    );
+                }
+            }
+        }
     }
     let json: Vec<Value> = builds
         .iter()

@@ -4,7 +4,9 @@
 //! with the same discrete operators, but in f32 and without leaving the GPU: the velocity grid
 //! is never read back. Every CG scalar (`r.z`, `d.A d`, `|r|^2`) lives in a device buffer, one
 //! slot per iteration, so the step sizes are computed by the kernels themselves; the host
-//! reads that small buffer only every [`CHECK_EVERY`] iterations to test convergence.
+//! reads that small buffer to test convergence first after as many iterations as the solve
+//! before the last one on the same grid needed (see `IterationHints`), then every
+//! [`CHECK_EVERY`].
 //!
 //! Dot products are summed in two fixed-order stages (per-cube shared-memory trees, then one
 //! cube over the partial sums), so a solve is deterministic, unlike an atomic sum.
@@ -32,8 +34,53 @@ use operators::{divergence_kernel, divergence_transpose_kernel, precondition_ker
 mod cg;
 mod operators;
 
-/// Iterations between two convergence tests (each one is a device-to-host read).
+/// Iterations between two convergence tests (each one is a device-to-host read) once the
+/// first test, at the hinted count, found the solve unconverged.
 pub const CHECK_EVERY: usize = 10;
+
+/// Iterations added to the previous solve's count for the first test: two wasted iterations
+/// (some twenty launches) are cheaper than a second read when a solve needs one more.
+const HINT_MARGIN: usize = 2;
+
+/// How many iterations the last two solves on each grid needed. A training step solves twice
+/// on one grid, the forward projection and its backward (measured on the reduced ScalarReal
+/// preset: ~40-55 and ~75-80 iterations), with counts that change slowly from step to step, so
+/// a solve first tests convergence after the count of the solve before the last one and
+/// usually reads back once. Only *when* the host looks depends on this: the step kernel stops
+/// stepping on the device once converged, so the result and its report are the same whatever
+/// the hint.
+struct IterationHints;
+
+/// Grid resolution, open faces and stopping rule of a solve.
+type HintKey = ([u32; 3], u32, u64, usize);
+
+/// Per key: the counts of the solve before the last one and of the last one.
+static HINTS: std::sync::Mutex<Vec<(HintKey, [Option<usize>; 2])>> =
+    std::sync::Mutex::new(Vec::new());
+
+impl IterationHints {
+    fn first_check(key: HintKey, max_iterations: usize) -> usize {
+        let hints = HINTS
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let hint = hints
+            .iter()
+            .find(|(k, _)| *k == key)
+            .and_then(|&(_, [older, last])| older.or(last))
+            .map_or(CHECK_EVERY, |n| n + HINT_MARGIN);
+        hint.clamp(1, max_iterations.max(1))
+    }
+
+    fn record(key: HintKey, iterations: usize) {
+        let mut hints = HINTS
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        match hints.iter_mut().find(|(k, _)| *k == key) {
+            Some((_, counts)) => *counts = [counts[1], Some(iterations)],
+            None => hints.push((key, [None, Some(iterations)])),
+        }
+    }
+}
 
 /// Slots of the CG scalar buffer: `|b|^2` and `|u|^2` first, then three per iteration.
 struct Slot;
@@ -189,6 +236,9 @@ impl Solver {
 
 /// Reads the CG scalar buffer back (the only device-to-host traffic of a solve).
 fn read_scalars(scalars: &CubeTensor) -> Vec<f32> {
+    gausmoke_render::device_traffic::note_read(
+        gausmoke_render::device_traffic::ReadKind::SolverConvergence,
+    );
     let bytes = scalars
         .client
         .read_one(scalars.handle.clone())
@@ -282,6 +332,13 @@ pub fn project_velocity(
     // chase round-off into the operator's near-null space and return garbage.
     let stopping = StoppingRule::new(rel_tolerance, spec.cell);
     let mut report = ProjectionReport::default();
+    let hint_key = (
+        dims,
+        solver.open_faces,
+        rel_tolerance.to_bits(),
+        max_iterations,
+    );
+    let mut next_check = IterationHints::first_check(hint_key, max_iterations);
     let mut iteration = 0;
     while iteration < max_iterations {
         let k = iteration;
@@ -341,15 +398,17 @@ pub fn project_velocity(
             cells as u32,
         );
         iteration += 1;
-        if iteration % CHECK_EVERY == 0 || iteration == max_iterations {
+        if iteration == next_check || iteration == max_iterations {
             let values = read_scalars(&scalars);
             if let Some(done) = stopping.first_converged(&values, iteration, cells) {
                 report = done;
                 break;
             }
             report = report_after(&values, iteration, cells);
+            next_check = iteration + CHECK_EVERY;
         }
     }
+    IterationHints::record(hint_key, report.iterations);
     if max_iterations == 0 {
         report = report_after(&read_scalars(&scalars), 0, cells);
     }

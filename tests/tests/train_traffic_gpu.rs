@@ -1,0 +1,127 @@
+//! What one training iteration asks of the host on a GPU backend (wgpu; lavapipe in CI): the
+//! device reads the library counts (`gausmoke_render::device_traffic`) are every read there is
+//! (wgpu's own log of buffer maps, which every device-to-host copy goes through, agrees), and
+//! an iteration reads only what it cannot do without: one tile-list length per rendered view
+//! and the projection solver's convergence tests; the losses and checks of all steps come back
+//! in one read per `log_every` steps.
+//!
+//! Like the other GPU tests this FAILS without a GPU adapter rather than skip.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use gausmoke_data::synth::{SynthConfig, generate};
+use gausmoke_render::backends::gpu_devices;
+use gausmoke_render::device_traffic::Traffic;
+use gausmoke_train::sequence::Sequence;
+use gausmoke_train::state::{LoopTraffic, Phase};
+use gausmoke_train::{TrainConfig, Trainer};
+
+/// Buffer maps wgpu-core has logged (`Buffer::map_async`, at trace level).
+static MAPS: AtomicU64 = AtomicU64::new(0);
+
+struct MapCounter;
+
+impl log::Log for MapCounter {
+    fn enabled(&self, metadata: &log::Metadata) -> bool {
+        metadata.target().starts_with("wgpu_core")
+    }
+
+    fn log(&self, record: &log::Record) {
+        if self.enabled(record.metadata())
+            && record.args().to_string().starts_with("Buffer::map_async")
+        {
+            MAPS.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    fn flush(&self) {}
+}
+
+fn loop_of(traffic: &[LoopTraffic], phase: Phase) -> LoopTraffic {
+    *traffic
+        .iter()
+        .find(|l| l.phase == phase)
+        .unwrap_or_else(|| panic!("no {phase:?} loop in {traffic:?}"))
+}
+
+#[test]
+fn a_training_iteration_reads_back_only_tile_list_lengths_and_solver_tests() {
+    log::set_logger(&MapCounter).expect("no other logger in this test binary");
+    log::set_max_level(log::LevelFilter::Trace);
+
+    let (_, device) = gpu_devices()
+        .into_iter()
+        .next()
+        .expect("this test binary is built with gausmoke-train's wgpu feature");
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    generate(&SynthConfig::tiny(), &data).unwrap();
+    let (advect, refine) = (4, 3);
+    let config = TrainConfig {
+        gaussians: 300,
+        grid_resolution: 8,
+        frames: Some(2),
+        init_iterations: 5,
+        advect_iterations: advect,
+        refine_iterations: refine,
+        unet_channels: 4,
+        time_frequencies: 2,
+        // One read for all of a loop's steps.
+        log_every: 100,
+        ..TrainConfig::default()
+    };
+    let sequence = Sequence::open(&data, &config).unwrap();
+    let views = sequence.train[1].len() as u64;
+    let mut trainer = Trainer::new(sequence, config, device.autodiff())
+        .unwrap()
+        .quiet(true);
+
+    let mut loops = Vec::new();
+    for t in 0..2 {
+        let (maps_before, before) = (MAPS.load(Ordering::Relaxed), Traffic::now());
+        let outcome = trainer.train_frame(t).unwrap();
+        let maps = MAPS.load(Ordering::Relaxed) - maps_before;
+        let counted = Traffic::now().since(before).reads;
+        assert_eq!(
+            maps, counted,
+            "frame {t}: wgpu mapped {maps} buffers, the library counted {counted} reads"
+        );
+        // Outside its loops a frame reads at most the velocity for the projection report.
+        let in_loops: u64 = outcome.traffic.iter().map(|l| l.reads).sum();
+        assert!(
+            counted - in_loops <= u64::from(t > 0),
+            "frame {t}: {counted} reads, {in_loops} in the loops {:?}",
+            outcome.traffic
+        );
+        loops.extend(outcome.traffic);
+    }
+    eprintln!("{loops:#?}");
+
+    let init = loop_of(&loops, Phase::Init);
+    assert_eq!(init.tile_list_reads, 5 * views, "{init:?}");
+    assert_eq!(init.solver_reads, 0, "{init:?}");
+    assert_eq!(
+        init.reads - init.tile_list_reads,
+        1,
+        "one read of the losses: {init:?}"
+    );
+
+    let joint = loop_of(&loops, Phase::Advect);
+    assert_eq!(joint.tile_list_reads, advect as u64 * views, "{joint:?}");
+    // A forward and a backward solve per step, each tested at least once.
+    assert!(joint.solver_reads >= 2 * advect as u64, "{joint:?}");
+    assert_eq!(
+        joint.reads - joint.tile_list_reads - joint.solver_reads,
+        1,
+        "one read of the losses, checks, largest speed and clamped count: {joint:?}"
+    );
+    assert!(joint.launches > 0, "launches are counted: {joint:?}");
+
+    let refinement = loop_of(&loops, Phase::Refine);
+    assert_eq!(refinement.tile_list_reads, refine as u64 * views);
+    assert_eq!(
+        refinement.reads - refinement.tile_list_reads,
+        1,
+        "{refinement:?}"
+    );
+}
