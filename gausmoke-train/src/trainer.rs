@@ -98,10 +98,6 @@ pub struct Trainer {
     quiet: bool,
 }
 
-fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    read_floats(t)
-}
-
 fn image_tensor(observation: &Observation, device: &Device) -> Tensor<3> {
     let image = &observation.image;
     Tensor::from_data(
@@ -192,7 +188,7 @@ impl Trainer {
     /// What the configured `Pi` does to `velocity` (for the frame's metrics).
     fn projection_report(&self, velocity: Tensor<4>) -> ProjectionReport {
         match self.config.projection {
-            ProjectionKind::Exact => project_direct(&self.grid, &mut host(velocity)),
+            ProjectionKind::Exact => project_direct(&self.grid, &mut read_floats(velocity)),
             ProjectionKind::Penalty => {
                 penalty_projection_with_report(&self.grid, velocity, &self.penalty()).1
             }
@@ -627,7 +623,7 @@ impl Trainer {
     /// Host density grid of the current Gaussians.
     pub fn density_host(&self) -> Vec<f32> {
         let detached = self.state.gaussians.tensors().detach();
-        host(density_grid(
+        read_floats(density_grid(
             &detached,
             &self.grid,
             SplatOptions::default().cutoff,
@@ -641,7 +637,7 @@ impl Trainer {
             .iter()
             .map(|o| {
                 let out = render_volume(&detached, &o.camera, &self.background, &self.raster)?;
-                Ok(host(out.rgb))
+                Ok(read_floats(out.rgb))
             })
             .collect()
     }
