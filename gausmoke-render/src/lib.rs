@@ -162,22 +162,27 @@ pub fn render_volume(
     Ok(render_unverified(gaussians, camera, background, options))
 }
 
-/// [`render_volume`] without waiting for the value checks: shapes and options are checked
-/// now, and the returned [`InputCheck`] holds the value checks on the device for the caller to
-/// read with its other diagnostics (a training loop that reads nothing back per iteration).
-/// Until then, a bad parameter makes a NaN image instead of an error.
+/// [`render_volume`] without waiting for the value checks: the caller made `check` for these
+/// Gaussians and background with [`InputCheck::new`] (shapes checked there) and reads its
+/// values later with its other diagnostics, so a training loop reads nothing back per step
+/// and checks once for all the views it renders. Until then, a bad parameter makes a NaN image
+/// instead of an error.
 pub fn render_volume_deferred(
     gaussians: &GaussianTensors,
     camera: &Camera,
     background: &Tensor<1>,
     options: &RasterOptions,
-) -> Result<(RenderOutput, InputCheck), RenderError> {
+    check: &InputCheck,
+) -> Result<RenderOutput, RenderError> {
     options.validate()?;
-    let check = InputCheck::new(gaussians, background)?;
-    Ok((
-        render_unverified(gaussians, camera, background, options),
-        check,
-    ))
+    if check.gaussians() != gaussians.len() {
+        return Err(RenderError::Shape {
+            name: "input check",
+            expected: format!("a check of {} Gaussians", gaussians.len()),
+            got: vec![check.gaussians()],
+        });
+    }
+    Ok(render_unverified(gaussians, camera, background, options))
 }
 
 fn render_unverified(

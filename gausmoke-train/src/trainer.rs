@@ -203,16 +203,16 @@ impl Trainer {
         targets: &[Tensor<3>],
     ) -> Result<(Tensor<1>, InputCheck), TrainError> {
         let mut total: Option<Tensor<1>> = None;
-        let mut check = None;
+        // Every view renders the same Gaussians: one check covers them.
+        let check = InputCheck::new(gaussians, &self.background)?;
         for (observation, target) in observations.iter().zip(targets) {
-            let (out, view_check) = render_volume_deferred(
+            let out = render_volume_deferred(
                 gaussians,
                 &observation.camera,
                 &self.background,
                 &self.raster,
+                &check,
             )?;
-            // Every view renders the same Gaussians: one check covers them.
-            check.get_or_insert(view_check);
             let l1 = (out.rgb - target.clone()).abs().mean();
             total = Some(match total {
                 Some(t) => t + l1,
@@ -221,7 +221,7 @@ impl Trainer {
         }
         Ok((
             total.expect("at least one training view") / observations.len() as f32,
-            check.expect("at least one training view"),
+            check,
         ))
     }
 
