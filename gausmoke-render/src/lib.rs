@@ -34,7 +34,9 @@ pub use gaussians::{
     Gaussians, HostGaussians,
 };
 pub use op::{RenderGrads, RenderPasses, Rendered, VolumeRenderBackend};
-pub use options::{AlphaModel, FloatAtomics, LOG_SCALE_LIMIT, RasterOptions, RenderError};
+pub use options::{
+    AlphaModel, FloatAtomics, GradientSums, LOG_SCALE_LIMIT, RasterOptions, RenderError,
+};
 
 use burn::backend::Dispatch;
 use burn::tensor::Tensor;

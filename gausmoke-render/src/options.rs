@@ -31,6 +31,20 @@ pub enum FloatAtomics {
     CompareAndSwap,
 }
 
+/// How the GPU backward pass sums the gradients of one splat over the pixels of a tile.
+/// Either way the sums agree to float tolerance; the order is not fixed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum GradientSums {
+    /// Summed inside the tile's workgroup (plane sums, then shared memory), then one atomic
+    /// add per float per tile, where the device has plane (subgroup) operations; else
+    /// [`GradientSums::PerPixel`].
+    #[default]
+    Workgroup,
+    /// Every contributing pixel adds its gradient atomically (tests use it to check that
+    /// path on a device that has plane operations).
+    PerPixel,
+}
+
 /// Thresholds of the rasterizer. The CPU and GPU paths use identical values so they agree to
 /// float tolerance; the torch reference reads them from the golden files.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -51,6 +65,8 @@ pub struct RasterOptions {
     pub alpha_model: AlphaModel,
     /// GPU kernels only; the CPU path sums in a fixed order.
     pub float_atomics: FloatAtomics,
+    /// GPU kernels only.
+    pub gradient_sums: GradientSums,
 }
 
 impl Default for RasterOptions {
@@ -63,6 +79,7 @@ impl Default for RasterOptions {
             near_plane: 0.01,
             alpha_model: AlphaModel::BeerLambert,
             float_atomics: FloatAtomics::Native,
+            gradient_sums: GradientSums::Workgroup,
         }
     }
 }

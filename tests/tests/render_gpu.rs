@@ -11,10 +11,17 @@
 //! backward adds per-pixel contributions atomically in no fixed order. Forward: 2e-5 absolute.
 //! Gradients: the CPU bounds relaxed by 4x.
 
+use burn::backend::DispatchDevice;
+use burn::backend::ops::FloatTensorOps;
 use burn::tensor::{Device, Tensor, TensorData};
+use burn_cubecl::CubeBackend;
+use burn_cubecl::cubecl::prelude::Client;
 use gausmoke_core::SplitMix64;
 use gausmoke_render::backends::{cpu_devices, gpu_devices};
-use gausmoke_render::{Camera, FloatAtomics, Gaussians, Intrinsics, RasterOptions, render_volume};
+use gausmoke_render::kernels::backward::rasterize::TileSums;
+use gausmoke_render::{
+    Camera, FloatAtomics, Gaussians, GradientSums, Intrinsics, RasterOptions, render_volume,
+};
 use gausmoke_tests::{
     Golden, RenderTolerance, assert_close, check_render_golden, check_render_golden_with, to_vec,
 };
@@ -46,17 +53,50 @@ fn kernels_match_torch_goldens() {
 }
 
 #[test]
-fn compare_and_swap_fallback_matches_torch_goldens() {
-    // The fallback for devices without f32 atomic add, forced on a device that has them.
+fn fallbacks_match_torch_goldens() {
+    // The fallbacks for devices without f32 atomic add, and without room or plane operations
+    // for the tile sums of the backward pass, forced on a device that may not need them.
     let goldens = Golden::load_all("render_");
     let (backend, device) = gpu().remove(0);
-    for golden in &goldens {
-        let options = RasterOptions {
-            float_atomics: FloatAtomics::CompareAndSwap,
-            ..golden.options()
-        };
-        check_render_golden_with(golden, &options, backend, &device, &GPU_TOLERANCE);
+    for (float_atomics, gradient_sums) in [
+        (FloatAtomics::CompareAndSwap, GradientSums::Workgroup),
+        (FloatAtomics::CompareAndSwap, GradientSums::PerPixel),
+        (FloatAtomics::Native, GradientSums::PerPixel),
+    ] {
+        for golden in &goldens {
+            let options = RasterOptions {
+                float_atomics,
+                gradient_sums,
+                ..golden.options()
+            };
+            check_render_golden_with(golden, &options, backend, &device, &GPU_TOLERANCE);
+        }
     }
+}
+
+#[test]
+fn backward_sums_each_splat_inside_the_tile_on_this_device() {
+    // The workgroup sums, not the per-pixel fallback, are what the other tests check here:
+    // plane sums where the device has plane operations, else shared-memory groups (lavapipe
+    // through wgpu has no subgroup feature).
+    for (backend, device) in gpu() {
+        let client = cube_client(&device);
+        let sums = TileSums::on(&client, GradientSums::Workgroup);
+        println!("{backend}: backward tile sums {sums:?}");
+        assert_ne!(sums, TileSums::PerPixel, "{backend}");
+        assert_eq!(
+            TileSums::on(&client, GradientSums::PerPixel),
+            TileSums::PerPixel
+        );
+    }
+}
+
+/// The compute client behind a cube device.
+fn cube_client(device: &Device) -> Client {
+    let DispatchDevice::Cube(device) = device.as_dispatch() else {
+        panic!("not a cube device: {device:?}");
+    };
+    CubeBackend::float_from_data(TensorData::new(vec![0.0f32], [1]), device).client
 }
 
 /// `n` random Gaussians in a unit-ish box in front of a camera, mixed sizes, densities and
@@ -169,7 +209,16 @@ fn kernels_agree_with_the_cpu_path_on_thousands_of_random_gaussians() {
         min_t < 0.01,
         "the scene should saturate some pixels (min T {min_t})"
     );
-    for (backend, device) in gpu() {
+    let variants = [GradientSums::Workgroup, GradientSums::PerPixel];
+    for ((backend, device), gradient_sums) in gpu()
+        .into_iter()
+        .flat_map(|d| variants.map(|s| (d.clone(), s)))
+    {
+        let options = RasterOptions {
+            gradient_sums,
+            ..options
+        };
+        let backend = format!("{backend} ({gradient_sums:?})");
         let gpu = render_with_grads(&scene, &camera, &options, &device);
         assert_close(
             &format!("{backend}: rgb"),

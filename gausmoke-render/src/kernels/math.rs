@@ -51,6 +51,13 @@ impl Vec3 {
         self.z += other.z;
     }
 
+    /// `self = other`, component by component.
+    pub fn set(&mut self, other: &Vec3) {
+        self.x = other.x;
+        self.y = other.y;
+        self.z = other.z;
+    }
+
     /// `self -= other`, in place.
     pub fn sub_assign(&mut self, other: &Vec3) {
         self.x -= other.x;

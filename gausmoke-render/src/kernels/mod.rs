@@ -161,7 +161,7 @@ pub fn forward(
         rasterize::rasterize_kernel::launch(
             &alloc.client,
             CubeCount::Static(tiles.tiles_x, tiles.tiles_y, 1),
-            CubeDim::new_2d(TILE_EDGE, TILE_EDGE),
+            CubeDim::new_1d(TILE_THREADS as u32),
             buffer(&projection.splats),
             buffer(&tiles.offsets),
             buffer(&tiles.list),
@@ -234,7 +234,8 @@ pub fn backward(
     if n > 0 {
         let _phase = phase!("rasterize backward");
         let cubes = CubeCount::Static(saved.tiles.tiles_x, saved.tiles.tiles_y, 1);
-        let cube_dim = CubeDim::new_2d(TILE_EDGE, TILE_EDGE);
+        let cube_dim = CubeDim::new_1d(TILE_THREADS as u32);
+        let sums = backward::rasterize::TileSums::on(&alloc.client, saved.options.gradient_sums);
         macro_rules! launch_backward {
             ($adder:ty) => {
                 backward::rasterize::rasterize_backward_kernel::launch::<$adder>(
@@ -252,6 +253,7 @@ pub fn backward(
                     buffer(&splat_grads),
                     saved.width,
                     saved.height,
+                    sums,
                 )
             };
         }

@@ -1,4 +1,4 @@
-//! Stage 5: one 16x16 cube per tile composites each pixel front to back (one unit per pixel),
+//! Stage 5: one cube of 16x16 units per tile composites each pixel front to back (one unit per pixel),
 //! staging the tile's splats through shared memory in batches of [`TILE_THREADS`]; the tile
 //! stops early once every pixel has reached `transmittance_min`. CPU twin:
 //! `cpu::composite::render_tile`.
@@ -29,8 +29,9 @@ pub struct TilePixel {
 #[cube]
 pub fn tile_pixel(width: u32, height: u32) -> TilePixel {
     let tiles_x = (width + TILE_EDGE - 1) / TILE_EDGE;
-    let px = CUBE_POS_X * TILE_EDGE + UNIT_POS_X;
-    let py = CUBE_POS_Y * TILE_EDGE + UNIT_POS_Y;
+    // A one-dimensional cube (naga allows plane built-ins only there), row-major in the tile.
+    let px = CUBE_POS_X * TILE_EDGE + UNIT_POS % TILE_EDGE;
+    let py = CUBE_POS_Y * TILE_EDGE + UNIT_POS / TILE_EDGE;
     TilePixel {
         tile: (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize,
         px,
@@ -39,9 +40,10 @@ pub fn tile_pixel(width: u32, height: u32) -> TilePixel {
     }
 }
 
-/// Copies list entries `first..first + TILE_THREADS` of the tile starting at `start` (those
+/// Copies list entries `first..first + batch_len` of the tile starting at `start` (those
 /// below `len`) into `batch`, one splat per unit, and their indices into `ids`.
 #[cube]
+#[allow(clippy::too_many_arguments)]
 pub fn stage_batch(
     splats: &[f32],
     list: &[u32],
@@ -50,9 +52,10 @@ pub fn stage_batch(
     len: u32,
     batch: &mut Shared<[f32]>,
     ids: &mut Shared<[u32]>,
+    #[comptime] batch_len: u32,
 ) {
     let k = first + UNIT_POS;
-    if k < len {
+    if UNIT_POS < batch_len && k < len {
         let gaussian = list[(start + k) as usize];
         ids[UNIT_POS as usize] = gaussian;
         let src = gaussian as usize * SPLAT_FLOATS;
@@ -113,7 +116,16 @@ pub fn rasterize_kernel(
             break;
         }
         let first = b * TILE_THREADS as u32;
-        stage_batch(splats, list, start, first, len, &mut batch, &mut ids);
+        stage_batch(
+            splats,
+            list,
+            start,
+            first,
+            len,
+            &mut batch,
+            &mut ids,
+            TILE_THREADS as u32,
+        );
         sync_cube();
         if !done {
             let count = (len - first).min(TILE_THREADS as u32);

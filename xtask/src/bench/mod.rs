@@ -18,7 +18,7 @@ use gausmoke_core::glam::{Mat4, Vec3};
 use gausmoke_core::phases::{PhaseTime, PhaseTotals};
 use gausmoke_render::HostGaussians;
 use gausmoke_render::procedural::smoke_plume;
-use gausmoke_render::{Camera, Intrinsics, RasterOptions, backends, render_volume};
+use gausmoke_render::{Camera, GradientSums, Intrinsics, RasterOptions, backends, render_volume};
 use safetensors::{Dtype, tensor::TensorView};
 
 mod train;
@@ -47,6 +47,12 @@ pub struct PhysicsArgs {
     /// Base channels of the U-Net (the paper's 16; the reduced preset's 8).
     #[arg(long, default_value_t = 16)]
     unet_channels: usize,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum SumsArg {
+    Workgroup,
+    PerPixel,
 }
 
 #[derive(Debug, Args)]
@@ -78,6 +84,10 @@ pub struct RenderArgs {
     /// for GPUs that CI cannot run.
     #[arg(long)]
     check_against: Option<String>,
+    /// How the GPU backward sums a splat's gradients over a tile (`workgroup`: inside the
+    /// workgroup, one atomic per tile; `per-pixel`: one atomic per pixel).
+    #[arg(long, value_enum, default_value_t = SumsArg::Workgroup)]
+    gradient_sums: SumsArg,
     /// Where to write the benchmark scenes (safetensors, read by the torch and gsplat scripts);
     /// default `target/bench/scenes` in the workspace.
     #[arg(long)]
@@ -124,8 +134,12 @@ fn time_ours(
     camera: &Camera,
     device: &Device,
     reps: usize,
+    gradient_sums: GradientSums,
 ) -> Result<(f64, f64, Vec<PhaseTime>)> {
-    let options = RasterOptions::default();
+    let options = RasterOptions {
+        gradient_sums,
+        ..RasterOptions::default()
+    };
     let sync = |device: &Device| device.sync().map_err(|e| anyhow::anyhow!("{e:?}"));
     let tensors = scene.to_tensors(device)?;
     let background = Tensor::<1>::from_data(TensorData::new(vec![0.0f32; 3], [3]), device);
@@ -312,6 +326,10 @@ fn render(args: RenderArgs) -> Result<()> {
         );
     }
     let camera = scalar_real_test_camera(args.width, args.height);
+    let gradient_sums = match args.gradient_sums {
+        SumsArg::Workgroup => GradientSums::Workgroup,
+        SumsArg::PerPixel => GradientSums::PerPixel,
+    };
     let scene_dir = args
         .scene_dir
         .clone()
@@ -336,7 +354,7 @@ fn render(args: RenderArgs) -> Result<()> {
                 let reference = backends::device_by_name(reference).map_err(anyhow::Error::msg)?;
                 check_against(&scene, &camera, &device, &reference, name)?;
             }
-            let (f, fb, stages) = time_ours(&scene, &camera, &device, args.reps)?;
+            let (f, fb, stages) = time_ours(&scene, &camera, &device, args.reps, gradient_sums)?;
             eprintln!("ours/{name}: {n} Gaussians: forward {f:.2} ms, forward+backward {fb:.2} ms");
             let stages: serde_json::Map<String, serde_json::Value> = stages
                 .iter()
