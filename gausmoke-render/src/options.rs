@@ -31,17 +31,21 @@ pub enum FloatAtomics {
     CompareAndSwap,
 }
 
-/// How the GPU backward pass sums the gradients of one splat over the pixels of a tile.
-/// Either way the sums agree to float tolerance; the order is not fixed.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+/// How the GPU backward pass sums one splat's gradients over the pixels of a tile. Every form
+/// agrees with the others to float tolerance; the order of the additions is not fixed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 pub enum GradientSums {
-    /// Summed inside the tile's workgroup (plane sums, then shared memory), then one atomic
-    /// add per float per tile, where the device has plane (subgroup) operations; else
-    /// [`GradientSums::PerPixel`].
+    /// Plane (subgroup) sums, then the planes' partial sums in shared memory: one atomic add
+    /// per float per tile and one barrier per splat. Devices without plane operations run
+    /// [`GradientSums::PerPixel`] instead.
     #[default]
-    Workgroup,
-    /// Every contributing pixel adds its gradient atomically (tests use it to check that
-    /// path on a device that has plane operations).
+    Planes,
+    /// The same sums through shared memory alone (groups of 16 units, then across groups), for
+    /// devices without plane operations: one atomic add per float per tile, two barriers per
+    /// splat. Not the fallback for [`GradientSums::Planes`]: on lavapipe, the one such device
+    /// measured, barriers cost more than the atomics they save (`docs/BENCHMARKS.md`).
+    SharedMemory,
+    /// Every contributing pixel adds its own gradient atomically.
     PerPixel,
 }
 
@@ -79,7 +83,7 @@ impl Default for RasterOptions {
             near_plane: 0.01,
             alpha_model: AlphaModel::BeerLambert,
             float_atomics: FloatAtomics::Native,
-            gradient_sums: GradientSums::Workgroup,
+            gradient_sums: GradientSums::Planes,
         }
     }
 }

@@ -1,5 +1,5 @@
 //! The backward rasterisation kernel compiled to WGSL and validated by naga, as wgpu does
-//! before it runs a shader, in each of its three forms ([`TileSums`]), including the plane
+//! before it runs a shader, in each of its three forms ([`GradientSums`]), including the plane
 //! sums that lavapipe (CI's device) cannot run because wgpu does not give it subgroups.
 //! `render_gpu.rs` runs the other two forms against the torch goldens and the CPU path.
 //!
@@ -16,15 +16,16 @@ use burn_cubecl::cubecl::Compiler;
 use burn_cubecl::cubecl::features::Plane;
 use burn_cubecl::cubecl::prelude::*;
 use burn_cubecl::cubecl::wgpu::WgslCompiler;
+use gausmoke_render::GradientSums;
 use gausmoke_render::backends::gpu_devices;
 use gausmoke_render::kernels::atomics::CasAdd;
-use gausmoke_render::kernels::backward::rasterize::{TileSums, rasterize_backward_kernel};
+use gausmoke_render::kernels::backward::rasterize::rasterize_backward_kernel;
 use gausmoke_render::kernels::buffers::buffer;
 use gausmoke_render::kernels::rasterize::TILE_THREADS;
 
 /// WGSL of the backward kernel in form `sums`, expanded for the first GPU device with plane
 /// operations switched on in its properties when `planes`.
-fn backward_wgsl(sums: TileSums, planes: bool) -> String {
+fn backward_wgsl(sums: GradientSums, planes: bool) -> String {
     let devices = gpu_devices();
     let (_, device) = devices
         .first()
@@ -81,7 +82,7 @@ fn validate(source: &str, subgroups: bool) -> Result<(), String> {
 
 #[test]
 fn plane_sums_pass_naga_with_subgroups_and_only_with_them() {
-    let source = backward_wgsl(TileSums::Planes, true);
+    let source = backward_wgsl(GradientSums::Planes, true);
     assert!(
         source.contains("subgroupAdd") && source.contains("subgroupAny"),
         "the plane form should sum with subgroup operations:\n{source}"
@@ -97,7 +98,7 @@ fn plane_sums_pass_naga_with_subgroups_and_only_with_them() {
 
 #[test]
 fn shared_and_per_pixel_forms_pass_naga_without_subgroups() {
-    for sums in [TileSums::SharedGroups, TileSums::PerPixel] {
+    for sums in [GradientSums::SharedMemory, GradientSums::PerPixel] {
         let source = backward_wgsl(sums, false);
         assert!(!source.contains("subgroup"), "{sums:?} uses no subgroups");
         if let Err(e) = validate(&source, false) {

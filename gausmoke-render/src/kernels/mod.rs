@@ -235,7 +235,7 @@ pub fn backward(
         let _phase = phase!("rasterize backward");
         let cubes = CubeCount::Static(saved.tiles.tiles_x, saved.tiles.tiles_y, 1);
         let cube_dim = CubeDim::new_1d(TILE_THREADS as u32);
-        let sums = backward::rasterize::TileSums::on(&alloc.client, saved.options.gradient_sums);
+        let sums = backward::rasterize::resolve(&alloc.client, saved.options.gradient_sums);
         macro_rules! launch_backward {
             ($adder:ty) => {
                 backward::rasterize::rasterize_backward_kernel::launch::<$adder>(

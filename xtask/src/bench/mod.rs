@@ -51,7 +51,8 @@ pub struct PhysicsArgs {
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 enum SumsArg {
-    Workgroup,
+    Planes,
+    SharedMemory,
     PerPixel,
 }
 
@@ -84,9 +85,10 @@ pub struct RenderArgs {
     /// for GPUs that CI cannot run.
     #[arg(long)]
     check_against: Option<String>,
-    /// How the GPU backward sums a splat's gradients over a tile (`workgroup`: inside the
-    /// workgroup, one atomic per tile; `per-pixel`: one atomic per pixel).
-    #[arg(long, value_enum, default_value_t = SumsArg::Workgroup)]
+    /// How the GPU backward sums a splat's gradients over a tile (`gausmoke_render::
+    /// GradientSums`): `planes` (the default; per pixel on devices without plane operations),
+    /// `shared-memory`, `per-pixel`.
+    #[arg(long, value_enum, default_value_t = SumsArg::Planes)]
     gradient_sums: SumsArg,
     /// Where to write the benchmark scenes (safetensors, read by the torch and gsplat scripts);
     /// default `target/bench/scenes` in the workspace.
@@ -327,7 +329,8 @@ fn render(args: RenderArgs) -> Result<()> {
     }
     let camera = scalar_real_test_camera(args.width, args.height);
     let gradient_sums = match args.gradient_sums {
-        SumsArg::Workgroup => GradientSums::Workgroup,
+        SumsArg::Planes => GradientSums::Planes,
+        SumsArg::SharedMemory => GradientSums::SharedMemory,
         SumsArg::PerPixel => GradientSums::PerPixel,
     };
     let scene_dir = args

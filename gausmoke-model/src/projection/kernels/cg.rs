@@ -1,11 +1,12 @@
 //! The conjugate-gradient steps of the projection's solve as kernels: fixed-order dot
-//! products (per-cube trees, then one cube over the partial sums) and the per-cell updates.
+//! products (per-cube trees, then one cube over the partial sums, the per-cube part fused
+//! into the kernels that produce the vectors where it can be) and the per-cell updates.
 //! Every CG scalar lives in the device buffer `scalars` (see `Slot`).
 
 use cubecl::prelude::*;
 use gausmoke_render::kernels::reduce::tree_sum;
 
-use super::operators::inverse_diagonal;
+use super::operators::{divergence_at, inverse_diagonal};
 
 /// Units per cube of every kernel here (one unit per cell).
 pub const CELL_BLOCK: usize = 256;
@@ -26,20 +27,45 @@ pub fn dot_partials_kernel(a: &[f32], b: &[f32], partials: &mut [f32], len: u32)
     }
 }
 
-/// Sums `count` partial sums in a fixed order (one cube) into `scalars[slot]`.
+/// Sums `count` partial sums in a fixed order (one cube per sum) into `scalars`: cube 0 sums
+/// `partials[0..count]` into `scalars[first_slot]`, cube 1 (when launched) sums
+/// `partials[count..2 count]` into `scalars[second_slot]`.
 #[cube(launch)]
-pub fn finish_sum_kernel(partials: &[f32], scalars: &mut [f32], count: u32, slot: u32) {
+pub fn finish_sums_kernel(
+    partials: &[f32],
+    scalars: &mut [f32],
+    count: u32,
+    first_slot: u32,
+    second_slot: u32,
+) {
     let mut sums = Shared::<[f32]>::new_slice(CELL_BLOCK);
+    let offset = CUBE_POS as u32 * count;
     let mut total = 0.0f32;
     let mut index = UNIT_POS;
     while index < count {
-        total += partials[index as usize];
+        total += partials[(offset + index) as usize];
         index += CUBE_DIM;
     }
     sums[UNIT_POS as usize] = total;
     tree_sum(&mut sums);
     if UNIT_POS == 0 {
+        let mut slot = first_slot;
+        if CUBE_POS == 1 {
+            slot = second_slot;
+        }
         scalars[slot as usize] = sums[0];
+    }
+}
+
+/// Writes this cube's sum of `value` over its units to `partials[offset + CUBE_POS]` (as
+/// [`dot_partials_kernel`] does, so fused and separate dot products agree bit for bit).
+#[cube]
+fn cube_partial(value: f32, partials: &mut [f32], offset: u32) {
+    let mut sums = Shared::<[f32]>::new_slice(CELL_BLOCK);
+    sums[UNIT_POS as usize] = value;
+    tree_sum(&mut sums);
+    if UNIT_POS == 0 {
+        partials[(offset + CUBE_POS as u32) as usize] = sums[0];
     }
 }
 
@@ -58,8 +84,36 @@ fn has_converged(
     residual_squared <= relative.max(absolute)
 }
 
+/// CG's `A d = D g` with `g = D^T d` (`gradient`), and this cube's partial sum of the
+/// curvature `d . A d` in `partials[CUBE_POS]` (for [`finish_sums_kernel`]).
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+pub fn operator_direction_kernel(
+    gradient: &[f32],
+    direction: &[f32],
+    operator_direction: &mut [f32],
+    partials: &mut [f32],
+    inverse_cell: &[f32],
+    open_faces: u32,
+    nx: u32,
+    ny: u32,
+    nz: u32,
+) {
+    let cell = ABSOLUTE_POS as u32;
+    let mut curvature = 0.0f32;
+    // Cells past the grid only pad the cube's sum (every unit reaches its barriers).
+    if cell < nx * ny * nz {
+        let value = divergence_at(cell, gradient, inverse_cell, open_faces, nx, ny, nz);
+        operator_direction[cell as usize] = value;
+        curvature = direction[cell as usize] * value;
+    }
+    cube_partial(curvature, partials, 0u32);
+}
+
 /// Step of iteration `k`: `a = (r.z) / (d.A d)` read from the scalar buffer, then
-/// `p += a d`, `r -= a A d`, `z = M^-1 r`.
+/// `p += a d`, `r -= a A d`, `z = M^-1 r`, and this cube's partial sums of `|r|^2` (to
+/// `partials[CUBE_POS]`) and `r.z` (to `partials[cubes + CUBE_POS]`) for
+/// [`finish_sums_kernel`].
 ///
 /// No step is taken once the solve has converged (`|r_k|^2` at `residual_slot` under
 /// `tolerance^2 |b|^2` or `floor^2 |u|^2`, see [`has_converged`]): the iterations the host launches
@@ -76,6 +130,7 @@ pub fn step_kernel(
     operator_direction: &[f32],
     scalars: &[f32],
     inverse_cell: &[f32],
+    partials: &mut [f32],
     residual_slot: u32,
     rz_slot: u32,
     curvature_slot: u32,
@@ -87,25 +142,30 @@ pub fn step_kernel(
     nz: u32,
 ) {
     let cell = ABSOLUTE_POS as u32;
-    if cell >= nx * ny * nz {
-        terminate!();
+    let mut r = 0.0f32;
+    let mut z = 0.0f32;
+    // Cells past the grid only pad the cube's sums (every unit reaches their barriers).
+    if cell < nx * ny * nz {
+        let converged = has_converged(
+            scalars[residual_slot as usize],
+            scalars,
+            tolerance_squared,
+            floor_squared,
+        );
+        let curvature = scalars[curvature_slot as usize];
+        let mut step = 0.0f32;
+        if !converged && curvature > 0.0 && curvature < f32::MAX {
+            step = scalars[rz_slot as usize] / curvature;
+        }
+        let c = cell as usize;
+        pressure[c] += step * direction[c];
+        r = residual[c] - step * operator_direction[c];
+        residual[c] = r;
+        z = r * inverse_diagonal(cell, inverse_cell, open_faces, nx, ny, nz);
+        preconditioned[c] = z;
     }
-    let converged = has_converged(
-        scalars[residual_slot as usize],
-        scalars,
-        tolerance_squared,
-        floor_squared,
-    );
-    let curvature = scalars[curvature_slot as usize];
-    let mut step = 0.0f32;
-    if !converged && curvature > 0.0 && curvature < f32::MAX {
-        step = scalars[rz_slot as usize] / curvature;
-    }
-    let c = cell as usize;
-    pressure[c] += step * direction[c];
-    let r = residual[c] - step * operator_direction[c];
-    residual[c] = r;
-    preconditioned[c] = r * inverse_diagonal(cell, inverse_cell, open_faces, nx, ny, nz);
+    cube_partial(r * r, partials, 0u32);
+    cube_partial(r * z, partials, CUBE_COUNT as u32);
 }
 
 /// New direction of iteration `k`: `d = z + b d`, `b = (r.z)_{k+1} / (r.z)_k` (zero when the

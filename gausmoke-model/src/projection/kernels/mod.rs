@@ -11,9 +11,9 @@
 //! Dot products are summed in two fixed-order stages (per-cube shared-memory trees, then one
 //! cube over the partial sums), so a solve is deterministic, unlike an atomic sum.
 //!
-//! One iteration `k` is seven launches over the cells:
-//! `D^T d`, `A d = D (D^T d)`, `d.A d`, the step (`p += a d`, `r -= a A d`, `z = M^-1 r`),
-//! `|r|^2`, `r.z`, and the new direction `d = z + b d`.
+//! One iteration `k` is six launches: `D^T d`; `A d = D (D^T d)` with the per-cube sums of
+//! `d.A d`; their total; the step (`p += a d`, `r -= a A d`, `z = M^-1 r`) with the per-cube
+//! sums of `|r|^2` and `r.z`; their totals (two cubes); the new direction `d = z + b d`.
 
 // `div_ceil` is not available inside cubecl kernels; the manual form is what they compile.
 #![allow(clippy::manual_div_ceil)]
@@ -26,8 +26,8 @@ use gausmoke_render::kernels::buffers::{buffer, contiguous_f32};
 
 use super::host::{ProjectionOptions, ProjectionReport, ProjectionSpec};
 use cg::{
-    CELL_BLOCK, direction_kernel, dot_partials_kernel, finish_sum_kernel, step_kernel,
-    subtract_kernel,
+    CELL_BLOCK, direction_kernel, dot_partials_kernel, finish_sums_kernel,
+    operator_direction_kernel, step_kernel, subtract_kernel,
 };
 use operators::{divergence_kernel, divergence_transpose_kernel, precondition_kernel};
 
@@ -222,14 +222,28 @@ impl Solver {
             buffer(partials),
             len as u32,
         );
-        finish_sum_kernel::launch(
-            client,
-            CubeCount::Static(1, 1, 1),
+        self.finish_sums(partials, scalars, count, [slot, slot], 1);
+    }
+
+    /// `scalars[slots[i]]` = the sum of `partials[i * count..(i + 1) * count]`, for the first
+    /// `sums` of the two.
+    fn finish_sums(
+        &self,
+        partials: &CubeTensor,
+        scalars: &CubeTensor,
+        count: usize,
+        slots: [usize; 2],
+        sums: u32,
+    ) {
+        finish_sums_kernel::launch(
+            &self.like.client,
+            CubeCount::Static(sums, 1, 1),
             Self::block(),
             buffer(partials),
             buffer(scalars),
             count as u32,
-            slot as u32,
+            slots[0] as u32,
+            slots[1] as u32,
         );
     }
 }
@@ -289,7 +303,10 @@ pub fn project_velocity(
 
     let residual = solver.new_buffer(cells, false);
     solver.divergence(&velocity, &residual);
-    let partials = solver.new_buffer((3 * cells).div_ceil(CELL_BLOCK), false);
+    // Per-cube partial sums: of the velocity's norm (3 values per cell), or of two dot
+    // products over the cells at once (the step's `|r|^2` and `r.z`).
+    let cell_cubes = cells.div_ceil(CELL_BLOCK);
+    let partials = solver.new_buffer((3 * cells).div_ceil(CELL_BLOCK).max(2 * cell_cubes), false);
     let scalars = solver.new_buffer(Slot::count(max_iterations), true);
     solver.dot_over(
         3 * cells,
@@ -343,14 +360,22 @@ pub fn project_velocity(
     while iteration < max_iterations {
         let k = iteration;
         solver.divergence_transpose(&direction, &gradient);
-        solver.divergence(&gradient, &operator_direction);
-        solver.dot(
-            &direction,
-            &operator_direction,
-            &partials,
-            &scalars,
-            Slot::curvature(k),
+        operator_direction_kernel::launch(
+            &client,
+            solver.cubes(cells),
+            Solver::block(),
+            buffer(&gradient),
+            buffer(&direction),
+            buffer(&operator_direction),
+            buffer(&partials),
+            buffer(&solver.inverse_cell),
+            solver.open_faces,
+            nx,
+            ny,
+            nz,
         );
+        let curvature = Slot::curvature(k);
+        solver.finish_sums(&partials, &scalars, cell_cubes, [curvature, curvature], 1);
         step_kernel::launch(
             &client,
             solver.cubes(cells),
@@ -362,9 +387,10 @@ pub fn project_velocity(
             buffer(&operator_direction),
             buffer(&scalars),
             buffer(&solver.inverse_cell),
+            buffer(&partials),
             Slot::residual_before(k) as u32,
             Slot::rz(k) as u32,
-            Slot::curvature(k) as u32,
+            curvature as u32,
             stopping.tolerance_squared,
             stopping.floor_squared,
             solver.open_faces,
@@ -372,19 +398,12 @@ pub fn project_velocity(
             ny,
             nz,
         );
-        solver.dot(
-            &residual,
-            &residual,
+        solver.finish_sums(
             &partials,
             &scalars,
-            Slot::residual_squared(k),
-        );
-        solver.dot(
-            &residual,
-            &preconditioned,
-            &partials,
-            &scalars,
-            Slot::rz(k + 1),
+            cell_cubes,
+            [Slot::residual_squared(k), Slot::rz(k + 1)],
+            2,
         );
         direction_kernel::launch(
             &client,

@@ -84,20 +84,16 @@ pub fn inverse_diagonal(
 
 /// `(D u)_c`: face velocity = mean of its two cells, zero on solid walls, the inner cell's on
 /// open faces, over the cell size.
-#[cube(launch)]
-pub fn divergence_kernel(
+#[cube]
+pub fn divergence_at(
+    cell: u32,
     velocity: &[f32],
-    divergence: &mut [f32],
     inverse_cell: &[f32],
     open_faces: u32,
     nx: u32,
     ny: u32,
     nz: u32,
-) {
-    let cell = ABSOLUTE_POS as u32;
-    if cell >= nx * ny * nz {
-        terminate!();
-    }
+) -> f32 {
     let mut total = 0.0f32;
     let mut axis = 0u32;
     while axis < 3 {
@@ -119,7 +115,25 @@ pub fn divergence_kernel(
         total += flux * inverse_cell[axis as usize];
         axis += 1;
     }
-    divergence[cell as usize] = total;
+    total
+}
+
+/// `D u`, one unit per cell.
+#[cube(launch)]
+pub fn divergence_kernel(
+    velocity: &[f32],
+    divergence: &mut [f32],
+    inverse_cell: &[f32],
+    open_faces: u32,
+    nx: u32,
+    ny: u32,
+    nz: u32,
+) {
+    let cell = ABSOLUTE_POS as u32;
+    if cell >= nx * ny * nz {
+        terminate!();
+    }
+    divergence[cell as usize] = divergence_at(cell, velocity, inverse_cell, open_faces, nx, ny, nz);
 }
 
 /// `(D^T p)_c`, three components per cell (`-D^T` is the discrete gradient).

@@ -6,7 +6,7 @@
 //! Every unit of a cube visits the same splat at the same time, so the tile's 256 per-pixel
 //! gradients of a splat can be summed inside the cube and added to `splat_grads` with one
 //! atomic per float per tile, instead of 256 units contending for the same 16 addresses
-//! ([`TileSums`]).
+//! ([`GradientSums`]).
 
 // `div_ceil` is not available inside cubecl kernels; the manual form is what they compile.
 #![allow(clippy::manual_div_ceil)]
@@ -25,64 +25,51 @@ use crate::kernels::splat::{SPLAT_FLOATS, Splat, ViewParam, pixel_direction, ray
 pub const BACKWARD_BATCH: usize = 128;
 // One unit stages one splat.
 const _: () = assert!(BACKWARD_BATCH <= TILE_THREADS);
-/// Units per group of [`TileSums::SharedGroups`].
+/// Units per group of [`GradientSums::SharedMemory`].
 const GROUP_UNITS: u32 = 16;
-/// The smallest plane [`TileSums::Planes`] is laid out for.
+/// The smallest plane [`GradientSums::Planes`] is laid out for.
 pub const MIN_PLANE_SIZE: u32 = 8;
 /// Partial sums per splat held in shared memory: one per plane or group.
 const MAX_GROUPS: usize = TILE_THREADS / MIN_PLANE_SIZE as usize;
 
-/// How the kernel sums one splat's gradients over the pixels of a tile.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum TileSums {
-    /// Plane (subgroup) sums, then the planes' partial sums in shared memory; one atomic add
-    /// per float per tile, one barrier per splat.
-    Planes,
-    /// Every unit's gradient in shared memory, summed in groups of 16 units and then across
-    /// groups; one atomic add per float per tile, two barriers per splat. For devices without
-    /// plane operations (lavapipe through wgpu, WebGPU without subgroups).
-    SharedGroups,
-    /// Each contributing pixel adds its own gradient atomically.
-    PerPixel,
+/// Bytes of shared memory the kernel declares in form `sums`.
+pub fn shared_bytes(sums: GradientSums) -> usize {
+    let floats = BACKWARD_BATCH * SPLAT_FLOATS + scratch_len(sums) + partials_len(sums);
+    4 * (floats + BACKWARD_BATCH)
 }
 
-impl TileSums {
-    /// Bytes of shared memory the kernel declares.
-    pub fn shared_bytes(self) -> usize {
-        let floats = BACKWARD_BATCH * SPLAT_FLOATS + self.scratch_len() + self.partials_len();
-        4 * (floats + BACKWARD_BATCH)
+fn scratch_len(sums: GradientSums) -> usize {
+    match sums {
+        GradientSums::SharedMemory => TILE_THREADS * SPLAT_FLOATS,
+        _ => 1,
     }
+}
 
-    fn scratch_len(self) -> usize {
-        match self {
-            TileSums::SharedGroups => TILE_THREADS * SPLAT_FLOATS,
-            _ => 1,
-        }
+fn partials_len(sums: GradientSums) -> usize {
+    match sums {
+        GradientSums::PerPixel => 1,
+        _ => 2 * MAX_GROUPS * SPLAT_FLOATS,
     }
+}
 
-    fn partials_len(self) -> usize {
-        match self {
-            TileSums::PerPixel => 1,
-            _ => 2 * MAX_GROUPS * SPLAT_FLOATS,
-        }
-    }
-
-    /// What `client`'s device runs for `requested`: plane sums where it has plane operations
-    /// (planes of [`MIN_PLANE_SIZE`] to [`TILE_THREADS`] units), else the shared-memory
-    /// groups, and per-pixel adds where neither fits its shared memory.
-    pub fn on(client: &Client, requested: GradientSums) -> TileSums {
-        let properties = client.properties();
-        let hardware = &properties.hardware;
-        let fits = |sums: TileSums| sums.shared_bytes() <= hardware.max_shared_memory_size;
-        let planes = properties.features.plane.contains(Plane::Ops)
-            && hardware.plane_size_min >= MIN_PLANE_SIZE
-            && hardware.plane_size_max <= TILE_THREADS as u32;
-        match requested {
-            GradientSums::PerPixel => TileSums::PerPixel,
-            GradientSums::Workgroup if planes && fits(TileSums::Planes) => TileSums::Planes,
-            GradientSums::Workgroup if fits(TileSums::SharedGroups) => TileSums::SharedGroups,
-            GradientSums::Workgroup => TileSums::PerPixel,
-        }
+/// The form `client`'s device runs for `requested`: [`GradientSums::Planes`] needs plane
+/// operations with planes of [`MIN_PLANE_SIZE`] to [`TILE_THREADS`] units, and either
+/// workgroup form needs its shared memory; otherwise [`GradientSums::PerPixel`].
+pub fn resolve(client: &Client, requested: GradientSums) -> GradientSums {
+    let properties = client.properties();
+    let hardware = &properties.hardware;
+    let planes = properties.features.plane.contains(Plane::Ops)
+        && hardware.plane_size_min >= MIN_PLANE_SIZE
+        && hardware.plane_size_max <= TILE_THREADS as u32;
+    let runs = match requested {
+        GradientSums::Planes => planes,
+        GradientSums::SharedMemory => true,
+        GradientSums::PerPixel => false,
+    };
+    if runs && shared_bytes(requested) <= hardware.max_shared_memory_size {
+        requested
+    } else {
+        GradientSums::PerPixel
     }
 }
 
@@ -178,11 +165,11 @@ fn add_tile_sum<A: GradientAdd>(
     scratch: &mut Shared<[f32]>,
     partials: &mut Shared<[f32]>,
     splat_grads: &mut [Atomic<A::Cell>],
-    #[comptime] sums: TileSums,
+    #[comptime] sums: GradientSums,
 ) {
     let slot = parity * (MAX_GROUPS * SPLAT_FLOATS) as u32;
     let mut groups = CUBE_DIM / GROUP_UNITS;
-    if comptime!(sums == TileSums::Planes) {
+    if comptime!(sums == GradientSums::Planes) {
         groups = CUBE_DIM / PLANE_DIM;
         let at = slot + (UNIT_POS / PLANE_DIM) * SPLAT_FLOATS as u32;
         // Planes whose rays all miss the splat skip their sums (the branch is uniform per plane).
@@ -242,7 +229,7 @@ pub fn rasterize_backward_kernel<A: GradientAdd>(
     splat_grads: &mut [Atomic<A::Cell>],
     width: u32,
     height: u32,
-    #[comptime] sums: TileSums,
+    #[comptime] sums: GradientSums,
 ) {
     let here = tile_pixel(width, height);
     let (tile, px, py, inside) = (here.tile, here.px, here.py, here.inside);
@@ -250,8 +237,8 @@ pub fn rasterize_backward_kernel<A: GradientAdd>(
 
     let mut batch = Shared::<[f32]>::new_slice(BACKWARD_BATCH * SPLAT_FLOATS);
     let mut ids = Shared::<[u32]>::new_slice(BACKWARD_BATCH);
-    let mut scratch = Shared::<[f32]>::new_slice(comptime!(sums.scratch_len()));
-    let mut partials = Shared::<[f32]>::new_slice(comptime!(sums.partials_len()));
+    let mut scratch = Shared::<[f32]>::new_slice(comptime!(scratch_len(sums)));
+    let mut partials = Shared::<[f32]>::new_slice(comptime!(partials_len(sums)));
 
     let mut walked = 0u32;
     let mut final_t = 1.0f32;
@@ -339,7 +326,7 @@ pub fn rasterize_backward_kernel<A: GradientAdd>(
                     }
                 }
             }
-            if comptime!(sums == TileSums::PerPixel) {
+            if comptime!(sums == GradientSums::PerPixel) {
                 if contributes {
                     grad.add_to::<A>(splat_grads, ids[j as usize] as usize);
                 }
