@@ -39,7 +39,7 @@ mod operators;
 pub const CHECK_EVERY: usize = 10;
 
 /// Iterations added to the previous solve's count for the first test: two wasted iterations
-/// (some twenty launches) are cheaper than a second read when a solve needs one more.
+/// (some twelve launches) are cheaper than a second read when a solve needs one more.
 const HINT_MARGIN: usize = 2;
 
 /// How many iterations the last two solves on each grid needed. A training step solves twice
