@@ -89,6 +89,30 @@ pub enum LookaheadVelocity {
     Predicted,
 }
 
+/// How the GPU backward pass sums one splat's gradients over the pixels of a tile
+/// ([`gausmoke_render::GradientSums`], spelled for TOML); the CPU backends ignore it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum GradientSums {
+    /// Plane (subgroup) sums, one atomic add per float per tile; per pixel on devices without
+    /// plane operations.
+    Planes,
+    /// Shared-memory sums, for GPUs without plane operations.
+    SharedMemory,
+    /// One atomic add per contributing pixel.
+    PerPixel,
+}
+
+impl From<GradientSums> for gausmoke_render::GradientSums {
+    fn from(sums: GradientSums) -> Self {
+        match sums {
+            GradientSums::Planes => Self::Planes,
+            GradientSums::SharedMemory => Self::SharedMemory,
+            GradientSums::PerPixel => Self::PerPixel,
+        }
+    }
+}
+
 /// Keys that may differ when a run is resumed: they change how the rest of the run trains or
 /// what it writes, not the shape or meaning of what is already trained. `frames` extends (or
 /// shortens) the run; the learning rates let a run that diverged continue more gently.
@@ -103,6 +127,7 @@ pub const RESUMABLE_KEYS: &[&str] = &[
     "ply_axes",
     "tensorboard",
     "sync_phase_timings",
+    "gradient_sums",
 ];
 
 /// Largest `time_frequencies` accepted (see [`TrainConfig::validate`]).
@@ -215,6 +240,10 @@ pub struct TrainConfig {
     /// `metrics.json` charge GPU work to the phase that queued it. Slows GPU runs; changes
     /// nothing on the CPU backends, which run eagerly.
     pub sync_phase_timings: bool,
+    /// How the GPU backward sums gradients over a tile: `"planes"` (default), `"shared-memory"`
+    /// or `"per-pixel"` (see [`GradientSums`]). The forms differ only in the order of float
+    /// additions, so a run may be resumed with another.
+    pub gradient_sums: GradientSums,
 }
 
 impl Default for TrainConfig {
@@ -263,6 +292,7 @@ impl Default for TrainConfig {
             ply_axes: PlyAxes::World,
             tensorboard: false,
             sync_phase_timings: false,
+            gradient_sums: GradientSums::Planes,
         }
     }
 }
@@ -524,9 +554,10 @@ impl TrainConfig {
     }
 
     /// The rasterizer's options: the defaults, with the ablation's alpha model when
-    /// `volumetric` is off.
+    /// `volumetric` is off and the configured backward tile sums.
     pub fn raster_options(&self) -> gausmoke_render::RasterOptions {
         gausmoke_render::RasterOptions {
+            gradient_sums: self.gradient_sums.into(),
             alpha_model: if self.volumetric {
                 gausmoke_render::AlphaModel::BeerLambert
             } else {
@@ -592,5 +623,24 @@ mod tests {
         .validate()
         .unwrap_err();
         assert!(err.to_string().contains("grid_resolution"), "{err}");
+    }
+
+    #[test]
+    fn gradient_sums_reach_the_rasterizer_and_bad_spellings_are_refused() {
+        assert_eq!(
+            TrainConfig::default().raster_options().gradient_sums,
+            gausmoke_render::GradientSums::Planes
+        );
+        let config = TrainConfig::default()
+            .with_overrides(&["gradient_sums=per-pixel".into()])
+            .unwrap();
+        assert_eq!(
+            config.raster_options().gradient_sums,
+            gausmoke_render::GradientSums::PerPixel
+        );
+        let err = TrainConfig::default()
+            .with_overrides(&["gradient_sums=warp".into()])
+            .unwrap_err();
+        assert!(err.to_string().contains("warp"), "{err}");
     }
 }
