@@ -6,7 +6,7 @@
 use cubecl::prelude::*;
 use gausmoke_render::kernels::reduce::tree_sum;
 
-use super::operators::{divergence_at, inverse_diagonal};
+use super::operators::{divergence_of_gradient_at, inverse_diagonal};
 
 /// Units per cube of every kernel here (one unit per cell).
 pub const CELL_BLOCK: usize = 256;
@@ -84,12 +84,11 @@ fn has_converged(
     residual_squared <= relative.max(absolute)
 }
 
-/// CG's `A d = D g` with `g = D^T d` (`gradient`), and this cube's partial sum of the
-/// curvature `d . A d` in `partials[CUBE_POS]` (for [`finish_sums_kernel`]).
+/// CG's `A d = D (D^T d)`, and this cube's partial sum of the curvature `d . A d` in
+/// `partials[CUBE_POS]` (for [`finish_sums_kernel`]).
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 pub fn operator_direction_kernel(
-    gradient: &[f32],
     direction: &[f32],
     operator_direction: &mut [f32],
     partials: &mut [f32],
@@ -103,7 +102,8 @@ pub fn operator_direction_kernel(
     let mut curvature = 0.0f32;
     // Cells past the grid only pad the cube's sum (every unit reaches its barriers).
     if cell < nx * ny * nz {
-        let value = divergence_at(cell, gradient, inverse_cell, open_faces, nx, ny, nz);
+        let value =
+            divergence_of_gradient_at(cell, direction, inverse_cell, open_faces, nx, ny, nz);
         operator_direction[cell as usize] = value;
         curvature = direction[cell as usize] * value;
     }

@@ -11,8 +11,8 @@
 //! Dot products are summed in two fixed-order stages (per-cube shared-memory trees, then one
 //! cube over the partial sums), so a solve is deterministic, unlike an atomic sum.
 //!
-//! One iteration `k` is six launches: `D^T d`; `A d = D (D^T d)` with the per-cube sums of
-//! `d.A d`; their total; the step (`p += a d`, `r -= a A d`, `z = M^-1 r`) with the per-cube
+//! One iteration `k` is five launches: `A d = D (D^T d)` (one stencil, `D^T d` not stored)
+//! with the per-cube sums of `d.A d`; their total; the step (`p += a d`, `r -= a A d`, `z = M^-1 r`) with the per-cube
 //! sums of `|r|^2` and `r.z`; their totals (two cubes); the new direction `d = z + b d`.
 
 // `div_ceil` is not available inside cubecl kernels; the manual form is what they compile.
@@ -39,7 +39,7 @@ mod operators;
 pub const CHECK_EVERY: usize = 10;
 
 /// Iterations added to the previous solve's count for the first test: two wasted iterations
-/// (some twelve launches) are cheaper than a second read when a solve needs one more.
+/// (some ten launches) are cheaper than a second read when a solve needs one more.
 const HINT_MARGIN: usize = 2;
 
 /// How many iterations the last two solves on each grid needed. A training step solves twice
@@ -359,12 +359,10 @@ pub fn project_velocity(
     let mut iteration = 0;
     while iteration < max_iterations {
         let k = iteration;
-        solver.divergence_transpose(&direction, &gradient);
         operator_direction_kernel::launch(
             &client,
             solver.cubes(cells),
             Solver::block(),
-            buffer(&gradient),
             buffer(&direction),
             buffer(&operator_direction),
             buffer(&partials),

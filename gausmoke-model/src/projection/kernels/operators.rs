@@ -82,8 +82,26 @@ pub fn inverse_diagonal(
     1.0 / diagonal.max(1e-30)
 }
 
-/// `(D u)_c`: face velocity = mean of its two cells, zero on solid walls, the inner cell's on
-/// open faces, over the cell size.
+/// The net outflow along one axis of a cell whose velocity component is `own`, with `high` and
+/// `low` its neighbours' (read only where they exist): face velocity = mean of its two cells,
+/// zero on solid walls, the inner cell's on open faces.
+#[cube]
+fn axis_flux(own: f32, high: f32, low: f32, i: u32, n: u32, open_faces: u32, axis: u32) -> f32 {
+    let mut flux = 0.0f32;
+    if i + 1 < n {
+        flux += 0.5 * (own + high);
+    } else if face_is_open(open_faces, axis, 1) {
+        flux += own;
+    }
+    if i > 0 {
+        flux -= 0.5 * (own + low);
+    } else if face_is_open(open_faces, axis, 0) {
+        flux -= own;
+    }
+    flux
+}
+
+/// `(D u)_c`, summed over the axes of the flux over the cell size.
 #[cube]
 pub fn divergence_at(
     cell: u32,
@@ -101,18 +119,67 @@ pub fn divergence_at(
         let n = axis_cells(axis, nx, ny, nz);
         let stride = axis_stride(axis, ny, nz);
         let own = velocity[(3 * cell + axis) as usize];
-        let mut flux = 0.0f32;
+        let mut high = 0.0f32;
         if i + 1 < n {
-            flux += 0.5 * (own + velocity[(3 * (cell + stride) + axis) as usize]);
-        } else if face_is_open(open_faces, axis, 1) {
-            flux += own;
+            high = velocity[(3 * (cell + stride) + axis) as usize];
         }
+        let mut low = 0.0f32;
         if i > 0 {
-            flux -= 0.5 * (own + velocity[(3 * (cell - stride) + axis) as usize]);
-        } else if face_is_open(open_faces, axis, 0) {
-            flux -= own;
+            low = velocity[(3 * (cell - stride) + axis) as usize];
         }
-        total += flux * inverse_cell[axis as usize];
+        total += axis_flux(own, high, low, i, n, open_faces, axis) * inverse_cell[axis as usize];
+        axis += 1;
+    }
+    total
+}
+
+/// `(D (D^T p))_c` without storing `D^T p`: each gradient component the divergence needs (the
+/// cell's and its two neighbours' along each axis) computed where it is used, as
+/// [`divergence_at`] would read it from `divergence_transpose_kernel`'s output.
+#[cube]
+pub fn divergence_of_gradient_at(
+    cell: u32,
+    pressure: &[f32],
+    inverse_cell: &[f32],
+    open_faces: u32,
+    nx: u32,
+    ny: u32,
+    nz: u32,
+) -> f32 {
+    let mut total = 0.0f32;
+    let mut axis = 0u32;
+    while axis < 3 {
+        let i = axis_coordinate(cell, axis, ny, nz);
+        let n = axis_cells(axis, nx, ny, nz);
+        let stride = axis_stride(axis, ny, nz);
+        let own = gradient_component(cell, axis, pressure, inverse_cell, open_faces, nx, ny, nz);
+        let mut high = 0.0f32;
+        if i + 1 < n {
+            high = gradient_component(
+                cell + stride,
+                axis,
+                pressure,
+                inverse_cell,
+                open_faces,
+                nx,
+                ny,
+                nz,
+            );
+        }
+        let mut low = 0.0f32;
+        if i > 0 {
+            low = gradient_component(
+                cell - stride,
+                axis,
+                pressure,
+                inverse_cell,
+                open_faces,
+                nx,
+                ny,
+                nz,
+            );
+        }
+        total += axis_flux(own, high, low, i, n, open_faces, axis) * inverse_cell[axis as usize];
         axis += 1;
     }
     total
@@ -136,7 +203,38 @@ pub fn divergence_kernel(
     divergence[cell as usize] = divergence_at(cell, velocity, inverse_cell, open_faces, nx, ny, nz);
 }
 
-/// `(D^T p)_c`, three components per cell (`-D^T` is the discrete gradient).
+/// Component `axis` of `(D^T p)_c` (`-D^T` is the discrete gradient).
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn gradient_component(
+    cell: u32,
+    axis: u32,
+    pressure: &[f32],
+    inverse_cell: &[f32],
+    open_faces: u32,
+    nx: u32,
+    ny: u32,
+    nz: u32,
+) -> f32 {
+    let own = pressure[cell as usize];
+    let i = axis_coordinate(cell, axis, ny, nz);
+    let n = axis_cells(axis, nx, ny, nz);
+    let stride = axis_stride(axis, ny, nz);
+    let mut value = 0.0f32;
+    if i + 1 < n {
+        value += 0.5 * (own - pressure[(cell + stride) as usize]);
+    } else if face_is_open(open_faces, axis, 1) {
+        value += own;
+    }
+    if i > 0 {
+        value -= 0.5 * (own - pressure[(cell - stride) as usize]);
+    } else if face_is_open(open_faces, axis, 0) {
+        value -= own;
+    }
+    value * inverse_cell[axis as usize]
+}
+
+/// `D^T p`, three components per cell.
 #[cube(launch)]
 pub fn divergence_transpose_kernel(
     pressure: &[f32],
@@ -151,24 +249,10 @@ pub fn divergence_transpose_kernel(
     if cell >= nx * ny * nz {
         terminate!();
     }
-    let own = pressure[cell as usize];
     let mut axis = 0u32;
     while axis < 3 {
-        let i = axis_coordinate(cell, axis, ny, nz);
-        let n = axis_cells(axis, nx, ny, nz);
-        let stride = axis_stride(axis, ny, nz);
-        let mut value = 0.0f32;
-        if i + 1 < n {
-            value += 0.5 * (own - pressure[(cell + stride) as usize]);
-        } else if face_is_open(open_faces, axis, 1) {
-            value += own;
-        }
-        if i > 0 {
-            value -= 0.5 * (own - pressure[(cell - stride) as usize]);
-        } else if face_is_open(open_faces, axis, 0) {
-            value -= own;
-        }
-        output[(3 * cell + axis) as usize] = value * inverse_cell[axis as usize];
+        output[(3 * cell + axis) as usize] =
+            gradient_component(cell, axis, pressure, inverse_cell, open_faces, nx, ny, nz);
         axis += 1;
     }
 }
