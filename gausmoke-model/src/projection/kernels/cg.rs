@@ -6,7 +6,7 @@
 use cubecl::prelude::*;
 use gausmoke_render::kernels::reduce::tree_sum;
 
-use super::operators::{divergence_of_gradient_at, inverse_diagonal};
+use super::operators::{divergence_at, inverse_diagonal};
 
 /// Units per cube of every kernel here (one unit per cell).
 pub const CELL_BLOCK: usize = 256;
@@ -102,8 +102,7 @@ pub fn operator_direction_kernel(
     let mut curvature = 0.0f32;
     // Cells past the grid only pad the cube's sum (every unit reaches its barriers).
     if cell < nx * ny * nz {
-        let value =
-            divergence_of_gradient_at(cell, direction, inverse_cell, open_faces, nx, ny, nz);
+        let value = divergence_at(cell, direction, inverse_cell, open_faces, nx, ny, nz, true);
         operator_direction[cell as usize] = value;
         curvature = direction[cell as usize] * value;
     }

@@ -101,50 +101,43 @@ fn axis_flux(own: f32, high: f32, low: f32, i: u32, n: u32, open_faces: u32, axi
     flux
 }
 
-/// `(D u)_c`, summed over the axes of the flux over the cell size.
+/// Component `axis` of the velocity at `cell` that [`divergence_at`] takes: read from `source`
+/// (`[cells, 3]`), or with `of_gradient` computed from the pressure `source` as `(D^T p)`, the
+/// value `divergence_transpose_kernel` would have stored there.
 #[cube]
-pub fn divergence_at(
+#[allow(clippy::too_many_arguments)]
+fn velocity_component(
     cell: u32,
-    velocity: &[f32],
+    axis: u32,
+    source: &[f32],
     inverse_cell: &[f32],
     open_faces: u32,
     nx: u32,
     ny: u32,
     nz: u32,
+    #[comptime] of_gradient: bool,
 ) -> f32 {
-    let mut total = 0.0f32;
-    let mut axis = 0u32;
-    while axis < 3 {
-        let i = axis_coordinate(cell, axis, ny, nz);
-        let n = axis_cells(axis, nx, ny, nz);
-        let stride = axis_stride(axis, ny, nz);
-        let own = velocity[(3 * cell + axis) as usize];
-        let mut high = 0.0f32;
-        if i + 1 < n {
-            high = velocity[(3 * (cell + stride) + axis) as usize];
-        }
-        let mut low = 0.0f32;
-        if i > 0 {
-            low = velocity[(3 * (cell - stride) + axis) as usize];
-        }
-        total += axis_flux(own, high, low, i, n, open_faces, axis) * inverse_cell[axis as usize];
-        axis += 1;
+    if comptime!(of_gradient) {
+        gradient_component(cell, axis, source, inverse_cell, open_faces, nx, ny, nz)
+    } else {
+        source[(3 * cell + axis) as usize]
     }
-    total
 }
 
-/// `(D (D^T p))_c` without storing `D^T p`: each gradient component the divergence needs (the
-/// cell's and its two neighbours' along each axis) computed where it is used, as
-/// [`divergence_at`] would read it from `divergence_transpose_kernel`'s output.
+/// `(D u)_c`, summed over the axes of the flux over the cell size; with `of_gradient`,
+/// `(D (D^T p))_c` from the pressure `source` without storing `D^T p` (see
+/// [`velocity_component`]).
 #[cube]
-pub fn divergence_of_gradient_at(
+#[allow(clippy::too_many_arguments)]
+pub fn divergence_at(
     cell: u32,
-    pressure: &[f32],
+    source: &[f32],
     inverse_cell: &[f32],
     open_faces: u32,
     nx: u32,
     ny: u32,
     nz: u32,
+    #[comptime] of_gradient: bool,
 ) -> f32 {
     let mut total = 0.0f32;
     let mut axis = 0u32;
@@ -152,31 +145,43 @@ pub fn divergence_of_gradient_at(
         let i = axis_coordinate(cell, axis, ny, nz);
         let n = axis_cells(axis, nx, ny, nz);
         let stride = axis_stride(axis, ny, nz);
-        let own = gradient_component(cell, axis, pressure, inverse_cell, open_faces, nx, ny, nz);
+        let own = velocity_component(
+            cell,
+            axis,
+            source,
+            inverse_cell,
+            open_faces,
+            nx,
+            ny,
+            nz,
+            of_gradient,
+        );
         let mut high = 0.0f32;
         if i + 1 < n {
-            high = gradient_component(
+            high = velocity_component(
                 cell + stride,
                 axis,
-                pressure,
+                source,
                 inverse_cell,
                 open_faces,
                 nx,
                 ny,
                 nz,
+                of_gradient,
             );
         }
         let mut low = 0.0f32;
         if i > 0 {
-            low = gradient_component(
+            low = velocity_component(
                 cell - stride,
                 axis,
-                pressure,
+                source,
                 inverse_cell,
                 open_faces,
                 nx,
                 ny,
                 nz,
+                of_gradient,
             );
         }
         total += axis_flux(own, high, low, i, n, open_faces, axis) * inverse_cell[axis as usize];
@@ -200,7 +205,8 @@ pub fn divergence_kernel(
     if cell >= nx * ny * nz {
         terminate!();
     }
-    divergence[cell as usize] = divergence_at(cell, velocity, inverse_cell, open_faces, nx, ny, nz);
+    divergence[cell as usize] =
+        divergence_at(cell, velocity, inverse_cell, open_faces, nx, ny, nz, false);
 }
 
 /// Component `axis` of `(D^T p)_c` (`-D^T` is the discrete gradient).
