@@ -19,7 +19,8 @@ static LAUNCHES: AtomicU64 = AtomicU64::new(0);
 pub enum ReadKind {
     /// Tensor values: losses, checks, images, states.
     Values = 0,
-    /// The renderer's tile-list length, which sizes the list's buffer (one per GPU render).
+    /// Tile-list lengths, which size the renderer's list buffers: one per GPU render without a
+    /// given capacity, or one for all the views of a loop whose caller sizes the buffers.
     TileListLength = 1,
     /// The projection's PCG convergence test (every few solver iterations, GPU only).
     SolverConvergence = 2,
@@ -67,9 +68,14 @@ pub fn note_read(kind: ReadKind) {
 }
 
 /// Reads a float tensor's values to the host (one counted read).
-#[allow(clippy::disallowed_methods)] // the one place allowed to read
 pub fn read_floats<const D: usize>(tensor: Tensor<D>) -> Vec<f32> {
-    note_read(ReadKind::Values);
+    read_floats_for(tensor, ReadKind::Values)
+}
+
+/// [`read_floats`], counted as a read of `kind`.
+#[allow(clippy::disallowed_methods)] // the one place allowed to read
+pub fn read_floats_for<const D: usize>(tensor: Tensor<D>, kind: ReadKind) -> Vec<f32> {
+    note_read(kind);
     tensor
         .into_data()
         .try_into_vec_as::<f32>()

@@ -75,7 +75,7 @@ fn check_shapes(gaussians: &GaussianTensors, background: &Tensor<1>) -> Result<(
 
 /// The renderer's input checks that need the values (finiteness of every attribute and the
 /// background, quaternion norms, scale range), computed on the device by one backend op into
-/// [`InputCheck::LEN`] numbers and judged on the host by [`InputCheck::verify`]. A caller that
+/// [`InputCheck::STATS`] numbers and judged on the host by [`InputCheck::judge`]. A caller that
 /// must not wait for the device keeps [`InputCheck::values`] with its other diagnostics and
 /// reads them all at once. (Composing this from ~20 burn tensor ops cost 11 ms per render on an
 /// H100 through wgpu, four times the render itself.)
@@ -83,11 +83,14 @@ fn check_shapes(gaussians: &GaussianTensors, background: &Tensor<1>) -> Result<(
 pub struct InputCheck {
     values: Tensor<1>,
     gaussians: usize,
+    /// The tile-list buffer sizes the views were rendered with, whose needed lengths follow
+    /// the statistics in `values` (see [`InputCheck::with_list_capacities`]).
+    list_capacities: Vec<u32>,
 }
 
 impl InputCheck {
-    /// How many numbers [`InputCheck::values`] holds.
-    pub const LEN: usize = 8;
+    /// How many statistics of the inputs [`InputCheck::values`] starts with.
+    pub const STATS: usize = 8;
 
     /// Shapes checked now; the value checks queued on the device.
     pub fn new(gaussians: &GaussianTensors, background: &Tensor<1>) -> Result<Self, RenderError> {
@@ -101,7 +104,28 @@ impl InputCheck {
         Ok(Self {
             values,
             gaussians: gaussians.len(),
+            list_capacities: Vec::new(),
         })
+    }
+
+    /// Also checks that the views rendered with these tile-list buffer sizes
+    /// ([`RasterOptions::tile_list_capacity`], one per view) had room: `lengths` is what
+    /// [`list_buffer_lengths`] gave for the same Gaussians and views.
+    pub fn with_list_capacities(
+        mut self,
+        lengths: Tensor<1>,
+        capacities: Vec<u32>,
+    ) -> Result<Self, RenderError> {
+        if lengths.dims() != [capacities.len()] {
+            return Err(RenderError::Shape {
+                name: "tile-list lengths",
+                expected: format!("[{}] (one per view with a capacity)", capacities.len()),
+                got: lengths.dims().to_vec(),
+            });
+        }
+        self.values = Tensor::cat(vec![self.values, lengths], 0);
+        self.list_capacities.extend(capacities);
+        Ok(self)
     }
 
     /// How many Gaussians were checked.
@@ -109,20 +133,31 @@ impl InputCheck {
         self.gaussians
     }
 
-    /// The `[LEN]` numbers on the device, for a caller that reads them later.
+    /// How many numbers [`InputCheck::values`] holds.
+    pub fn len(&self) -> usize {
+        Self::STATS + self.list_capacities.len()
+    }
+
+    /// Never empty: the statistics are always there.
+    pub fn is_empty(&self) -> bool {
+        false
+    }
+
+    /// The `[len]` numbers on the device, for a caller that reads them later.
     pub fn values(&self) -> Tensor<1> {
         self.values.clone()
     }
 
     /// Reads the numbers back (one device read) and judges them.
     pub fn verify_now(self) -> Result<(), RenderError> {
-        let gaussians = self.gaussians;
-        Self::verify(&device_traffic::read_floats(self.values), gaussians)
+        self.judge(&device_traffic::read_floats(self.values.clone()))
     }
 
-    /// Judges numbers read from [`InputCheck::values`] of a check on `gaussians` Gaussians: a
-    /// bad parameter is named instead of becoming a NaN image.
-    pub fn verify(stats: &[f32], gaussians: usize) -> Result<(), RenderError> {
+    /// Judges numbers read from [`InputCheck::values`]: a bad parameter is named instead of
+    /// becoming a NaN image, and a tile-list buffer that was too short is reported.
+    pub fn judge(&self, values: &[f32]) -> Result<(), RenderError> {
+        assert_eq!(values.len(), self.len(), "input check layout");
+        let (stats, lengths) = values.split_at(Self::STATS);
         let names = ["background"]
             .into_iter()
             .chain(ATTRIBUTES.iter().map(|attribute| attribute.name));
@@ -131,7 +166,7 @@ impl InputCheck {
                 return Err(RenderError::NonFinite { name });
             }
         }
-        if gaussians > 0 {
+        if self.gaussians > 0 {
             let min_norm_sq = stats[6];
             if min_norm_sq.is_nan() || min_norm_sq <= 1e-12 {
                 return Err(RenderError::ZeroQuaternion { min_norm_sq });
@@ -141,8 +176,43 @@ impl InputCheck {
                 return Err(RenderError::ScaleOutOfRange { max_abs });
             }
         }
+        for (view, (&length, &capacity)) in lengths.iter().zip(&self.list_capacities).enumerate() {
+            if length > capacity as f32 {
+                return Err(RenderError::TileListOverflow {
+                    view,
+                    length,
+                    capacity,
+                });
+            }
+        }
         Ok(())
     }
+}
+
+/// How many tile-list entries renders of `gaussians` seen by each of `cameras` need (see
+/// [`RasterOptions::tile_list_capacity`]): `[cameras.len()]` on the device, nothing read back.
+/// 0 on the CPU backends, which have no list buffer to size.
+pub fn list_buffer_lengths(
+    gaussians: &GaussianTensors,
+    cameras: &[Camera],
+    options: &RasterOptions,
+) -> Tensor<1> {
+    if cameras.is_empty() {
+        return Tensor::<1>::zeros([0], &gaussians.means.device());
+    }
+    let lengths = cameras
+        .iter()
+        .map(|camera| {
+            Tensor::<1>::from_dispatch(
+                <Dispatch as VolumeRenderBackend>::volume_render_list_buffer_length(
+                    gaussians.clone().into_dispatch(),
+                    *camera,
+                    *options,
+                ),
+            )
+        })
+        .collect();
+    Tensor::cat(lengths, 0)
 }
 
 /// Renders `gaussians` seen by `camera` over `background` (`[3]`, linear RGB).

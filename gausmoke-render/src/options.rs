@@ -71,6 +71,12 @@ pub struct RasterOptions {
     pub float_atomics: FloatAtomics,
     /// GPU kernels only.
     pub gradient_sums: GradientSums,
+    /// GPU kernels only: entries of the tile-list buffer. `None` reads the exact length back
+    /// from the device (one read per render, which makes the host wait for the GPU); a caller
+    /// that sizes the buffer itself (from [`crate::list_buffer_lengths`], with headroom) reads
+    /// nothing, and checks afterwards that it was long enough ([`crate::InputCheck`]): a
+    /// buffer too short drops the splats of the last tiles instead of overrunning.
+    pub tile_list_capacity: Option<u32>,
 }
 
 impl Default for RasterOptions {
@@ -84,6 +90,7 @@ impl Default for RasterOptions {
             alpha_model: AlphaModel::BeerLambert,
             float_atomics: FloatAtomics::Native,
             gradient_sums: GradientSums::Planes,
+            tile_list_capacity: None,
         }
     }
 }
@@ -135,6 +142,14 @@ pub enum RenderError {
         "`log_scales` holds a value of magnitude {max_abs}, beyond the supported {LOG_SCALE_LIMIT} (scales from e^-{LOG_SCALE_LIMIT} to e^{LOG_SCALE_LIMIT} world units)"
     )]
     ScaleOutOfRange { max_abs: f32 },
+    #[error(
+        "the tile-list buffer of view {view} held {capacity} entries but the render needed {length}: its last tiles lost splats (the buffer is sized from a length measured earlier, with headroom; the Gaussians grew or moved more than that allows)"
+    )]
+    TileListOverflow {
+        view: usize,
+        length: f32,
+        capacity: u32,
+    },
     #[error("render option `{name}` = {value} is invalid: expected {expected}")]
     BadOption {
         name: &'static str,

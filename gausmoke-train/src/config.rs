@@ -128,6 +128,7 @@ pub const RESUMABLE_KEYS: &[&str] = &[
     "tensorboard",
     "sync_phase_timings",
     "gradient_sums",
+    "tile_list_headroom",
 ];
 
 /// Largest `time_frequencies` accepted (see [`TrainConfig::validate`]).
@@ -244,6 +245,11 @@ pub struct TrainConfig {
     /// or `"per-pixel"` (see [`GradientSums`]). The forms differ only in the order of float
     /// additions, so a run may be resumed with another.
     pub gradient_sums: GradientSums,
+    /// GPU backends: each optimisation loop measures its views' tile-list lengths once, at its
+    /// first step, and gives every later render this many times that room, so no render reads
+    /// its length back. A step that needs more stops the run with an error naming it (raise
+    /// this and resume). The CPU backends have no list buffer and ignore it.
+    pub tile_list_headroom: f32,
 }
 
 impl Default for TrainConfig {
@@ -293,6 +299,7 @@ impl Default for TrainConfig {
             tensorboard: false,
             sync_phase_timings: false,
             gradient_sums: GradientSums::Planes,
+            tile_list_headroom: 1.5,
         }
     }
 }
@@ -475,6 +482,12 @@ impl TrainConfig {
             return bad(format!(
                 "respawn_threshold must be >= 0, got {}",
                 self.respawn_threshold
+            ));
+        }
+        if !(self.tile_list_headroom.is_finite() && self.tile_list_headroom >= 1.0) {
+            return bad(format!(
+                "tile_list_headroom must be >= 1, got {}",
+                self.tile_list_headroom
             ));
         }
         if self.lr_decay_every == 0

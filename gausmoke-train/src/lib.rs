@@ -80,6 +80,17 @@ pub enum TrainError {
         phase: &'static str,
         iteration: usize,
     },
+    #[error(
+        "frame {frame}, {phase} iteration {iteration}: {source}; training stopped, the last \
+         complete frame's checkpoint is kept (continue it with --resume and more room, e.g. \
+         --set tile_list_headroom=3)"
+    )]
+    TileListOverflow {
+        source: gausmoke_render::RenderError,
+        frame: usize,
+        phase: &'static str,
+        iteration: usize,
+    },
     #[error("checkpoint {path}: {reason}")]
     Checkpoint { path: PathBuf, reason: String },
     #[error("{path}: {reason}")]

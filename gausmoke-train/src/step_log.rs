@@ -9,8 +9,8 @@
 //! reported, as if it had been checked when it ran.
 
 use burn::tensor::Tensor;
-use gausmoke_render::InputCheck;
 use gausmoke_render::device_traffic::read_floats;
+use gausmoke_render::{InputCheck, RenderError};
 
 use crate::TrainError;
 use crate::state::{LossRow, Phase};
@@ -32,15 +32,15 @@ struct Pending {
     iteration: usize,
     present: [bool; 3],
     diagnostic: Option<&'static str>,
-    /// Gaussian counts of the step's input checks, in order.
-    checks: Vec<usize>,
+    /// The step's input checks, in order (their values are in the queue).
+    checks: Vec<InputCheck>,
 }
 
 impl Pending {
     fn len(&self) -> usize {
         2 + self.present.iter().filter(|&&p| p).count()
             + usize::from(self.diagnostic.is_some())
-            + self.checks.len() * InputCheck::LEN
+            + self.checks.iter().map(InputCheck::len).sum::<usize>()
     }
 }
 
@@ -96,16 +96,15 @@ impl StepLog {
             self.values.push(value.detach());
             name
         });
-        let counts = checks.iter().map(InputCheck::gaussians).collect();
         self.values
-            .extend(checks.into_iter().map(|c| c.values().detach()));
+            .extend(checks.iter().map(|c| c.values().detach()));
         self.pending.push(Pending {
             frame,
             phase,
             iteration,
             present,
             diagnostic,
-            checks: counts,
+            checks,
         });
     }
 
@@ -148,8 +147,18 @@ impl StepLog {
                 }
             }
             let diagnostic = step.diagnostic.map(|name| (name, take(1)[0]));
-            for &gaussians in &step.checks {
-                InputCheck::verify(take(InputCheck::LEN), gaussians)?;
+            for check in &step.checks {
+                check
+                    .judge(take(check.len()))
+                    .map_err(|error| match error {
+                        RenderError::TileListOverflow { .. } => TrainError::TileListOverflow {
+                            source: error,
+                            frame: step.frame,
+                            phase: step.phase.name(),
+                            iteration: step.iteration,
+                        },
+                        other => other.into(),
+                    })?;
             }
             let row = LossRow {
                 frame: step.frame,
@@ -294,5 +303,54 @@ mod tests {
             log.flush(None),
             Err(TrainError::Render(RenderError::NonFinite { name: "means" }))
         ));
+    }
+
+    #[test]
+    fn a_tile_list_longer_than_its_buffer_names_the_step_and_the_view() {
+        let device = device_by_name("flex").unwrap();
+        let lengths = |values: Vec<f32>| {
+            let n = values.len();
+            Tensor::<1>::from_data(TensorData::new(values, [n]), &device)
+        };
+        let mut log = StepLog::new(10);
+        let fits = check(0.1, &device)
+            .with_list_capacities(lengths(vec![4096.0, 5000.0]), vec![4096, 6000])
+            .unwrap();
+        assert_eq!(fits.len(), InputCheck::STATS + 2);
+        log.push(
+            (3, Phase::Advect, 0),
+            losses(1.0, &device),
+            None,
+            vec![fits],
+        );
+        let overflows = check(0.1, &device)
+            .with_list_capacities(lengths(vec![100.0, 6001.0]), vec![4096, 6000])
+            .unwrap();
+        log.push(
+            (3, Phase::Advect, 1),
+            losses(1.0, &device),
+            None,
+            vec![overflows],
+        );
+        match log.flush(None) {
+            Err(TrainError::TileListOverflow {
+                source:
+                    RenderError::TileListOverflow {
+                        view: 1,
+                        length,
+                        capacity: 6000,
+                    },
+                frame: 3,
+                iteration: 1,
+                ..
+            }) => assert_eq!(length, 6001.0),
+            other => panic!("{:?}", other.map(|f| f.rows)),
+        }
+        // One capacity per length.
+        assert!(
+            check(0.1, &device)
+                .with_list_capacities(lengths(vec![1.0]), vec![1, 2])
+                .is_err()
+        );
     }
 }

@@ -30,9 +30,11 @@ use gausmoke_model::{
     density_and_gradient_grid, density_grid, divergence_loss_of, penalty_projection,
     project_direct, project_velocity, refine_loss,
 };
-use gausmoke_render::device_traffic::{Traffic, read_floats};
+use gausmoke_render::cpu::TILE_SIZE;
+use gausmoke_render::device_traffic::{ReadKind, Traffic, read_floats, read_floats_for};
 use gausmoke_render::{
-    GaussianTensors, Gaussians, InputCheck, RasterOptions, render_volume, render_volume_deferred,
+    GaussianTensors, Gaussians, InputCheck, RasterOptions, list_buffer_lengths, render_volume,
+    render_volume_deferred,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -84,6 +86,47 @@ fn read_log(
     }
     losses.extend(flushed.rows);
     Ok(flushed.tail)
+}
+
+/// Fewest entries a tile-list buffer is given, so that a view with almost nothing in it at
+/// the loop's first step still has room when the smoke moves in.
+const MIN_TILE_LIST_CAPACITY: u32 = 4096;
+
+/// The tile-list buffer sizes of one loop's renders of one set of views (one per view), so
+/// that no GPU render reads its list length back: measured at the loop's first step (one read
+/// for all the views) and given `headroom`; every step then checks on the device, with its
+/// other checks, that its renders had room (see [`InputCheck::with_list_capacities`]).
+struct ListCapacities {
+    headroom: f32,
+    views: Option<Vec<u32>>,
+}
+
+impl ListCapacities {
+    fn new(headroom: f32) -> Self {
+        Self {
+            headroom,
+            views: None,
+        }
+    }
+
+    /// The capacities, measured from `lengths` (`[views]`, on the device) on the first call;
+    /// none above `most`, the length if every Gaussian touched every tile.
+    fn for_lengths(&mut self, lengths: &Tensor<1>, most: &[u64]) -> Vec<u32> {
+        let headroom = self.headroom as f64;
+        self.views
+            .get_or_insert_with(|| {
+                read_floats_for(lengths.clone(), ReadKind::TileListLength)
+                    .into_iter()
+                    .zip(most)
+                    .map(|(length, &most)| {
+                        let room = (length as f64 * headroom).ceil() as u64;
+                        let room = room.max(u64::from(MIN_TILE_LIST_CAPACITY)).min(most);
+                        u32::try_from(room).unwrap_or(u32::MAX)
+                    })
+                    .collect()
+            })
+            .clone()
+    }
 }
 
 /// Runs Algorithm 1 on a [`Sequence`].
@@ -195,22 +238,40 @@ impl Trainer {
         }
     }
 
-    /// Mean L1 over `observations` of the Gaussians' renders.
+    /// Mean L1 over `observations` of the Gaussians' renders, their tile-list buffers sized by
+    /// `lists`.
     fn render_loss(
         &self,
         gaussians: &GaussianTensors,
         observations: &[Observation],
         targets: &[Tensor<3>],
+        lists: &mut ListCapacities,
     ) -> Result<(Tensor<1>, InputCheck), TrainError> {
-        let mut total: Option<Tensor<1>> = None;
+        let cameras: Vec<_> = observations.iter().map(|o| o.camera).collect();
+        let lengths = list_buffer_lengths(gaussians, &cameras, &self.raster);
+        let most: Vec<u64> = cameras
+            .iter()
+            .map(|c| {
+                let tiles =
+                    c.width().div_ceil(TILE_SIZE as u32) * c.height().div_ceil(TILE_SIZE as u32);
+                (gaussians.len() as u64 * u64::from(tiles)).max(1)
+            })
+            .collect();
+        let capacities = lists.for_lengths(&lengths, &most);
         // Every view renders the same Gaussians: one check covers them.
-        let check = InputCheck::new(gaussians, &self.background)?;
-        for (observation, target) in observations.iter().zip(targets) {
+        let check = InputCheck::new(gaussians, &self.background)?
+            .with_list_capacities(lengths, capacities.clone())?;
+        let mut total: Option<Tensor<1>> = None;
+        for ((observation, target), capacity) in observations.iter().zip(targets).zip(capacities) {
+            let options = RasterOptions {
+                tile_list_capacity: Some(capacity),
+                ..self.raster
+            };
             let out = render_volume_deferred(
                 gaussians,
                 &observation.camera,
                 &self.background,
-                &self.raster,
+                &options,
                 &check,
             )?;
             let l1 = (out.rgb - target.clone()).abs().mean();
@@ -285,10 +346,15 @@ impl Trainer {
         let bar = self.progress(0, iterations);
         let mut losses = Vec::with_capacity(iterations);
         let mut log = StepLog::new(self.config.log_every);
+        let mut lists = ListCapacities::new(self.config.tile_list_headroom);
         let start = Traffic::now();
         for iteration in 0..iterations {
-            let (loss, check) =
-                self.render_loss(&self.state.gaussians.tensors(), &observations, &targets)?;
+            let (loss, check) = self.render_loss(
+                &self.state.gaussians.tensors(),
+                &observations,
+                &targets,
+                &mut lists,
+            )?;
             log.push(
                 (0, Phase::Init, iteration),
                 StepLosses {
@@ -364,6 +430,8 @@ impl Trainer {
         let mut advected = previous_means.clone();
         let mut clamped = 0;
         let mut log = StepLog::new(config.log_every);
+        let mut lists = ListCapacities::new(config.tile_list_headroom);
+        let mut ahead_lists = ListCapacities::new(config.tile_list_headroom);
         let start = Traffic::now();
         for iteration in 0..config.advect_iterations {
             let previous = self.state.gaussians.tensors_at(previous_means.clone());
@@ -394,7 +462,7 @@ impl Trainer {
                 interpolation,
             );
             let next = self.state.gaussians.tensors_at(moved.positions.clone());
-            let (render, check) = self.render_loss(&next, &observations, &targets)?;
+            let (render, check) = self.render_loss(&next, &observations, &targets, &mut lists)?;
             let mut checks = vec![check];
             let mut loss = render.clone();
             if let Some((views, ahead_targets)) = &ahead {
@@ -428,7 +496,8 @@ impl Trainer {
                     raw_densities: live.raw_densities.detach(),
                     colors: live.colors.detach(),
                 };
-                let (lookahead, check) = self.render_loss(&carried, views, ahead_targets)?;
+                let (lookahead, check) =
+                    self.render_loss(&carried, views, ahead_targets, &mut ahead_lists)?;
                 checks.push(check);
                 loss = loss + lookahead * config.lambda_lookahead;
             }
@@ -523,10 +592,12 @@ impl Trainer {
         // the box (or was never fitted), and the refinement fits the recycled ones.
         let respawned = self.respawn(t)?.indices.len();
         let anchor = self.state.gaussians.means.val().detach();
+        let mut lists = ListCapacities::new(config.tile_list_headroom);
         let start = Traffic::now();
         for iteration in 0..refine_iterations {
             let gaussians = self.state.gaussians.tensors();
-            let (render, check) = self.render_loss(&gaussians, &observations, &targets)?;
+            let (render, check) =
+                self.render_loss(&gaussians, &observations, &targets, &mut lists)?;
             let refine = refine_loss(&gaussians.means, &anchor);
             let loss = render.clone() + refine.clone() * config.lambda_refine;
             log.push(

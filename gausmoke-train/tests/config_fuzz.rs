@@ -43,6 +43,7 @@ const KEYS: &[(&str, bool)] = &[
     ("seed", true),
     ("output_every", true),
     ("log_every", true),
+    ("tile_list_headroom", true),
 ];
 
 const VALUES: &[&str] = &[

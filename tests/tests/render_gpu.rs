@@ -21,7 +21,8 @@ use gausmoke_core::SplitMix64;
 use gausmoke_render::backends::{cpu_devices, gpu_devices};
 use gausmoke_render::kernels::backward::rasterize::resolve;
 use gausmoke_render::{
-    Camera, FloatAtomics, Gaussians, GradientSums, Intrinsics, RasterOptions, render_volume,
+    Camera, FloatAtomics, Gaussians, GradientSums, InputCheck, Intrinsics, RasterOptions,
+    RenderError, list_buffer_lengths, render_volume, render_volume_deferred,
 };
 use gausmoke_tests::{
     Golden, RenderTolerance, assert_close, check_render_golden, check_render_golden_with, to_vec,
@@ -201,6 +202,72 @@ fn render_with_grads(
             to_vec(g.colors.grad(&grads).unwrap()),
             to_vec(background.grad(&grads).unwrap()),
         ],
+    }
+}
+
+#[test]
+fn renders_sized_by_the_caller_read_nothing_back_and_a_short_buffer_is_reported() {
+    let scene = random_scene(3000, 11);
+    let cameras = [camera(200, 150), camera(96, 64)];
+    let background_values = TensorData::new(vec![0.1f32, 0.2, 0.3], [3]);
+    for (_, device) in cpu_devices() {
+        let g = Gaussians::from_array(scene.clone())
+            .to_tensors(&device)
+            .unwrap();
+        let lengths = to_vec(list_buffer_lengths(&g, &cameras, &RasterOptions::default()));
+        assert_eq!(lengths, [0.0, 0.0], "the CPU path has no list buffer");
+    }
+    for (backend, device) in gpu() {
+        let g = Gaussians::from_array(scene.clone())
+            .to_tensors(&device)
+            .unwrap();
+        let background = Tensor::<1>::from_data(background_values.clone(), &device);
+        let lengths = list_buffer_lengths(&g, &cameras, &RasterOptions::default());
+        let measured = to_vec(lengths.clone());
+        assert!(
+            measured.iter().all(|&l| l > 1000.0),
+            "{backend}: {measured:?}"
+        );
+        let camera = &cameras[0];
+        let exact = to_vec(
+            render_volume(&g, camera, &background, &RasterOptions::default())
+                .unwrap()
+                .rgb,
+        );
+        let with_capacity = |capacity: u32| RasterOptions {
+            tile_list_capacity: Some(capacity),
+            ..RasterOptions::default()
+        };
+
+        // Room for the measured length: the same image, and a check that passes.
+        let fitted = measured[0] as u32;
+        let check = InputCheck::new(&g, &background)
+            .unwrap()
+            .with_list_capacities(lengths.clone(), vec![fitted, measured[1] as u32])
+            .unwrap();
+        let out = render_volume_deferred(&g, camera, &background, &with_capacity(fitted), &check)
+            .unwrap();
+        assert_eq!(to_vec(out.rgb), exact, "{backend}: exact capacity");
+        check.verify_now().unwrap();
+
+        // Half the room: the last tiles lose splats, and the check says which view and by
+        // how much.
+        let half = fitted / 2;
+        let check = InputCheck::new(&g, &background)
+            .unwrap()
+            .with_list_capacities(lengths.clone(), vec![half, measured[1] as u32])
+            .unwrap();
+        let out =
+            render_volume_deferred(&g, camera, &background, &with_capacity(half), &check).unwrap();
+        assert_ne!(to_vec(out.rgb), exact, "{backend}: half the capacity");
+        assert_eq!(
+            check.verify_now(),
+            Err(RenderError::TileListOverflow {
+                view: 0,
+                length: measured[0],
+                capacity: half,
+            })
+        );
     }
 }
 

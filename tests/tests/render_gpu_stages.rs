@@ -21,7 +21,7 @@ use gausmoke_core::glam::{Mat4, Vec3};
 use gausmoke_render::backends::gpu_devices;
 use gausmoke_render::cpu::{TILE_SIZE, ViewFrame, project_and_bin};
 use gausmoke_render::kernels::splat::{SPLAT_FLOATS, view_params};
-use gausmoke_render::kernels::{bin, project, view_backward};
+use gausmoke_render::kernels::{bin, list_buffer_length, project, view_backward};
 use gausmoke_render::math::{ViewSplat, dot3, view_vjp};
 use gausmoke_render::{Camera, Gaussian, Gaussians, HostGaussians, Intrinsics, RasterOptions};
 use gausmoke_tests::assert_close;
@@ -178,7 +178,7 @@ fn tile_lists_hold_every_gaussian_the_cpu_bins_in_depth_order() {
     let camera = camera();
     let gpu = on_device(&gaussians, &camera);
     let projection = project::project(&gpu.gaussians, &gpu.view, camera.width(), camera.height());
-    let tiles = bin(&projection, n, camera.width(), camera.height());
+    let tiles = bin(&projection, n, camera.width(), camera.height(), None);
     let num_tiles = (tiles.tiles_x * tiles.tiles_y) as usize;
     let offsets = read_u32(&tiles.offsets, num_tiles + 1);
     let list = read_u32(&tiles.list, offsets[num_tiles] as usize);
@@ -222,6 +222,60 @@ fn tile_lists_hold_every_gaussian_the_cpu_bins_in_depth_order() {
     assert!(
         binned > 10 * num_tiles,
         "the scene must cover the image ({binned} entries)"
+    );
+}
+
+#[test]
+fn a_list_buffer_of_given_capacity_is_filled_as_far_as_it_goes_and_never_past_its_end() {
+    let n = 2000;
+    let gaussians = random_gaussians(n, 6);
+    let camera = camera();
+    let gpu = on_device(&gaussians, &camera);
+    let (width, height) = (camera.width(), camera.height());
+    let projection = project::project(&gpu.gaussians, &gpu.view, width, height);
+    let exact = bin(&projection, n, width, height, None);
+    let num_tiles = (exact.tiles_x * exact.tiles_y) as usize;
+    let offsets = read_u32(&exact.offsets, num_tiles + 2);
+    let total = offsets[num_tiles];
+    assert_eq!(offsets[num_tiles + 1], total, "unclamped total");
+    let list = read_u32(&exact.list, total as usize);
+
+    // The length the caller sizes buffers from is the same total, as a float on the device.
+    let length = list_buffer_length(gpu.gaussians.clone(), &camera, &RasterOptions::default());
+    assert_eq!(read_f32(&length, 1), [total as f32]);
+
+    // Room for exactly the total: the same lists.
+    let fitted = bin(&projection, n, width, height, Some(total));
+    assert_eq!(read_u32(&fitted.offsets, num_tiles + 2), offsets);
+    assert_eq!(read_u32(&fitted.list, total as usize), list);
+
+    // Room for half: offsets clamped to it, the true total still told, the tiles that fit
+    // complete, the one that straddles the end holding only its own Gaussians, and the tiles
+    // past it empty (so the kernels never index beyond the buffer).
+    let half = total / 2;
+    let clamped = bin(&projection, n, width, height, Some(half));
+    let clamped_offsets = read_u32(&clamped.offsets, num_tiles + 2);
+    assert_eq!(clamped_offsets[num_tiles], half);
+    assert_eq!(clamped_offsets[num_tiles + 1], total);
+    let clamped_list = read_u32(&clamped.list, half as usize);
+    let mut complete = 0;
+    for t in 0..num_tiles {
+        assert_eq!(clamped_offsets[t], offsets[t].min(half), "tile {t}'s start");
+        let exact_entries = &list[offsets[t] as usize..offsets[t + 1] as usize];
+        let kept = &clamped_list[clamped_offsets[t] as usize..clamped_offsets[t + 1] as usize];
+        if offsets[t + 1] <= half {
+            assert_eq!(kept, exact_entries, "tile {t}");
+            complete += 1;
+        } else {
+            assert!(
+                kept.iter().all(|i| exact_entries.contains(i)),
+                "tile {t} holds a Gaussian that is not its own"
+            );
+        }
+    }
+    assert!(
+        complete > 0 && complete < num_tiles,
+        "{complete} complete tiles"
     );
 }
 

@@ -4,8 +4,10 @@
 //! Forward, all on the device:
 //! 1. [`project`]: one unit per Gaussian; its splat in the camera's whitened frame, centre
 //!    depth, screen-tile rectangle, and an atomic count per tile;
-//! 2. [`tile_offsets`]: exclusive scan of the counts (one read-back of the total, to size
-//!    the tile lists);
+//! 2. [`tile_offsets`]: exclusive scan of the counts into list offsets; the list buffer is
+//!    sized by [`RasterOptions::tile_list_capacity`] when the caller gives one (no read-back;
+//!    the offsets are clamped to it and the true total kept for the caller to check, see
+//!    [`list_buffer_length`]), else by reading the total back;
 //! 3. [`tile_fill`]: scatter of Gaussian indices into the tile lists;
 //! 4. [`tile_sort`]: per-tile bitonic sort by (centre depth, index);
 //! 5. [`rasterize`]: one 16x16 cube per tile, batches of splats in shared memory, early exit
@@ -57,30 +59,31 @@ pub struct TileLists {
     pub tiles_y: u32,
 }
 
-/// Stages 2-4: the per-tile lists of `projection`.
-pub fn bin(projection: &Projection, num_gaussians: usize, width: u32, height: u32) -> TileLists {
+/// Stages 2-4: the per-tile lists of `projection`, in a buffer of `capacity` entries (`None`:
+/// the exact total, read back from the device).
+pub fn bin(
+    projection: &Projection,
+    num_gaussians: usize,
+    width: u32,
+    height: u32,
+    capacity: Option<u32>,
+) -> TileLists {
     let alloc = Allocator::like(&projection.splats);
     let tiles_x = width.div_ceil(TILE_EDGE);
     let tiles_y = height.div_ceil(TILE_EDGE);
     let num_tiles = (tiles_x * tiles_y) as usize;
-    let offsets = alloc.empty(num_tiles + 1, DType::U32);
-    let total = {
-        let _phase = phase!("tile offsets");
-        tile_offsets::tile_offsets_kernel::launch(
-            &alloc.client,
-            CubeCount::Static(1, 1, 1),
-            CubeDim::new_1d(TILE_THREADS as u32),
-            buffer(&projection.counts),
-            buffer(&offsets),
-            num_tiles as u32,
-        );
-        // The one read-back of the forward pass: the list length sizes its buffer.
-        crate::device_traffic::note_read(crate::device_traffic::ReadKind::TileListLength);
-        let bytes = alloc
-            .client
-            .read_one(offsets.handle.clone())
-            .expect("reading the tile-list length back from the GPU failed (device lost?)");
-        u32::from_bytes(&bytes)[num_tiles] as usize
+    let offsets = scan_counts(projection, num_tiles, capacity.unwrap_or(u32::MAX));
+    let total = match capacity {
+        Some(capacity) => capacity as usize,
+        None => {
+            let _phase = phase!("tile offsets");
+            crate::device_traffic::note_read(crate::device_traffic::ReadKind::TileListLength);
+            let bytes = alloc
+                .client
+                .read_one(offsets.handle.clone())
+                .expect("reading the tile-list length back from the GPU failed (device lost?)");
+            u32::from_bytes(&bytes)[num_tiles] as usize
+        }
     };
     let list = alloc.empty(total, DType::U32);
     if num_gaussians > 0 && total > 0 {
@@ -112,6 +115,55 @@ pub fn bin(projection: &Projection, num_gaussians: usize, width: u32, height: u3
         tiles_x,
         tiles_y,
     }
+}
+
+/// Stage 2: `[num_tiles + 2]` offsets, clamped to `capacity`, the last the unclamped total
+/// (see [`tile_offsets::tile_offsets_kernel`]).
+fn scan_counts(projection: &Projection, num_tiles: usize, capacity: u32) -> CubeTensor {
+    let alloc = Allocator::like(&projection.splats);
+    let offsets = alloc.empty(num_tiles + 2, DType::U32);
+    let _phase = phase!("tile offsets");
+    tile_offsets::tile_offsets_kernel::launch(
+        &alloc.client,
+        CubeCount::Static(1, 1, 1),
+        CubeDim::new_1d(TILE_THREADS as u32),
+        buffer(&projection.counts),
+        buffer(&offsets),
+        num_tiles as u32,
+        capacity,
+    );
+    offsets
+}
+
+/// How many entries the tile-list buffer of a forward render of `gaussians` seen by `camera`
+/// needs: `[1]` f32 on the device (exact below 2^24), from the same projection and scan as
+/// [`forward`], so a caller can size [`RasterOptions::tile_list_capacity`] from it and check
+/// later, with its other diagnostics, that a render's buffer was long enough.
+pub fn list_buffer_length(
+    gaussians: Gaussians<CubeTensor>,
+    camera: &Camera,
+    options: &RasterOptions,
+) -> CubeTensor {
+    let gaussians = buffers::contiguous_gaussians(gaussians);
+    let alloc = Allocator::like(&gaussians.means);
+    let (width, height) = (camera.width(), camera.height());
+    let view = alloc.f32s(&view_params(camera, options));
+    let projection = {
+        let _phase = phase!("project");
+        project::project(&gaussians, &view, width, height)
+    };
+    let num_tiles = (width.div_ceil(TILE_EDGE) * height.div_ceil(TILE_EDGE)) as usize;
+    let offsets = scan_counts(&projection, num_tiles, u32::MAX);
+    let length = alloc.empty(1, DType::F32);
+    tile_offsets::list_length_kernel::launch(
+        &alloc.client,
+        CubeCount::Static(1, 1, 1),
+        CubeDim::new_1d(1),
+        buffer(&offsets),
+        buffer(&length),
+        num_tiles as u32,
+    );
+    length
 }
 
 /// What the forward pass keeps for the backward pass.
@@ -150,7 +202,7 @@ pub fn forward(
         let _phase = phase!("project");
         project::project(&gaussians, &view, width, height)
     };
-    let tiles = bin(&projection, n, width, height);
+    let tiles = bin(&projection, n, width, height, options.tile_list_capacity);
     let image = alloc.empty_shaped(
         vec![height as usize, width as usize, IMAGE_CHANNELS],
         DType::F32,

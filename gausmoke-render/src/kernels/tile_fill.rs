@@ -1,5 +1,7 @@
 //! Stage 3: every visible Gaussian writes its index into the list of each tile it touches
-//! (in arbitrary order within a tile; [`super::tile_sort`] makes it deterministic).
+//! (in arbitrary order within a tile; [`super::tile_sort`] makes it deterministic). A tile
+//! whose range was clamped to the buffer's capacity ([`super::tile_offsets`]) keeps only what
+//! fits, so an undersized buffer is never written past its end.
 
 // `div_ceil` is not available inside cubecl kernels; the manual form is what they compile.
 #![allow(clippy::manual_div_ceil)]
@@ -28,8 +30,10 @@ pub fn fill_tiles_kernel(
         let mut tx = rect.x0;
         while tx < rect.x1 {
             let tile = (ty * tiles_x + tx) as usize;
-            let slot = cursors[tile].fetch_add(1u32);
-            list[(offsets[tile] + slot) as usize] = i as u32;
+            let entry = offsets[tile] + cursors[tile].fetch_add(1u32);
+            if entry < offsets[tile + 1] {
+                list[entry as usize] = i as u32;
+            }
             tx += 1;
         }
         ty += 1;

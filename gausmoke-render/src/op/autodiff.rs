@@ -97,4 +97,17 @@ impl<B: RenderPasses, C: CheckpointStrategy> VolumeRenderBackend for Autodiff<B,
             background.into_primitive(),
         ))
     }
+
+    /// Not differentiable: a count.
+    fn volume_render_list_buffer_length(
+        gaussians: GaussianPrimitives<Self>,
+        camera: Camera,
+        options: RasterOptions,
+    ) -> FloatTensor<Self> {
+        <Self as AutodiffBackend>::from_inner(B::list_buffer_length(
+            gaussians.map(|_, t| t.into_primitive()),
+            camera,
+            options,
+        ))
+    }
 }

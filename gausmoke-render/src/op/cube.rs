@@ -40,4 +40,12 @@ impl RenderPasses for CubeBackend {
     ) -> FloatTensor<Self> {
         kernels::validate::input_stats(gaussians, background)
     }
+
+    fn list_buffer_length(
+        gaussians: GaussianPrimitives<Self>,
+        camera: Camera,
+        options: RasterOptions,
+    ) -> FloatTensor<Self> {
+        kernels::list_buffer_length(gaussians, &camera, &options)
+    }
 }

@@ -90,6 +90,14 @@ macro_rules! cpu_render_passes {
                 let stats = input_stats(&gaussians, &to_vec::<Self>(background));
                 from_vec::<Self>(stats.to_vec(), vec![8], &device)
             }
+
+            fn list_buffer_length(
+                gaussians: GaussianPrimitives<Self>,
+                _camera: Camera,
+                _options: RasterOptions,
+            ) -> FloatTensor<Self> {
+                from_vec::<Self>(vec![0.0], vec![1], &gaussians.means.device())
+            }
         }
     };
 }

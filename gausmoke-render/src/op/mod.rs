@@ -50,6 +50,15 @@ pub trait VolumeRenderBackend: Backend {
         #[extension_type] gaussians: GaussianPrimitives<Self>,
         background: FloatTensor<Self>,
     ) -> FloatTensor<Self>;
+
+    /// `[1]`: the entries of the tile-list buffer that [`Self::volume_render`] of the same
+    /// arguments allocates when `options.tile_list_capacity` is `None` (exact below 2^24). The
+    /// CPU backends build each tile's list as they render it, with no buffer to size: 0.
+    fn volume_render_list_buffer_length(
+        #[extension_type] gaussians: GaussianPrimitives<Self>,
+        camera: Camera,
+        options: RasterOptions,
+    ) -> FloatTensor<Self>;
 }
 
 /// A forward render and what the backward pass of the same backend needs.
@@ -87,6 +96,12 @@ pub trait RenderPasses: Backend {
         gaussians: GaussianPrimitives<Self>,
         background: FloatTensor<Self>,
     ) -> FloatTensor<Self>;
+
+    fn list_buffer_length(
+        gaussians: GaussianPrimitives<Self>,
+        camera: Camera,
+        options: RasterOptions,
+    ) -> FloatTensor<Self>;
 }
 
 /// The public op on a backend that implements the passes: the forward image, nothing saved.
@@ -107,6 +122,14 @@ macro_rules! render_op_from_passes {
                 background: FloatTensor<Self>,
             ) -> FloatTensor<Self> {
                 <Self as RenderPasses>::input_stats(gaussians, background)
+            }
+
+            fn volume_render_list_buffer_length(
+                gaussians: GaussianPrimitives<Self>,
+                camera: Camera,
+                options: RasterOptions,
+            ) -> FloatTensor<Self> {
+                <Self as RenderPasses>::list_buffer_length(gaussians, camera, options)
             }
         }
     };
