@@ -330,6 +330,7 @@ fn open_faces_let_the_flow_through() {
             rel_tolerance: 1e-10,
             max_iterations: 5000,
             open_faces: open,
+            ..Default::default()
         };
         gausmoke_model::projection::host::project(&op, &mut iterative, &options);
         let gap = direct

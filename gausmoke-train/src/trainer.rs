@@ -25,10 +25,10 @@ use burn::tensor::{Device, Gradients, Tensor, TensorData};
 use gausmoke_core::phase;
 use gausmoke_model::penalty::penalty_projection_with_report;
 use gausmoke_model::{
-    GaussianModel, GridSpec, Integrator, Interpolation, PenaltyOptions, ProjectionOptions,
-    ProjectionReport, SplatOptions, UNetConfig, VelocityUNet, advect, advection_loss,
-    density_and_gradient_grid, density_grid, divergence_loss_of, penalty_projection,
-    project_direct, project_velocity, refine_loss,
+    ConvergenceTests, GaussianModel, GridSpec, Integrator, Interpolation, PenaltyOptions,
+    ProjectionOptions, ProjectionReport, SplatOptions, UNetConfig, VelocityUNet, advect,
+    advection_loss, density_and_gradient_grid, density_grid, divergence_loss_of,
+    penalty_projection, project_direct, project_velocity, refine_loss, settle_deferred_solves,
 };
 use gausmoke_render::cpu::TILE_SIZE;
 use gausmoke_render::device_traffic::{ReadKind, Traffic, read_floats, read_floats_for};
@@ -74,6 +74,17 @@ fn read_log(
     tail: Option<Tensor<1>>,
 ) -> Result<Vec<f32>, TrainError> {
     let flushed = log.flush(tail)?;
+    // The steps' deferred projection solves are judged with their losses.
+    let solves = settle_deferred_solves();
+    if solves.unconverged > 0 {
+        tracing::warn!(
+            unconverged = solves.unconverged,
+            of = solves.solves,
+            worst_relative_residual = solves.worst_relative_residual,
+            "projection solves ran out of their iteration budget before converging (the next \
+             budgets are raised from what they needed)"
+        );
+    }
     if let Some(row) = flushed.rows.last() {
         bar.set_message(match row.phase {
             Phase::Init => format!("L1 {:.5}", row.render),
@@ -210,6 +221,8 @@ impl Trainer {
             max_iterations: self.config.projection_max_iterations,
             // Validated with the configuration.
             open_faces: self.config.open_faces().unwrap_or_default(),
+            // Judged when the steps' losses are read (`read_log`): no read per solve.
+            convergence_tests: ConvergenceTests::Deferred,
         }
     }
 

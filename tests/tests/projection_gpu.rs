@@ -229,6 +229,7 @@ fn device_projection_with_open_faces_matches_the_host() {
             rel_tolerance,
             max_iterations,
             open_faces,
+            ..Default::default()
         };
         let expected = host_projection(&input, &grid, &options);
         let actual = device_projection(&input, &grid, &device, options);

@@ -1,10 +1,11 @@
 //! What one training iteration asks of the host on a GPU backend (wgpu; lavapipe in CI): the
 //! device reads the library counts (`gausmoke_render::device_traffic`) are every read there is
 //! (wgpu's own log of buffer maps, which every device-to-host copy goes through, agrees), and
-//! an iteration reads only the projection solver's convergence tests: the tile-list lengths
-//! that size the renderer's buffers are read once per loop, for all its views, and checked on
-//! the device afterwards; the losses and checks of all steps come back in one read per
-//! `log_every` steps.
+//! an iteration reads nothing: the tile-list lengths that size the renderer's buffers are read
+//! once per loop, for all its views, and checked on the device afterwards; the projection's
+//! solves test their convergence later, all together (once a first solve of each kind has
+//! taught them their iteration budgets); the losses and checks of all steps come back in one
+//! read per `log_every` steps.
 //!
 //! Like the other GPU tests this FAILS without a GPU adapter rather than skip.
 
@@ -46,7 +47,7 @@ fn loop_of(traffic: &[LoopTraffic], phase: Phase) -> LoopTraffic {
 }
 
 #[test]
-fn a_training_iteration_reads_back_only_solver_tests() {
+fn a_training_iteration_reads_nothing_back() {
     log::set_logger(&MapCounter).expect("no other logger in this test binary");
     log::set_max_level(log::LevelFilter::Trace);
 
@@ -61,7 +62,7 @@ fn a_training_iteration_reads_back_only_solver_tests() {
     let config = TrainConfig {
         gaussians: 300,
         grid_resolution: 8,
-        frames: Some(2),
+        frames: Some(3),
         init_iterations: 5,
         advect_iterations: advect,
         refine_iterations: refine,
@@ -77,7 +78,7 @@ fn a_training_iteration_reads_back_only_solver_tests() {
         .quiet(true);
 
     let mut loops = Vec::new();
-    for t in 0..2 {
+    for t in 0..3 {
         let (maps_before, before) = (MAPS.load(Ordering::Relaxed), Traffic::now());
         let outcome = trainer.train_frame(t).unwrap();
         let maps = MAPS.load(Ordering::Relaxed) - maps_before;
@@ -107,10 +108,22 @@ fn a_training_iteration_reads_back_only_solver_tests() {
         "one read of the losses: {init:?}"
     );
 
-    let joint = loop_of(&loops, Phase::Advect);
+    // Frame 1's solves start without an iteration history, so the first of each kind tests
+    // as it goes; frame 2's are all deferred and judged in one read with the losses.
+    let joints: Vec<LoopTraffic> = loops
+        .iter()
+        .copied()
+        .filter(|l| l.phase == Phase::Advect)
+        .collect();
+    let [first, joint] = joints[..] else {
+        panic!("two joint loops: {joints:?}")
+    };
+    assert!(first.solver_reads >= 2, "{first:?}");
     assert_eq!(joint.tile_list_reads, 1, "{joint:?}");
-    // A forward and a backward solve per step, each tested at least once.
-    assert!(joint.solver_reads >= 2 * advect as u64, "{joint:?}");
+    assert_eq!(
+        joint.solver_reads, 1,
+        "one settlement of the deferred solves: {joint:?}"
+    );
     assert_eq!(
         joint.reads - joint.tile_list_reads - joint.solver_reads,
         1,

@@ -80,6 +80,23 @@ impl OpenFaces {
     }
 }
 
+/// When the device solver's host learns that a solve converged (the CPU backends solve
+/// directly and ignore it).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ConvergenceTests {
+    /// The host reads the solve's residuals while it runs (about 1.5 reads per solve) and stops
+    /// at convergence or `max_iterations`.
+    #[default]
+    Immediate,
+    /// The solve runs, with no read, as many iterations as the last solves of its kind on the
+    /// same grid needed plus a margin (the iterations after convergence are no-ops on the
+    /// device), and is judged later, with every other such solve, in one read by
+    /// `settle_deferred_solves`, which also sets the next solves' budgets. A solve with no such
+    /// history tests immediately; one that runs out of budget returns that iterate, as at
+    /// `max_iterations`, and is counted by the settlement.
+    Deferred,
+}
+
 /// Solver controls and what it reached.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ProjectionOptions {
@@ -88,6 +105,7 @@ pub struct ProjectionOptions {
     pub max_iterations: usize,
     /// The box faces the flow may cross.
     pub open_faces: OpenFaces,
+    pub convergence_tests: ConvergenceTests,
 }
 
 impl Default for ProjectionOptions {
@@ -96,8 +114,19 @@ impl Default for ProjectionOptions {
             rel_tolerance: 1e-6,
             max_iterations: 2000,
             open_faces: OpenFaces::NONE,
+            convergence_tests: ConvergenceTests::Immediate,
         }
     }
+}
+
+/// What a projection solves for: the velocity (the op's forward pass) or the gradient that
+/// flows back through it (its backward pass). They need different iteration counts, so the
+/// device solver keeps its iteration history per kind.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum SolveKind {
+    #[default]
+    Velocity,
+    Gradient,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -116,6 +145,7 @@ pub struct ProjectionSpec {
     pub resolution: [usize; 3],
     pub cell: [f64; 3],
     pub options: ProjectionOptions,
+    pub kind: SolveKind,
 }
 
 impl ProjectionSpec {
@@ -127,6 +157,7 @@ impl ProjectionSpec {
             resolution,
             cell,
             options,
+            kind: SolveKind::Velocity,
         }
     }
 

@@ -13,7 +13,10 @@ pub mod spectral;
 use burn::tensor::Tensor;
 
 use crate::grid::GridSpec;
-pub use host::{Divergence, OpenFaces, ProjectionOptions, ProjectionReport, ProjectionSpec};
+pub use host::{
+    ConvergenceTests, Divergence, OpenFaces, ProjectionOptions, ProjectionReport, ProjectionSpec,
+    SolveKind,
+};
 pub use op::ProjectionBackend;
 
 /// `Pi(u)`: the divergence-free, wall-tangent part of the velocity grid `[nx, ny, nz, 3]`.
@@ -29,6 +32,31 @@ pub fn project_velocity(
         velocity.into_dispatch(),
         ProjectionSpec::new(grid, options),
     ))
+}
+
+/// What the device solves run with [`ConvergenceTests::Deferred`] reached, judged together.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct DeferredSolves {
+    /// Solves judged.
+    pub solves: usize,
+    /// Of them, those that ran out of their iteration budget before converging.
+    pub unconverged: usize,
+    /// The largest final `|r| / |D u|` among the unconverged ones (0 when none).
+    pub worst_relative_residual: f64,
+}
+
+/// Judges every device solve run with [`ConvergenceTests::Deferred`] since the last call, in
+/// one read of the device, and sets the iteration budgets of the next ones from what they
+/// needed. Nothing to judge (no such solve, or a build without cube backends): no read.
+pub fn settle_deferred_solves() -> DeferredSolves {
+    #[cfg(feature = "cube")]
+    {
+        kernels::settle_deferred_solves()
+    }
+    #[cfg(not(feature = "cube"))]
+    {
+        DeferredSolves::default()
+    }
 }
 
 /// Projects on the host with the direct solve the CPU backends use ([`spectral`]) and returns

@@ -14,7 +14,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, TensorMetadata, backend_extension};
 use burn::tensor::{TensorData, read_sync};
 
-use super::host::ProjectionSpec;
+use super::host::{ProjectionSpec, SolveKind};
 use super::spectral::{self, SpectralSolver};
 
 #[backend_extension(
@@ -63,7 +63,9 @@ impl ProjectionBackend for burn::backend::Flex {
 impl ProjectionBackend for burn_cubecl::CubeBackend {
     fn project_velocity(velocity: FloatTensor<Self>, spec: ProjectionSpec) -> FloatTensor<Self> {
         let (projected, report) = super::kernels::project_velocity(velocity, &spec);
-        tracing::debug!(?report, "velocity projection (device)");
+        if let Some(report) = report {
+            tracing::debug!(?report, "velocity projection (device)");
+        }
         projected
     }
 }
@@ -78,7 +80,11 @@ impl<B: Backend + ProjectionBackend> Backward<B, 1> for ProjectBackward {
         let grad = grads.consume::<B>(&ops.node);
         if let [Some(parent)] = ops.parents {
             let _phase = gausmoke_core::phase!("projection backward");
-            grads.register::<B>(parent.id, B::project_velocity(grad, ops.state));
+            let spec = ProjectionSpec {
+                kind: SolveKind::Gradient,
+                ..ops.state
+            };
+            grads.register::<B>(parent.id, B::project_velocity(grad, spec));
         }
     }
 }

@@ -85,13 +85,18 @@ fn has_converged(
 }
 
 /// CG's `A d = D (D^T d)`, and this cube's partial sum of the curvature `d . A d` in
-/// `partials[CUBE_POS]` (for [`finish_sums_kernel`]).
+/// `partials[CUBE_POS]` (for [`finish_sums_kernel`]). Skipped once the solve has converged
+/// (`|r_k|^2` at `residual_slot`, see [`has_converged`]): no step uses it then.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 pub fn operator_direction_kernel(
     direction: &[f32],
     operator_direction: &mut [f32],
     partials: &mut [f32],
+    scalars: &[f32],
+    residual_slot: u32,
+    tolerance_squared: f32,
+    floor_squared: f32,
     inverse_cell: &[f32],
     open_faces: u32,
     nx: u32,
@@ -100,8 +105,15 @@ pub fn operator_direction_kernel(
 ) {
     let cell = ABSOLUTE_POS as u32;
     let mut curvature = 0.0f32;
-    // Cells past the grid only pad the cube's sum (every unit reaches its barriers).
-    if cell < nx * ny * nz {
+    let converged = has_converged(
+        scalars[residual_slot as usize],
+        scalars,
+        tolerance_squared,
+        floor_squared,
+    );
+    // Cells past the grid only pad the cube's sum (every unit reaches its barriers, so the
+    // converged case skips the work, not the sum).
+    if cell < nx * ny * nz && !converged {
         let value = divergence_at(cell, direction, inverse_cell, open_faces, nx, ny, nz, true);
         operator_direction[cell as usize] = value;
         curvature = direction[cell as usize] * value;
@@ -168,18 +180,29 @@ pub fn step_kernel(
 }
 
 /// New direction of iteration `k`: `d = z + b d`, `b = (r.z)_{k+1} / (r.z)_k` (zero when the
-/// old product is zero).
+/// old product is zero). Skipped once the solve has converged (as the step was).
 #[cube(launch)]
+#[allow(clippy::too_many_arguments)]
 pub fn direction_kernel(
     preconditioned: &[f32],
     direction: &mut [f32],
     scalars: &[f32],
     rz_slot: u32,
     next_rz_slot: u32,
+    residual_slot: u32,
+    tolerance_squared: f32,
+    floor_squared: f32,
     cells: u32,
 ) {
     let cell = ABSOLUTE_POS as u32;
-    if cell >= cells {
+    if cell >= cells
+        || has_converged(
+            scalars[residual_slot as usize],
+            scalars,
+            tolerance_squared,
+            floor_squared,
+        )
+    {
         terminate!();
     }
     let previous = scalars[rz_slot as usize];

@@ -3,10 +3,13 @@
 //! The same Jacobi-preconditioned conjugate gradients on `D D^T p = D u` as the host solver,
 //! with the same discrete operators, but in f32 and without leaving the GPU: the velocity grid
 //! is never read back. Every CG scalar (`r.z`, `d.A d`, `|r|^2`) lives in a device buffer, one
-//! slot per iteration, so the step sizes are computed by the kernels themselves; the host
-//! reads that small buffer to test convergence first after as many iterations as the solve
-//! before the last one on the same grid needed (see `IterationHints`), then every
-//! [`CHECK_EVERY`].
+//! slot per iteration, so the step sizes are computed by the kernels themselves, and once the
+//! solve has converged the kernels take no step (the iterations after it are no-ops). The
+//! host reads that small buffer to test convergence first after as many iterations as the
+//! last solve of the same kind on the same grid needed (see `IterationHints`), then every
+//! [`CHECK_EVERY`]; or, with [`ConvergenceTests::Deferred`], it launches a budget of
+//! iterations from that history without reading, and [`settle_deferred_solves`] judges the
+//! solves later, all in one read.
 //!
 //! Dot products are summed in two fixed-order stages (per-cube shared-memory trees, then one
 //! cube over the partial sums), so a solve is deterministic, unlike an atomic sum.
@@ -24,7 +27,10 @@ use burn_cubecl::tensor::CubeTensor;
 use cubecl::prelude::*;
 use gausmoke_render::kernels::buffers::{buffer, contiguous_f32};
 
-use super::host::{ProjectionOptions, ProjectionReport, ProjectionSpec};
+use super::DeferredSolves;
+use super::host::{
+    ConvergenceTests, ProjectionOptions, ProjectionReport, ProjectionSpec, SolveKind,
+};
 use cg::{
     CELL_BLOCK, direction_kernel, dot_partials_kernel, finish_sums_kernel,
     operator_direction_kernel, step_kernel, subtract_kernel,
@@ -42,33 +48,57 @@ pub const CHECK_EVERY: usize = 10;
 /// (some ten launches) are cheaper than a second read when a solve needs one more.
 const HINT_MARGIN: usize = 2;
 
-/// How many iterations the last two solves on each grid needed. A training step solves twice
-/// on one grid, the forward projection and its backward (measured on the reduced ScalarReal
-/// preset: ~40-55 and ~75-80 iterations), with counts that change slowly from step to step, so
-/// a solve first tests convergence after the count of the solve before the last one and
-/// usually reads back once. Only *when* the host looks depends on this: the step kernel stops
-/// stepping on the device once converged, so the result and its report are the same whatever
-/// the hint.
+/// A deferred solve's budget is the most the last two solves of its kind needed, times this,
+/// plus [`BUDGET_EXTRA`]: the counts drift slowly from step to step, and an iteration past
+/// convergence costs five launches that do no work, where running short leaves a solve
+/// less converged than asked.
+const BUDGET_FACTOR: f64 = 1.25;
+const BUDGET_EXTRA: usize = 4;
+
+/// Deferred solves kept at most before they are judged anyway (their scalar buffers stay
+/// allocated until then).
+const MAX_PENDING: usize = 64;
+
+/// How many iterations the last two solves of each kind on each grid needed. A training step
+/// solves twice on one grid, the forward projection and its backward (measured on the reduced
+/// ScalarReal preset: ~40-55 and ~75-80 iterations), with counts that change slowly from step
+/// to step, so a solve first tests convergence after the count of the last one of its kind
+/// and usually reads back once. Only *when* the host looks depends on this: the step kernel
+/// stops stepping on the device once converged, so the result and its report are the same
+/// whatever the hint.
 struct IterationHints;
 
-/// Grid resolution, open faces and stopping rule of a solve.
-type HintKey = ([u32; 3], u32, u64, usize);
+/// Grid resolution, open faces, stopping rule and kind of a solve.
+type HintKey = ([u32; 3], u32, u64, usize, SolveKind);
 
 /// Per key: the counts of the solve before the last one and of the last one.
 static HINTS: std::sync::Mutex<Vec<(HintKey, [Option<usize>; 2])>> =
     std::sync::Mutex::new(Vec::new());
 
 impl IterationHints {
-    fn first_check(key: HintKey, max_iterations: usize) -> usize {
+    fn counts(key: HintKey) -> [Option<usize>; 2] {
         let hints = HINTS
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner);
-        let hint = hints
+        hints
             .iter()
             .find(|(k, _)| *k == key)
-            .and_then(|&(_, [older, last])| older.or(last))
-            .map_or(CHECK_EVERY, |n| n + HINT_MARGIN);
+            .map_or([None, None], |&(_, counts)| counts)
+    }
+
+    fn first_check(key: HintKey, max_iterations: usize) -> usize {
+        let hint = Self::counts(key)[1].map_or(CHECK_EVERY, |n| n + HINT_MARGIN);
         hint.clamp(1, max_iterations.max(1))
+    }
+
+    /// Iterations for a deferred solve, or `None` without a history to size them from.
+    fn budget(key: HintKey, max_iterations: usize) -> Option<usize> {
+        if max_iterations == 0 {
+            return None;
+        }
+        let most = Self::counts(key).into_iter().flatten().max()?;
+        let budget = (most as f64 * BUDGET_FACTOR).ceil() as usize + BUDGET_EXTRA;
+        Some(budget.clamp(1, max_iterations.max(1)))
     }
 
     fn record(key: HintKey, iterations: usize) {
@@ -79,6 +109,107 @@ impl IterationHints {
             Some((_, counts)) => *counts = [counts[1], Some(iterations)],
             None => hints.push((key, [None, Some(iterations)])),
         }
+    }
+}
+
+/// A solve run with [`ConvergenceTests::Deferred`], not yet judged.
+struct PendingSolve {
+    key: HintKey,
+    /// Iterations launched.
+    budget: usize,
+    scalars: CubeTensor,
+    stopping: StoppingRule,
+    cells: usize,
+}
+
+/// The deferred solves not judged yet, and the tally of those judged since the last
+/// [`settle_deferred_solves`] (when [`MAX_PENDING`] forced a judgement in between).
+static PENDING: std::sync::Mutex<(Vec<PendingSolve>, DeferredSolves)> = std::sync::Mutex::new((
+    Vec::new(),
+    DeferredSolves {
+        solves: 0,
+        unconverged: 0,
+        worst_relative_residual: 0.0,
+    },
+));
+
+fn pending() -> std::sync::MutexGuard<'static, (Vec<PendingSolve>, DeferredSolves)> {
+    PENDING
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// Judges `solves` (one read per device they ran on) into `tally`, recording what each
+/// needed as the next budgets' history.
+fn judge(solves: Vec<PendingSolve>, tally: &mut DeferredSolves) {
+    use burn::backend::ops::FloatTensorOps;
+    let mut groups: Vec<Vec<PendingSolve>> = Vec::new();
+    for solve in solves {
+        match groups
+            .iter_mut()
+            .find(|g| g[0].scalars.device == solve.scalars.device)
+        {
+            Some(group) => group.push(solve),
+            None => groups.push(vec![solve]),
+        }
+    }
+    for group in groups {
+        let lengths: Vec<usize> = group
+            .iter()
+            .map(|s| s.scalars.meta.num_elements())
+            .collect();
+        let all = burn_cubecl::CubeBackend::float_cat(
+            group.iter().map(|s| s.scalars.clone()).collect(),
+            0,
+        );
+        let values = read_scalars(&all);
+        let mut at = 0;
+        for (solve, len) in group.into_iter().zip(lengths) {
+            let scalars = &values[at..at + len];
+            at += len;
+            tally.solves += 1;
+            let needed = match solve
+                .stopping
+                .first_converged(scalars, solve.budget, solve.cells)
+            {
+                Some(report) => report.iterations,
+                None => {
+                    let report = report_after(scalars, solve.budget, solve.cells);
+                    tally.unconverged += 1;
+                    tally.worst_relative_residual =
+                        tally.worst_relative_residual.max(report.relative_residual);
+                    solve.budget
+                }
+            };
+            IterationHints::record(solve.key, needed);
+        }
+    }
+}
+
+/// See [`super::settle_deferred_solves`].
+pub fn settle_deferred_solves() -> DeferredSolves {
+    let (solves, mut tally) = {
+        let mut pending = pending();
+        (
+            std::mem::take(&mut pending.0),
+            std::mem::take(&mut pending.1),
+        )
+    };
+    if !solves.is_empty() {
+        judge(solves, &mut tally);
+    }
+    tally
+}
+
+/// Keeps `solve` for [`settle_deferred_solves`], judging the oldest ones now if too many wait.
+fn defer(solve: PendingSolve) {
+    let mut pending = pending();
+    pending.0.push(solve);
+    if pending.0.len() > MAX_PENDING {
+        let solves = std::mem::take(&mut pending.0);
+        let mut tally = pending.1;
+        judge(solves, &mut tally);
+        pending.1 = tally;
     }
 }
 
@@ -261,11 +392,12 @@ fn read_scalars(scalars: &CubeTensor) -> Vec<f32> {
 }
 
 /// `Pi(u)` for `velocity [nx, ny, nz, 3]` on the device; the report of what the solve reached
-/// (its residual is the CG recurrence's, in f32).
+/// (its residual is the CG recurrence's, in f32), or `None` for a deferred solve (judged later
+/// by [`settle_deferred_solves`]).
 pub fn project_velocity(
     velocity: CubeTensor,
     spec: &ProjectionSpec,
-) -> (CubeTensor, ProjectionReport) {
+) -> (CubeTensor, Option<ProjectionReport>) {
     let velocity = contiguous_f32(velocity, "velocity grid");
     let cells: usize = spec.resolution.iter().product();
     assert_eq!(
@@ -279,6 +411,7 @@ pub fn project_velocity(
         rel_tolerance,
         max_iterations,
         open_faces,
+        convergence_tests,
     } = spec.options;
     let inverse_cell = {
         use burn::backend::ops::FloatTensorOps;
@@ -348,17 +481,27 @@ pub fn project_velocity(
     // an already projected field (the trainer's case whenever Phi's update is small) makes CG
     // chase round-off into the operator's near-null space and return garbage.
     let stopping = StoppingRule::new(rel_tolerance, spec.cell);
-    let mut report = ProjectionReport::default();
     let hint_key = (
         dims,
         solver.open_faces,
         rel_tolerance.to_bits(),
         max_iterations,
+        spec.kind,
     );
-    let mut next_check = IterationHints::first_check(hint_key, max_iterations);
+    let budget = match convergence_tests {
+        ConvergenceTests::Deferred => IterationHints::budget(hint_key, max_iterations),
+        ConvergenceTests::Immediate => None,
+    };
+    let mut report = Some(ProjectionReport::default());
+    let mut next_check = budget.map_or_else(
+        || IterationHints::first_check(hint_key, max_iterations),
+        |_| usize::MAX,
+    );
+    let last = budget.unwrap_or(max_iterations);
     let mut iteration = 0;
-    while iteration < max_iterations {
+    while iteration < last {
         let k = iteration;
+        let residual_slot = Slot::residual_before(k) as u32;
         operator_direction_kernel::launch(
             &client,
             solver.cubes(cells),
@@ -366,6 +509,10 @@ pub fn project_velocity(
             buffer(&direction),
             buffer(&operator_direction),
             buffer(&partials),
+            buffer(&scalars),
+            residual_slot,
+            stopping.tolerance_squared,
+            stopping.floor_squared,
             buffer(&solver.inverse_cell),
             solver.open_faces,
             nx,
@@ -386,7 +533,7 @@ pub fn project_velocity(
             buffer(&scalars),
             buffer(&solver.inverse_cell),
             buffer(&partials),
-            Slot::residual_before(k) as u32,
+            residual_slot,
             Slot::rz(k) as u32,
             curvature as u32,
             stopping.tolerance_squared,
@@ -412,22 +559,38 @@ pub fn project_velocity(
             buffer(&scalars),
             Slot::rz(k) as u32,
             Slot::rz(k + 1) as u32,
+            residual_slot,
+            stopping.tolerance_squared,
+            stopping.floor_squared,
             cells as u32,
         );
         iteration += 1;
-        if iteration == next_check || iteration == max_iterations {
+        if iteration == next_check || (budget.is_none() && iteration == max_iterations) {
             let values = read_scalars(&scalars);
             if let Some(done) = stopping.first_converged(&values, iteration, cells) {
-                report = done;
+                report = Some(done);
                 break;
             }
-            report = report_after(&values, iteration, cells);
+            report = Some(report_after(&values, iteration, cells));
             next_check = iteration + CHECK_EVERY;
         }
     }
-    IterationHints::record(hint_key, report.iterations);
+    match (budget, report) {
+        (Some(budget), _) => {
+            defer(PendingSolve {
+                key: hint_key,
+                budget,
+                scalars: scalars.clone(),
+                stopping,
+                cells,
+            });
+            report = None;
+        }
+        (None, Some(done)) => IterationHints::record(hint_key, done.iterations),
+        (None, None) => {}
+    }
     if max_iterations == 0 {
-        report = report_after(&read_scalars(&scalars), 0, cells);
+        report = Some(report_after(&read_scalars(&scalars), 0, cells));
     }
 
     solver.divergence_transpose(&pressure, &gradient);

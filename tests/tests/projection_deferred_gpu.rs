@@ -1,0 +1,135 @@
+//! The device projection's deferred convergence tests (`ConvergenceTests::Deferred`, what the
+//! trainer runs): a solve that knows its iteration budget reads nothing and returns what a
+//! solve that tests as it goes returns; the settlement judges it later, reports a budget that
+//! was too short, and grows the next one. In a test binary of its own, because it counts the
+//! process's device reads.
+//!
+//! Like the other GPU tests this FAILS without a GPU adapter rather than skip.
+
+use burn::tensor::{Device, Tensor, TensorData};
+use gausmoke_core::SplitMix64;
+use gausmoke_core::glam::Vec3;
+use gausmoke_model::{
+    ConvergenceTests, DeferredSolves, GridSpec, ProjectionOptions, project_velocity,
+    settle_deferred_solves,
+};
+use gausmoke_render::backends::gpu_devices;
+use gausmoke_render::device_traffic::Traffic;
+use gausmoke_tests::to_vec;
+
+fn grid() -> GridSpec {
+    GridSpec::new(
+        Vec3::new(-1.0, -0.5, 0.0),
+        Vec3::new(1.0, 1.3, 0.7),
+        [18, 13, 11],
+        1,
+    )
+    .unwrap()
+}
+
+/// A divergent field plus noise, `[nx, ny, nz, 3]` flat.
+fn velocity(grid: &GridSpec, seed: u64) -> Vec<f32> {
+    let mut rng = SplitMix64::new(seed);
+    grid.cell_centres()
+        .chunks(3)
+        .flat_map(|c| {
+            let p = Vec3::from_slice(c);
+            let v = (p - Vec3::new(-0.3, 0.2, 0.3)) * (-(p.length_squared()) * 2.0).exp()
+                + (Vec3::new(0.4, 0.6, 0.4) - p) * 0.5;
+            [v.x, v.y, v.z]
+        })
+        .map(|v| v + 0.2 * (rng.uniform() - 0.5))
+        .collect()
+}
+
+fn device() -> (&'static str, Device) {
+    let mut devices = gpu_devices();
+    assert!(
+        !devices.is_empty(),
+        "this test binary must be built with a GPU feature of gausmoke-model"
+    );
+    devices.remove(0)
+}
+
+fn device_projection(
+    values: &[f32],
+    grid: &GridSpec,
+    device: &Device,
+    options: ProjectionOptions,
+) -> Vec<f32> {
+    let [nx, ny, nz] = grid.resolution();
+    let input = Tensor::from_data(TensorData::new(values.to_vec(), [nx, ny, nz, 3]), device);
+    to_vec(project_velocity(grid, input, options))
+}
+
+#[test]
+fn deferred_solves_read_nothing_and_are_judged_later() {
+    let grid = grid();
+    let (backend, device) = device();
+    let immediate = ProjectionOptions {
+        max_iterations: 397,
+        ..Default::default()
+    };
+    let deferred = ProjectionOptions {
+        convergence_tests: ConvergenceTests::Deferred,
+        ..immediate
+    };
+    let input = velocity(&grid, 21);
+
+    // No history of this solve's kind: the first deferred solve tests as it goes.
+    let fresh = ProjectionOptions {
+        max_iterations: 398,
+        ..deferred
+    };
+    let first = device_projection(&input, &grid, &device, fresh);
+    assert_eq!(settle_deferred_solves(), DeferredSolves::default());
+    let first_expected = device_projection(
+        &input,
+        &grid,
+        &device,
+        ProjectionOptions {
+            convergence_tests: ConvergenceTests::Immediate,
+            ..fresh
+        },
+    );
+    assert_eq!(first, first_expected, "{backend}: first deferred solve");
+
+    let expected = device_projection(&input, &grid, &device, immediate);
+
+    // With one: no read during the solve (the test's own read of the result is not the
+    // library's and is not counted), the same field, and one converged solve at the
+    // settlement.
+    let before = Traffic::now();
+    let second = device_projection(&input, &grid, &device, deferred);
+    let reads = Traffic::now().since(before);
+    assert_eq!(
+        (reads.reads, reads.solver_reads),
+        (0, 0),
+        "{backend}: {reads:?}"
+    );
+    assert_eq!(second, expected, "{backend}: deferred solve with a budget");
+    let settled = settle_deferred_solves();
+    assert_eq!((settled.solves, settled.unconverged), (1, 0), "{settled:?}");
+
+    // A field that needs far more iterations than the budget learnt from a near-projected one.
+    let easy = device_projection(&expected, &grid, &device, immediate);
+    let _ = device_projection(&easy, &grid, &device, deferred);
+    let _ = device_projection(&easy, &grid, &device, deferred);
+    assert_eq!(settle_deferred_solves().unconverged, 0);
+    let hard: Vec<f32> = velocity(&grid, 22).iter().map(|v| v * 100.0).collect();
+    let short = device_projection(&hard, &grid, &device, deferred);
+    let settled = settle_deferred_solves();
+    assert_eq!((settled.solves, settled.unconverged), (1, 1), "{settled:?}");
+    assert!(settled.worst_relative_residual > immediate.rel_tolerance);
+    let converged = device_projection(&hard, &grid, &device, immediate);
+    assert_ne!(short, converged);
+    // The next budget starts from what the short solve ran, so it goes further.
+    let longer = device_projection(&hard, &grid, &device, deferred);
+    let again = settle_deferred_solves();
+    assert_eq!(again.solves, 1);
+    assert!(
+        again.unconverged == 0 || again.worst_relative_residual < settled.worst_relative_residual,
+        "{again:?} after {settled:?}"
+    );
+    let _ = longer;
+}
