@@ -181,6 +181,11 @@ pub struct TrainConfig {
     pub lambda_lookahead: f32,
     /// The velocity of the look-ahead's second step: `"held"` or `"predicted"`.
     pub lookahead_velocity: LookaheadVelocity,
+    /// Weight of a kinetic-energy prior in the joint iterations (ours; 0 = the paper's
+    /// method): the mean over the grid's cells of `|u^t|^2`, the velocity in cells per frame,
+    /// so nothing but the pictures pushes the speed up (hypothesis 3 of issue 18: the
+    /// look-ahead's velocity overshoots).
+    pub lambda_kinetic: f32,
     /// Time step of the velocity update and advection, in frames.
     pub dt: f32,
     /// Channels of the U-Net's first level.
@@ -276,6 +281,7 @@ impl Default for TrainConfig {
             lambda_refine: 0.01,
             lambda_lookahead: 0.0,
             lookahead_velocity: LookaheadVelocity::Held,
+            lambda_kinetic: 0.0,
             dt: 1.0,
             unet_channels: 16,
             time_frequencies: 4,
@@ -460,6 +466,7 @@ impl TrainConfig {
             ("lambda_adv", self.lambda_adv),
             ("lambda_refine", self.lambda_refine),
             ("lambda_lookahead", self.lambda_lookahead),
+            ("lambda_kinetic", self.lambda_kinetic),
         ];
         for (name, value) in weights {
             if !(value.is_finite() && value >= 0.0) {

@@ -10,7 +10,8 @@
 //!   carried one frame further by the same `u^t` against frame t+1's views, the other
 //!   attributes held fixed, so `u^t` is fitted to two frames' pictures; the second step
 //!   moves them along `u^t` again or (`lookahead_velocity = "predicted"`) along Phi's
-//!   projected prediction for frame t+1 from their density there.
+//!   projected prediction for frame t+1 from their density there. With `lambda_kinetic > 0`
+//!   (ours, off by default) it also penalises the mean `|u^t|^2` in cells per frame.
 //! * Then K' refinement iterations (lines 11-13): the centres become free parameters tied to
 //!   the advected ones by `lambda_refine L_refine`, with `L_render`.
 //!
@@ -513,6 +514,19 @@ impl Trainer {
                     self.render_loss(&carried, views, ahead_targets, &mut ahead_lists)?;
                 checks.push(check);
                 loss = loss + lookahead * config.lambda_lookahead;
+            }
+            if config.lambda_kinetic > 0.0 {
+                let cell = self.grid.cell_size();
+                let in_cells = Tensor::<1>::from_data(
+                    TensorData::new(vec![1.0 / cell.x, 1.0 / cell.y, 1.0 / cell.z], [3]),
+                    &self.device,
+                )
+                .reshape([1, 1, 1, 3]);
+                let kinetic = (projected.clone() * in_cells)
+                    .powi_scalar(2)
+                    .sum_dim(3)
+                    .mean();
+                loss = loss + kinetic * config.lambda_kinetic;
             }
             let mut physical = None;
             if let Some(gradient_previous) = gradient_previous {

@@ -31,6 +31,7 @@ const KEYS: &[(&str, bool)] = &[
     ("lambda_adv", true),
     ("lambda_refine", true),
     ("lambda_lookahead", true),
+    ("lambda_kinetic", true),
     ("dt", true),
     ("unet_channels", false),
     ("time_frequencies", true),

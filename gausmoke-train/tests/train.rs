@@ -931,3 +931,44 @@ fn the_look_ahead_changes_the_velocity_and_both_carriers_train() {
         );
     }
 }
+
+#[test]
+fn the_kinetic_prior_slows_the_velocity() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let base = TrainConfig {
+        gaussians: 400,
+        grid_resolution: 8,
+        frames: Some(3),
+        init_iterations: 10,
+        advect_iterations: 3,
+        refine_iterations: 1,
+        unet_channels: 4,
+        time_frequencies: 2,
+        ..TrainConfig::default()
+    };
+    let mean_square_speed = |config: TrainConfig, name: &str| -> f64 {
+        let scene = Sequence::open(&data, &config).unwrap();
+        let device = device_by_name("flex").unwrap().autodiff();
+        let mut run = Run::new(scene, config, device, &dir.path().join(name), false)
+            .unwrap()
+            .quiet(true);
+        run.run().unwrap();
+        let velocity = run.trainer.state.velocity.clone().into_data();
+        let values = velocity.try_into_vec_as::<f32>().unwrap();
+        values.iter().map(|v| f64::from(v * v)).sum::<f64>() / values.len() as f64
+    };
+    let free = mean_square_speed(base.clone(), "free");
+    let held = mean_square_speed(
+        TrainConfig {
+            lambda_kinetic: 10.0,
+            ..base
+        },
+        "held",
+    );
+    assert!(free > 0.0 && held.is_finite(), "{free} {held}");
+    assert!(
+        held < free,
+        "mean |u|^2: {held} with the prior, {free} without"
+    );
+}
