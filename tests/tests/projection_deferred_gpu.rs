@@ -96,40 +96,48 @@ fn deferred_solves_read_nothing_and_are_judged_later() {
 
     let expected = device_projection(&input, &grid, &device, immediate);
 
-    // With one: no read during the solve (the test's own read of the result is not the
-    // library's and is not counted), the same field, and one converged solve at the
-    // settlement.
-    let before = Traffic::now();
-    let second = device_projection(&input, &grid, &device, deferred);
-    let reads = Traffic::now().since(before);
-    assert_eq!(
-        (reads.reads, reads.solver_reads),
-        (0, 0),
-        "{backend}: {reads:?}"
-    );
-    assert_eq!(second, expected, "{backend}: deferred solve with a budget");
+    // Solves with a short history still test as they go; once enough in a row needed no more
+    // than their budget, a solve reads nothing (the test's own read of the result is not the
+    // library's and is not counted). Every result is the immediate one.
+    let mut silent = 0;
+    for attempt in 0..20 {
+        let before = Traffic::now();
+        let result = device_projection(&input, &grid, &device, deferred);
+        let reads = Traffic::now().since(before);
+        assert_eq!(result, expected, "{backend}: deferred solve {attempt}");
+        if reads.solver_reads == 0 {
+            silent += 1;
+        } else {
+            assert_eq!(silent, 0, "a trusted solve went back to testing: {reads:?}");
+        }
+        assert_eq!(reads.reads, reads.solver_reads, "{reads:?}");
+    }
+    assert!(silent >= 5, "{silent} of 20 solves read nothing");
     let settled = settle_deferred_solves();
-    assert_eq!((settled.solves, settled.unconverged), (1, 0), "{settled:?}");
+    assert_eq!(
+        (settled.solves, settled.unconverged),
+        (silent, 0),
+        "{settled:?}"
+    );
 
-    // A field that needs far more iterations than the budget learnt from a near-projected one.
-    let easy = device_projection(&expected, &grid, &device, immediate);
-    let _ = device_projection(&easy, &grid, &device, deferred);
-    let _ = device_projection(&easy, &grid, &device, deferred);
+    // A field that needs many more iterations than a budget learnt from near-projected ones:
+    // the short solve is reported at the settlement, and the next solve, no longer trusted,
+    // tests as it goes and converges.
+    let easy = expected.clone();
+    for _ in 0..20 {
+        let _ = device_projection(&easy, &grid, &device, deferred);
+    }
     assert_eq!(settle_deferred_solves().unconverged, 0);
-    let hard: Vec<f32> = velocity(&grid, 22).iter().map(|v| v * 100.0).collect();
-    let short = device_projection(&hard, &grid, &device, deferred);
+    let before = Traffic::now();
+    let short = device_projection(&input, &grid, &device, deferred);
+    assert_eq!(Traffic::now().since(before).reads, 0, "a trusted solve");
     let settled = settle_deferred_solves();
     assert_eq!((settled.solves, settled.unconverged), (1, 1), "{settled:?}");
     assert!(settled.worst_relative_residual > immediate.rel_tolerance);
-    let converged = device_projection(&hard, &grid, &device, immediate);
-    assert_ne!(short, converged);
-    // The next budget starts from what the short solve ran, so it goes further.
-    let longer = device_projection(&hard, &grid, &device, deferred);
-    let again = settle_deferred_solves();
-    assert_eq!(again.solves, 1);
-    assert!(
-        again.unconverged == 0 || again.worst_relative_residual < settled.worst_relative_residual,
-        "{again:?} after {settled:?}"
-    );
-    let _ = longer;
+    assert_ne!(short, expected);
+    let before = Traffic::now();
+    let retried = device_projection(&input, &grid, &device, deferred);
+    assert!(Traffic::now().since(before).solver_reads > 0, "tests again");
+    assert_eq!(retried, expected);
+    assert_eq!(settle_deferred_solves(), DeferredSolves::default());
 }

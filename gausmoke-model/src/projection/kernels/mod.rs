@@ -55,6 +55,12 @@ const HINT_MARGIN: usize = 2;
 const BUDGET_FACTOR: f64 = 1.25;
 const BUDGET_EXTRA: usize = 4;
 
+/// Deferred solves of a kind still test their convergence (at the end of their budget, and
+/// on until converged) until this many in a row needed no more than their budget: a training
+/// run's first steps, where Phi's update grows from nothing and the counts with it, and the
+/// steps after a deferred solve ran short.
+const TRUST_AFTER: usize = 8;
+
 /// Deferred solves kept at most before they are judged anyway (their scalar buffers stay
 /// allocated until then).
 const MAX_PENDING: usize = 64;
@@ -71,44 +77,68 @@ struct IterationHints;
 /// Grid resolution, open faces, stopping rule and kind of a solve.
 type HintKey = ([u32; 3], u32, u64, usize, SolveKind);
 
-/// Per key: the counts of the solve before the last one and of the last one.
-static HINTS: std::sync::Mutex<Vec<(HintKey, [Option<usize>; 2])>> =
-    std::sync::Mutex::new(Vec::new());
+/// What the solves of one key needed.
+#[derive(Debug, Clone, Copy, Default)]
+struct History {
+    /// The counts of the solve before the last one and of the last one.
+    counts: [Option<usize>; 2],
+    /// Solves in a row that needed no more than a deferred budget would have given them.
+    trusted: usize,
+}
+
+static HINTS: std::sync::Mutex<Vec<(HintKey, History)>> = std::sync::Mutex::new(Vec::new());
 
 impl IterationHints {
-    fn counts(key: HintKey) -> [Option<usize>; 2] {
+    fn history(key: HintKey) -> History {
         let hints = HINTS
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner);
         hints
             .iter()
             .find(|(k, _)| *k == key)
-            .map_or([None, None], |&(_, counts)| counts)
+            .map_or_else(History::default, |&(_, history)| history)
     }
 
     fn first_check(key: HintKey, max_iterations: usize) -> usize {
-        let hint = Self::counts(key)[1].map_or(CHECK_EVERY, |n| n + HINT_MARGIN);
+        let hint = Self::history(key).counts[1].map_or(CHECK_EVERY, |n| n + HINT_MARGIN);
         hint.clamp(1, max_iterations.max(1))
     }
 
-    /// Iterations for a deferred solve, or `None` without a history to size them from.
-    fn budget(key: HintKey, max_iterations: usize) -> Option<usize> {
+    /// The iteration budget of a deferred solve, and whether it may run without testing; `None`
+    /// without a history to size it from.
+    fn budget(key: HintKey, max_iterations: usize) -> Option<(usize, bool)> {
         if max_iterations == 0 {
             return None;
         }
-        let most = Self::counts(key).into_iter().flatten().max()?;
+        let history = Self::history(key);
+        let most = history.counts.into_iter().flatten().max()?;
         let budget = (most as f64 * BUDGET_FACTOR).ceil() as usize + BUDGET_EXTRA;
-        Some(budget.clamp(1, max_iterations.max(1)))
+        Some((
+            budget.clamp(1, max_iterations),
+            history.trusted >= TRUST_AFTER,
+        ))
     }
 
-    fn record(key: HintKey, iterations: usize) {
+    /// A solve needed `iterations`; `within_budget`: no more than the deferred budget sized
+    /// from the history before it.
+    fn record(key: HintKey, iterations: usize, within_budget: bool) {
         let mut hints = HINTS
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner);
-        match hints.iter_mut().find(|(k, _)| *k == key) {
-            Some((_, counts)) => *counts = [counts[1], Some(iterations)],
-            None => hints.push((key, [None, Some(iterations)])),
-        }
+        let index = match hints.iter().position(|(k, _)| *k == key) {
+            Some(index) => index,
+            None => {
+                hints.push((key, History::default()));
+                hints.len() - 1
+            }
+        };
+        let history = &mut hints[index].1;
+        history.counts = [history.counts[1], Some(iterations)];
+        history.trusted = if within_budget {
+            history.trusted + 1
+        } else {
+            0
+        };
     }
 }
 
@@ -117,6 +147,7 @@ struct PendingSolve {
     key: HintKey,
     /// Iterations launched.
     budget: usize,
+    max_iterations: usize,
     scalars: CubeTensor,
     stopping: StoppingRule,
     cells: usize,
@@ -168,20 +199,23 @@ fn judge(solves: Vec<PendingSolve>, tally: &mut DeferredSolves) {
             let scalars = &values[at..at + len];
             at += len;
             tally.solves += 1;
-            let needed = match solve
+            match solve
                 .stopping
                 .first_converged(scalars, solve.budget, solve.cells)
             {
-                Some(report) => report.iterations,
+                Some(report) => IterationHints::record(solve.key, report.iterations, true),
                 None => {
                     let report = report_after(scalars, solve.budget, solve.cells);
                     tally.unconverged += 1;
                     tally.worst_relative_residual =
                         tally.worst_relative_residual.max(report.relative_residual);
-                    solve.budget
+                    let needed =
+                        solve
+                            .stopping
+                            .extrapolate(scalars, solve.budget, solve.max_iterations);
+                    IterationHints::record(solve.key, needed, false);
                 }
-            };
-            IterationHints::record(solve.key, needed);
+            }
         }
     }
 }
@@ -488,15 +522,19 @@ pub fn project_velocity(
         max_iterations,
         spec.kind,
     );
-    let budget = match convergence_tests {
-        ConvergenceTests::Deferred => IterationHints::budget(hint_key, max_iterations),
+    // A trusted deferred solve runs its budget and reads nothing; an untrusted one tests at
+    // the end of its budget and on until converged, like an immediate one.
+    let sized = IterationHints::budget(hint_key, max_iterations);
+    let planned = match convergence_tests {
+        ConvergenceTests::Deferred => sized,
         ConvergenceTests::Immediate => None,
     };
+    let (budget, mut next_check) = match planned {
+        Some((budget, true)) => (Some(budget), usize::MAX),
+        Some((budget, false)) => (None, budget),
+        None => (None, IterationHints::first_check(hint_key, max_iterations)),
+    };
     let mut report = Some(ProjectionReport::default());
-    let mut next_check = budget.map_or_else(
-        || IterationHints::first_check(hint_key, max_iterations),
-        |_| usize::MAX,
-    );
     let last = budget.unwrap_or(max_iterations);
     let mut iteration = 0;
     while iteration < last {
@@ -580,13 +618,18 @@ pub fn project_velocity(
             defer(PendingSolve {
                 key: hint_key,
                 budget,
+                max_iterations,
                 scalars: scalars.clone(),
                 stopping,
                 cells,
             });
             report = None;
         }
-        (None, Some(done)) => IterationHints::record(hint_key, done.iterations),
+        (None, Some(done)) => {
+            // Tested as it went: trusted if a deferred budget would have sufficed.
+            let within_budget = sized.is_some_and(|(budget, _)| done.iterations <= budget);
+            IterationHints::record(hint_key, done.iterations, within_budget);
+        }
         (None, None) => {}
     }
     if max_iterations == 0 {
@@ -638,6 +681,29 @@ impl StoppingRule {
         let relative = self.tolerance_squared * values[Slot::RHS_NORM_SQUARED];
         let absolute = self.floor_squared * values[Slot::VELOCITY_NORM_SQUARED];
         residual_squared <= relative.max(absolute)
+    }
+
+    /// Iterations an unconverged solve would have needed, estimated from its residual after
+    /// `done` iterations as if it kept shrinking at its mean rate so far (CG's is roughly
+    /// geometric); `max_iterations` when it did not shrink.
+    fn extrapolate(&self, values: &[f32], done: usize, max_iterations: usize) -> usize {
+        let start = values[Slot::RHS_NORM_SQUARED] as f64;
+        let reached = match done {
+            0 => start,
+            k => values[Slot::residual_squared(k - 1)] as f64,
+        };
+        let target = (self.tolerance_squared as f64 * start)
+            .max(self.floor_squared as f64 * values[Slot::VELOCITY_NORM_SQUARED] as f64);
+        if done == 0 || !(reached > 0.0 && reached < start && target > 0.0) {
+            return max_iterations;
+        }
+        let rate = (reached / start).ln() / done as f64;
+        let needed = ((target / start).ln() / rate).ceil();
+        if needed.is_finite() && needed > 0.0 {
+            (needed as usize).clamp(done + 1, max_iterations.max(done + 1))
+        } else {
+            max_iterations
+        }
     }
 
     /// The first iteration count up to `done` (0 included) after which the rule held: the
