@@ -89,6 +89,27 @@ pub enum LookaheadVelocity {
     Predicted,
 }
 
+/// When the GPU projection's host learns that a solve converged
+/// ([`gausmoke_model::ConvergenceTests`], spelled for TOML); the CPU backends solve directly
+/// and ignore it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SolverTests {
+    /// Solves run a learnt budget of iterations with no read and are judged with the losses.
+    Deferred,
+    /// Each solve reads its residuals while it runs (about 1.5 reads per solve).
+    Immediate,
+}
+
+impl From<SolverTests> for gausmoke_model::ConvergenceTests {
+    fn from(tests: SolverTests) -> Self {
+        match tests {
+            SolverTests::Deferred => Self::Deferred,
+            SolverTests::Immediate => Self::Immediate,
+        }
+    }
+}
+
 /// How the GPU backward pass sums one splat's gradients over the pixels of a tile
 /// ([`gausmoke_render::GradientSums`], spelled for TOML); the CPU backends ignore it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -129,6 +150,7 @@ pub const RESUMABLE_KEYS: &[&str] = &[
     "sync_phase_timings",
     "gradient_sums",
     "tile_list_headroom",
+    "solver_tests",
 ];
 
 /// Largest `time_frequencies` accepted (see [`TrainConfig::validate`]).
@@ -255,6 +277,12 @@ pub struct TrainConfig {
     /// its length back. A step that needs more stops the run with an error naming it (raise
     /// this and resume). The CPU backends have no list buffer and ignore it.
     pub tile_list_headroom: f32,
+    /// GPU backends: `"deferred"` (default; no read per solve: the solves' iteration budgets
+    /// are learnt from the last ones, the iterations past convergence cost launches that do no
+    /// work, and the verdicts come back with the losses) or `"immediate"` (about 1.5 reads per
+    /// solve, no wasted launches). Which is faster depends on the GPU's read latency against
+    /// its launch cost; the results agree to the solver's tolerance.
+    pub solver_tests: SolverTests,
 }
 
 impl Default for TrainConfig {
@@ -306,6 +334,7 @@ impl Default for TrainConfig {
             sync_phase_timings: false,
             gradient_sums: GradientSums::Planes,
             tile_list_headroom: 1.5,
+            solver_tests: SolverTests::Deferred,
         }
     }
 }
@@ -662,5 +691,22 @@ mod tests {
             .with_overrides(&["gradient_sums=warp".into()])
             .unwrap_err();
         assert!(err.to_string().contains("warp"), "{err}");
+    }
+
+    #[test]
+    fn solver_tests_are_spelled_for_toml_and_bad_spellings_are_refused() {
+        assert_eq!(TrainConfig::default().solver_tests, SolverTests::Deferred);
+        let config = TrainConfig::default()
+            .with_overrides(&["solver_tests=immediate".into()])
+            .unwrap();
+        assert_eq!(
+            gausmoke_model::ConvergenceTests::from(config.solver_tests),
+            gausmoke_model::ConvergenceTests::Immediate
+        );
+        let err = TrainConfig::default()
+            .with_overrides(&["solver_tests=sometimes".into()])
+            .unwrap_err();
+        assert!(err.to_string().contains("sometimes"), "{err}");
+        assert!(RESUMABLE_KEYS.contains(&"solver_tests"));
     }
 }

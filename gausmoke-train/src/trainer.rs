@@ -26,10 +26,10 @@ use burn::tensor::{Device, Gradients, Tensor, TensorData};
 use gausmoke_core::phase;
 use gausmoke_model::penalty::penalty_projection_with_report;
 use gausmoke_model::{
-    ConvergenceTests, GaussianModel, GridSpec, Integrator, Interpolation, PenaltyOptions,
-    ProjectionOptions, ProjectionReport, SplatOptions, UNetConfig, VelocityUNet, advect,
-    advection_loss, density_and_gradient_grid, density_grid, divergence_loss_of,
-    penalty_projection, project_direct, project_velocity, refine_loss, settle_deferred_solves,
+    GaussianModel, GridSpec, Integrator, Interpolation, PenaltyOptions, ProjectionOptions,
+    ProjectionReport, SplatOptions, UNetConfig, VelocityUNet, advect, advection_loss,
+    density_and_gradient_grid, density_grid, divergence_loss_of, penalty_projection,
+    project_direct, project_velocity, refine_loss, settle_deferred_solves,
 };
 use gausmoke_render::cpu::TILE_SIZE;
 use gausmoke_render::device_traffic::{ReadKind, Traffic, read_floats, read_floats_for};
@@ -222,8 +222,8 @@ impl Trainer {
             max_iterations: self.config.projection_max_iterations,
             // Validated with the configuration.
             open_faces: self.config.open_faces().unwrap_or_default(),
-            // Judged when the steps' losses are read (`read_log`): no read per solve.
-            convergence_tests: ConvergenceTests::Deferred,
+            // Deferred solves are judged when the steps' losses are read (`read_log`).
+            convergence_tests: self.config.solver_tests.into(),
         }
     }
 
