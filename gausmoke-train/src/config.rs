@@ -272,10 +272,11 @@ pub struct TrainConfig {
     /// or `"per-pixel"` (see [`GradientSums`]). The forms differ only in the order of float
     /// additions, so a run may be resumed with another.
     pub gradient_sums: GradientSums,
-    /// GPU backends: each optimisation loop measures its views' tile-list lengths once, at its
-    /// first step, and gives every later render this many times that room, so no render reads
-    /// its length back. A step that needs more stops the run with an error naming it (raise
-    /// this and resume). The CPU backends have no list buffer and ignore it.
+    /// GPU backends: each optimisation loop measures its views' tile-list lengths at its first
+    /// step and after each read of its log (every `log_every` steps), and gives the renders
+    /// until the next measurement this many times that room, so no render reads its length
+    /// back. A step that needs more stops the run with an error naming it (raise this and
+    /// resume). The CPU backends have no list buffer and ignore it.
     pub tile_list_headroom: f32,
     /// GPU backends: `"deferred"` (default; no read per solve: the solves' iteration budgets
     /// are learnt from the last ones, the iterations past convergence cost launches that do no

@@ -105,9 +105,11 @@ fn read_log(
 const MIN_TILE_LIST_CAPACITY: u32 = 4096;
 
 /// The tile-list buffer sizes of one loop's renders of one set of views (one per view), so
-/// that no GPU render reads its list length back: measured at the loop's first step (one read
-/// for all the views) and given `headroom`; every step then checks on the device, with its
-/// other checks, that its renders had room (see [`InputCheck::with_list_capacities`]).
+/// that no GPU render reads its list length back: measured (one read for all the views) at the
+/// loop's first step and again after each read of the loop's log, so they follow the
+/// Gaussians as they grow or move (frame 0's fit changes them most), and given `headroom`;
+/// every step checks on the device, with its other checks, that its renders had room (see
+/// [`InputCheck::with_list_capacities`]).
 struct ListCapacities {
     headroom: f32,
     views: Option<Vec<u32>>,
@@ -121,8 +123,14 @@ impl ListCapacities {
         }
     }
 
-    /// The capacities, measured from `lengths` (`[views]`, on the device) on the first call;
-    /// none above `most`, the length if every Gaussian touched every tile.
+    /// The next step measures again.
+    fn expire(&mut self) {
+        self.views = None;
+    }
+
+    /// The capacities, measured from `lengths` (`[views]`, on the device) on the first call
+    /// after [`ListCapacities::new`] or [`ListCapacities::expire`]; none above `most`, the
+    /// length if every Gaussian touched every tile.
     fn for_lengths(&mut self, lengths: &Tensor<1>, most: &[u64]) -> Vec<u32> {
         let headroom = self.headroom as f64;
         self.views
@@ -388,6 +396,7 @@ impl Trainer {
             self.step_gaussians(&mut grads, learning_rates);
             if log.due() || iteration + 1 == iterations {
                 read_log(&mut log, &mut losses, &bar, None)?;
+                lists.expire();
             }
             bar.inc(1);
         }
@@ -592,6 +601,8 @@ impl Trainer {
                 if let Some(&count) = read_log(&mut log, &mut losses, &bar, tail)?.first() {
                     clamped = count as usize;
                 }
+                lists.expire();
+                ahead_lists.expire();
             }
             bar.inc(1);
         }
@@ -646,6 +657,7 @@ impl Trainer {
             self.step_gaussians(&mut grads, Gaussians::default().map(|_, ()| lr_gaussians));
             if log.due() || iteration + 1 == refine_iterations {
                 read_log(&mut log, &mut losses, &bar, None)?;
+                lists.expire();
             }
             bar.inc(1);
         }

@@ -77,7 +77,7 @@ fn a_training_iteration_reads_nothing_back() {
         ..TrainConfig::default()
     };
     let sequence = Sequence::open(&data, &config).unwrap();
-    let mut trainer = Trainer::new(sequence, config, device.autodiff())
+    let mut trainer = Trainer::new(sequence, config.clone(), device.clone().autodiff())
         .unwrap()
         .quiet(true);
 
@@ -142,4 +142,19 @@ fn a_training_iteration_reads_nothing_back() {
         1,
         "{refinement:?}"
     );
+
+    // The list lengths are measured again after each read of the log, so the buffers follow
+    // the Gaussians: 5 fitting steps read back every 2 measure at steps 0, 2 and 4.
+    let config = TrainConfig {
+        log_every: 2,
+        ..config
+    };
+    let sequence = Sequence::open(&data, &config).unwrap();
+    let mut trainer = Trainer::new(sequence, config, device.autodiff())
+        .unwrap()
+        .quiet(true);
+    let outcome = trainer.train_frame(0).unwrap();
+    let init = loop_of(&outcome.traffic, Phase::Init);
+    assert_eq!(init.tile_list_reads, 3, "{init:?}");
+    assert_eq!(init.reads - init.tile_list_reads, 3, "{init:?}");
 }
