@@ -883,12 +883,9 @@ fn first_frame_starts_the_run_later_in_the_data() {
     assert!(err.contains("first_frame = 2 needs frames"), "{err}");
 }
 
-#[test]
-fn the_look_ahead_changes_the_velocity_and_both_carriers_train() {
-    use gausmoke_train::config::LookaheadVelocity;
-    let dir = tempfile::tempdir().unwrap();
-    let data = tiny_scene(dir.path());
-    let base = TrainConfig {
+/// Three frames of the tiny scene at small sizes, for tests of the joint iterations' terms.
+fn joint_terms_config() -> TrainConfig {
+    TrainConfig {
         gaussians: 400,
         grid_resolution: 8,
         frames: Some(3),
@@ -898,20 +895,32 @@ fn the_look_ahead_changes_the_velocity_and_both_carriers_train() {
         unet_channels: 4,
         time_frequencies: 2,
         ..TrainConfig::default()
-    };
-    let velocity_after = |config: TrainConfig, name: &str| -> Vec<f32> {
-        let scene = Sequence::open(&data, &config).unwrap();
-        let device = device_by_name("flex").unwrap().autodiff();
-        let mut run = Run::new(scene, config, device, &dir.path().join(name), false)
-            .unwrap()
-            .quiet(true);
-        run.run().unwrap();
-        let velocity = run.trainer.state.velocity.clone().into_data();
-        velocity.try_into_vec_as::<f32>().unwrap()
-    };
-    let without = velocity_after(base.clone(), "without");
+    }
+}
+
+/// The velocity grid after training `config` on `data` (flex), the run in `dir/name`.
+fn velocity_after(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Vec<f32> {
+    let scene = Sequence::open(data, &config).unwrap();
+    let device = device_by_name("flex").unwrap().autodiff();
+    let mut run = Run::new(scene, config, device, &dir.join(name), false)
+        .unwrap()
+        .quiet(true);
+    run.run().unwrap();
+    let velocity = run.trainer.state.velocity.clone().into_data();
+    velocity.try_into_vec_as::<f32>().unwrap()
+}
+
+#[test]
+fn the_look_ahead_changes_the_velocity_and_both_carriers_train() {
+    use gausmoke_train::config::LookaheadVelocity;
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let base = joint_terms_config();
+    let without = velocity_after(&data, dir.path(), base.clone(), "without");
     for carrier in [LookaheadVelocity::Held, LookaheadVelocity::Predicted] {
         let with = velocity_after(
+            &data,
+            dir.path(),
             TrainConfig {
                 lambda_lookahead: 1.0,
                 lookahead_velocity: carrier,
@@ -936,36 +945,24 @@ fn the_look_ahead_changes_the_velocity_and_both_carriers_train() {
 fn the_kinetic_prior_slows_the_velocity() {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
-    let base = TrainConfig {
-        gaussians: 400,
-        grid_resolution: 8,
-        frames: Some(3),
-        init_iterations: 10,
-        advect_iterations: 3,
-        refine_iterations: 1,
-        unet_channels: 4,
-        time_frequencies: 2,
-        ..TrainConfig::default()
+    let mean_square = |velocity: Vec<f32>| {
+        velocity.iter().map(|v| f64::from(v * v)).sum::<f64>() / velocity.len() as f64
     };
-    let mean_square_speed = |config: TrainConfig, name: &str| -> f64 {
-        let scene = Sequence::open(&data, &config).unwrap();
-        let device = device_by_name("flex").unwrap().autodiff();
-        let mut run = Run::new(scene, config, device, &dir.path().join(name), false)
-            .unwrap()
-            .quiet(true);
-        run.run().unwrap();
-        let velocity = run.trainer.state.velocity.clone().into_data();
-        let values = velocity.try_into_vec_as::<f32>().unwrap();
-        values.iter().map(|v| f64::from(v * v)).sum::<f64>() / values.len() as f64
-    };
-    let free = mean_square_speed(base.clone(), "free");
-    let held = mean_square_speed(
+    let free = mean_square(velocity_after(
+        &data,
+        dir.path(),
+        joint_terms_config(),
+        "free",
+    ));
+    let held = mean_square(velocity_after(
+        &data,
+        dir.path(),
         TrainConfig {
             lambda_kinetic: 10.0,
-            ..base
+            ..joint_terms_config()
         },
         "held",
-    );
+    ));
     assert!(free > 0.0 && held.is_finite(), "{free} {held}");
     assert!(
         held < free,

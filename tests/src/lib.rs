@@ -1,6 +1,8 @@
 //! Support for the integration tests: golden files written by the torch reference
 //! (`xtask/reference/torch_reference.py`) and comparisons with stated tolerances.
 
+pub mod projection;
+
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 

@@ -6,66 +6,14 @@
 //!
 //! Like the other GPU tests this FAILS without a GPU adapter rather than skip.
 
-use burn::tensor::{Device, Tensor, TensorData};
-use gausmoke_core::SplitMix64;
-use gausmoke_core::glam::Vec3;
-use gausmoke_model::{
-    ConvergenceTests, DeferredSolves, GridSpec, ProjectionOptions, project_velocity,
-    settle_deferred_solves,
-};
-use gausmoke_render::backends::gpu_devices;
+use gausmoke_model::{ConvergenceTests, DeferredSolves, ProjectionOptions, settle_deferred_solves};
 use gausmoke_render::device_traffic::Traffic;
-use gausmoke_tests::to_vec;
-
-fn grid() -> GridSpec {
-    GridSpec::new(
-        Vec3::new(-1.0, -0.5, 0.0),
-        Vec3::new(1.0, 1.3, 0.7),
-        [18, 13, 11],
-        1,
-    )
-    .unwrap()
-}
-
-/// A divergent field plus noise, `[nx, ny, nz, 3]` flat.
-fn velocity(grid: &GridSpec, seed: u64) -> Vec<f32> {
-    let mut rng = SplitMix64::new(seed);
-    grid.cell_centres()
-        .chunks(3)
-        .flat_map(|c| {
-            let p = Vec3::from_slice(c);
-            let v = (p - Vec3::new(-0.3, 0.2, 0.3)) * (-(p.length_squared()) * 2.0).exp()
-                + (Vec3::new(0.4, 0.6, 0.4) - p) * 0.5;
-            [v.x, v.y, v.z]
-        })
-        .map(|v| v + 0.2 * (rng.uniform() - 0.5))
-        .collect()
-}
-
-fn device() -> (&'static str, Device) {
-    let mut devices = gpu_devices();
-    assert!(
-        !devices.is_empty(),
-        "this test binary must be built with a GPU feature of gausmoke-model"
-    );
-    devices.remove(0)
-}
-
-fn device_projection(
-    values: &[f32],
-    grid: &GridSpec,
-    device: &Device,
-    options: ProjectionOptions,
-) -> Vec<f32> {
-    let [nx, ny, nz] = grid.resolution();
-    let input = Tensor::from_data(TensorData::new(values.to_vec(), [nx, ny, nz, 3]), device);
-    to_vec(project_velocity(grid, input, options))
-}
+use gausmoke_tests::projection::{device_projection, gpu_device, grid, velocity};
 
 #[test]
 fn deferred_solves_read_nothing_and_are_judged_later() {
     let grid = grid();
-    let (backend, device) = device();
+    let (backend, device) = gpu_device();
     let immediate = ProjectionOptions {
         max_iterations: 397,
         ..Default::default()

@@ -8,74 +8,16 @@
 //! solutions and gradients differ from the f64 solve by 3e-6 of the largest value (bound
 //! 2e-5 of the largest input); the 5-iteration solve by 4e-7 (bound 1e-5).
 
-use burn::tensor::{Device, Tensor, TensorData};
 use gausmoke_core::SplitMix64;
-use gausmoke_core::glam::Vec3;
 use gausmoke_model::projection::Divergence;
 use gausmoke_model::{GridSpec, ProjectionOptions, project_velocity, project_with_report};
-use gausmoke_render::backends::gpu_devices;
+use gausmoke_tests::projection::{device_projection, gpu_device, grid, velocity, velocity_tensor};
 use gausmoke_tests::{assert_close, to_vec};
-
-/// Non-cubic, with unequal cell sizes per axis: a wrong stride, axis or cell size in the
-/// kernels fails here.
-fn grid() -> GridSpec {
-    GridSpec::new(
-        Vec3::new(-1.0, -0.5, 0.0),
-        Vec3::new(1.0, 1.3, 0.7),
-        [18, 13, 11],
-        1,
-    )
-    .unwrap()
-}
-
-/// A smooth divergent field (a source and a sink) plus noise, `[nx, ny, nz, 3]` flat.
-fn velocity(grid: &GridSpec, seed: u64) -> Vec<f32> {
-    let mut rng = SplitMix64::new(seed);
-    let centres = grid.cell_centres();
-    centres
-        .chunks(3)
-        .flat_map(|c| {
-            let p = Vec3::from_slice(c);
-            let source = (p - Vec3::new(-0.3, 0.2, 0.3)) * (-(p.length_squared()) * 2.0).exp();
-            let sink = (Vec3::new(0.4, 0.6, 0.4) - p) * 0.5;
-            let v = source + sink;
-            [v.x, v.y, v.z]
-        })
-        .map(|v| v + 0.2 * (rng.uniform() - 0.5))
-        .collect()
-}
-
-fn device() -> (&'static str, Device) {
-    let mut devices = gpu_devices();
-    assert!(
-        !devices.is_empty(),
-        "this test binary must be built with a GPU feature of gausmoke-model"
-    );
-    devices.remove(0)
-}
-
-fn tensor(values: &[f32], grid: &GridSpec, device: &Device) -> Tensor<4> {
-    let [nx, ny, nz] = grid.resolution();
-    Tensor::from_data(TensorData::new(values.to_vec(), [nx, ny, nz, 3]), device)
-}
 
 fn host_projection(values: &[f32], grid: &GridSpec, options: &ProjectionOptions) -> Vec<f32> {
     let mut projected = values.to_vec();
     project_with_report(grid, &mut projected, options);
     projected
-}
-
-fn device_projection(
-    values: &[f32],
-    grid: &GridSpec,
-    device: &Device,
-    options: ProjectionOptions,
-) -> Vec<f32> {
-    to_vec(project_velocity(
-        grid,
-        tensor(values, grid, device),
-        options,
-    ))
 }
 
 /// RMS of the discrete divergence of a velocity grid (host, f64).
@@ -91,7 +33,7 @@ fn max_abs(values: &[f32]) -> f32 {
 #[test]
 fn device_projection_matches_the_host_solver() {
     let grid = grid();
-    let (backend, device) = device();
+    let (backend, device) = gpu_device();
     let options = ProjectionOptions::default();
     let input = velocity(&grid, 3);
     let expected = host_projection(&input, &grid, &options);
@@ -120,7 +62,7 @@ fn device_projection_matches_the_host_solver() {
 #[test]
 fn truncated_device_solve_follows_the_host_iterations() {
     let grid = grid();
-    let (backend, device) = device();
+    let (backend, device) = gpu_device();
     let options = ProjectionOptions {
         rel_tolerance: 0.0,
         max_iterations: 5,
@@ -152,7 +94,7 @@ fn truncated_device_solve_follows_the_host_iterations() {
 #[test]
 fn device_projection_backward_projects_the_gradient() {
     let grid = grid();
-    let (backend, device) = device();
+    let (backend, device) = gpu_device();
     let options = ProjectionOptions::default();
     let input = velocity(&grid, 7);
     let mut rng = SplitMix64::new(13);
@@ -160,8 +102,9 @@ fn device_projection_backward_projects_the_gradient() {
         .map(|_| rng.uniform() * 2.0 - 1.0)
         .collect();
     let ad = device.autodiff();
-    let u = tensor(&input, &grid, &ad).require_grad();
-    let loss = (project_velocity(&grid, u.clone(), options) * tensor(&weight, &grid, &ad)).sum();
+    let u = velocity_tensor(&input, &grid, &ad).require_grad();
+    let loss =
+        (project_velocity(&grid, u.clone(), options) * velocity_tensor(&weight, &grid, &ad)).sum();
     let grads = loss.backward();
     let actual = to_vec(u.grad(&grads).expect("the velocity takes a gradient"));
     let expected = host_projection(&weight, &grid, &options);
@@ -179,7 +122,7 @@ fn device_projection_backward_projects_the_gradient() {
 #[test]
 fn device_projection_leaves_a_divergence_free_field() {
     let grid = grid();
-    let (backend, device) = device();
+    let (backend, device) = gpu_device();
     let options = ProjectionOptions::default();
     let zero = vec![0.0f32; 3 * grid.num_cells()];
     let actual = device_projection(&zero, &grid, &device, options);
@@ -220,7 +163,7 @@ fn device_projection_leaves_a_divergence_free_field() {
 fn device_projection_with_open_faces_matches_the_host() {
     use gausmoke_model::projection::OpenFaces;
     let grid = grid();
-    let (backend, device) = device();
+    let (backend, device) = gpu_device();
     let open_faces = OpenFaces::from_names(&["x-", "y+", "z+"]).unwrap();
     let input = velocity(&grid, 11);
     let scale = max_abs(&input);
