@@ -135,6 +135,21 @@ fn scan_counts(projection: &Projection, num_tiles: usize, capacity: u32) -> Cube
     offsets
 }
 
+/// Stage 1 for `camera`: the uploaded view parameters and the projection of `gaussians`
+/// (contiguous f32), shared by [`forward`] and [`list_buffer_length`] so both count the same
+/// tile-list entries.
+fn project_view(
+    gaussians: &Gaussians<CubeTensor>,
+    camera: &Camera,
+    options: &RasterOptions,
+) -> (CubeTensor, Projection) {
+    let alloc = Allocator::like(&gaussians.means);
+    let view = alloc.f32s(&view_params(camera, options));
+    let _phase = phase!("project");
+    let projection = project::project(gaussians, &view, camera.width(), camera.height());
+    (view, projection)
+}
+
 /// How many entries the tile-list buffer of a forward render of `gaussians` seen by `camera`
 /// needs: `[1]` f32 on the device (exact below 2^24), from the same projection and scan as
 /// [`forward`], so a caller can size [`RasterOptions::tile_list_capacity`] from it and check
@@ -147,11 +162,7 @@ pub fn list_buffer_length(
     let gaussians = buffers::contiguous_gaussians(gaussians);
     let alloc = Allocator::like(&gaussians.means);
     let (width, height) = (camera.width(), camera.height());
-    let view = alloc.f32s(&view_params(camera, options));
-    let projection = {
-        let _phase = phase!("project");
-        project::project(&gaussians, &view, width, height)
-    };
+    let (_, projection) = project_view(&gaussians, camera, options);
     let num_tiles = (width.div_ceil(TILE_EDGE) * height.div_ceil(TILE_EDGE)) as usize;
     let offsets = scan_counts(&projection, num_tiles, u32::MAX);
     let length = alloc.empty(1, DType::F32);
@@ -197,11 +208,7 @@ pub fn forward(
     let alloc = Allocator::like(&background);
     let n = gaussians.raw_densities.meta.num_elements();
     let (width, height) = (camera.width(), camera.height());
-    let view = alloc.f32s(&view_params(camera, options));
-    let projection = {
-        let _phase = phase!("project");
-        project::project(&gaussians, &view, width, height)
-    };
+    let (view, projection) = project_view(&gaussians, camera, options);
     let tiles = bin(&projection, n, width, height, options.tile_list_capacity);
     let image = alloc.empty_shaped(
         vec![height as usize, width as usize, IMAGE_CHANNELS],
