@@ -26,6 +26,22 @@ pub enum Format {
     Nerfstudio,
 }
 
+/// A solid the smoke flows around, inside the smoke box (world units). The training's
+/// projection turns it into obstacle cells of its grid.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Obstacle {
+    Sphere { centre: Vec3, radius: f32 },
+}
+
+impl Obstacle {
+    /// Whether the world point `p` lies inside the solid.
+    pub fn contains(&self, p: Vec3) -> bool {
+        match *self {
+            Obstacle::Sphere { centre, radius } => p.distance_squared(centre) <= radius * radius,
+        }
+    }
+}
+
 /// Axis-aligned box in world space.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Aabb {
@@ -121,6 +137,8 @@ pub struct Dataset {
     /// Affine map from the simulation unit cube `[0, 1]^3` to world space (PINF:
     /// column-swapped `voxel_matrix` times `diag(voxel_scale)`), when the format gives one.
     pub sim_to_world: Option<Mat4>,
+    /// Solids inside the smoke box, when the data set describes them (PINF `obstacles`).
+    pub obstacles: Vec<Obstacle>,
 }
 
 impl Dataset {

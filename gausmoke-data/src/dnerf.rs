@@ -175,6 +175,7 @@ pub fn load_dnerf(dir: &Path, options: &LoadOptions) -> Result<Dataset> {
         background,
         bbox: None,
         sim_to_world: None,
+        obstacles: Vec::new(),
     })
 }
 

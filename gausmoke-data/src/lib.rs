@@ -32,7 +32,7 @@ pub mod video;
 pub mod video_writer;
 
 pub use camera_file::read_camera_path;
-pub use dataset::{Aabb, Dataset, Format, Frame, LoadOptions, PlannedView, Split, View};
+pub use dataset::{Aabb, Dataset, Format, Frame, LoadOptions, Obstacle, PlannedView, Split, View};
 pub use dnerf::{load_dnerf, plan_dnerf};
 pub use error::{DataError, Result};
 pub use image::{Image, read_png_over, resize_area};

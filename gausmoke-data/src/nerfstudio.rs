@@ -355,5 +355,6 @@ pub fn load_nerfstudio(dir: &Path, options: &LoadOptions) -> Result<Dataset> {
         background,
         bbox: description.bbox,
         sim_to_world: None,
+        obstacles: Vec::new(),
     })
 }

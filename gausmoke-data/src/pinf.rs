@@ -22,7 +22,7 @@ use gausmoke_core::{Camera, Intrinsics};
 use rayon::prelude::*;
 
 use crate::dataset::{
-    Aabb, Dataset, Format, Frame, LoadOptions, PlannedView, Split, View, resize_to,
+    Aabb, Dataset, Format, Frame, LoadOptions, Obstacle, PlannedView, Split, View, resize_to,
     scale_intrinsics, time_indices,
 };
 use crate::error::{DataError, Result, io_err};
@@ -86,6 +86,7 @@ pub fn load_pinf(path: &Path, options: &LoadOptions) -> Result<Dataset> {
     );
 
     let entries = read_entries(root, &root_dir)?;
+    let obstacles = read_obstacles(root)?;
 
     let views: Vec<View> = entries
         .par_iter()
@@ -113,7 +114,32 @@ pub fn load_pinf(path: &Path, options: &LoadOptions) -> Result<Dataset> {
         background,
         bbox,
         sim_to_world: Some(sim_to_world),
+        obstacles,
     })
+}
+
+/// `obstacles` (ours, optional): `[{"sphere": {"centre": [x, y, z], "radius": r}}, ...]` in
+/// world units.
+fn read_obstacles(root: Node<'_>) -> Result<Vec<Obstacle>> {
+    let Some(list) = root.get_opt("obstacles")? else {
+        return Ok(Vec::new());
+    };
+    let mut obstacles = Vec::new();
+    for item in list.node().array()? {
+        let item = item.node();
+        let sphere = item.get("sphere")?;
+        let sphere = sphere.node();
+        let centre = sphere.get("centre")?.node().f64_array::<3>()?;
+        let radius = sphere.get("radius")?.node().positive_f64()?;
+        if centre.iter().any(|v| !v.is_finite()) {
+            return Err(sphere.err("a finite centre"));
+        }
+        obstacles.push(Obstacle::Sphere {
+            centre: Vec3::new(centre[0] as f32, centre[1] as f32, centre[2] as f32),
+            radius: radius as f32,
+        });
+    }
+    Ok(obstacles)
 }
 
 /// The cameras of `train_videos`, `val_videos` and `test_videos`, at least one.

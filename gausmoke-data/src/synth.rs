@@ -20,6 +20,11 @@
 //! `T_{k+1} = T_k exp(-sigma_k ds)`, step `ds` = half a cell, pixel = `L + T * background`.
 //! PNGs store it in 8 bits, so loaded pixels match the marcher to 0.5/255.
 //!
+//! An optional spherical obstacle ([`SynthConfig::obstacle`]) is solid in the solver: its
+//! cells hold no velocity and no smoke, and the pressure solve treats their faces as walls.
+//! It is not drawn (the renders show only smoke), so what a reconstruction puts inside it is
+//! leaked smoke; `info.json` describes it under `obstacles` in world units.
+//!
 //! Nothing is partially written: the scene is built in a sibling `.partial` folder and
 //! renamed into place at the end; an existing non-empty output folder is refused.
 
@@ -62,6 +67,15 @@ pub struct SynthConfig {
     pub arc_degrees: f32,
     /// Horizontal field of view, radians.
     pub fov_x: f32,
+    /// A solid sphere in the box (world units), or none.
+    pub obstacle: Option<SynthSphere>,
+}
+
+/// A sphere in world units (see [`world_box`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SynthSphere {
+    pub centre: Vec3,
+    pub radius: f32,
 }
 
 impl SynthConfig {
@@ -86,6 +100,7 @@ impl SynthConfig {
             camera_distance: 2.0,
             arc_degrees: 120.0,
             fov_x: 0.75,
+            obstacle: None,
         }
     }
 
@@ -120,6 +135,20 @@ impl SynthConfig {
         }
     }
 
+    /// The obstacle test (issue 20): the long plume's settings for 48 frames, with a solid
+    /// sphere of radius 0.14 a little off the source's axis at 0.4 height, so the plume splits
+    /// around it and flows past on one side more than the other.
+    pub fn obstacle_plume() -> Self {
+        Self {
+            frames: 48,
+            obstacle: Some(SynthSphere {
+                centre: Vec3::new(0.04, 0.4, 0.0),
+                radius: 0.14,
+            }),
+            ..Self::long_plume()
+        }
+    }
+
     fn validate(&self) -> Result<()> {
         let bad = |option: &'static str, reason: String| Err(DataError::Options { option, reason });
         if !(4..=512).contains(&self.grid) {
@@ -146,6 +175,19 @@ impl SynthConfig {
         ];
         if finite.iter().any(|v| !v.is_finite()) {
             return bad("config", "non-finite value".into());
+        }
+        if let Some(sphere) = self.obstacle {
+            let (lo, hi) = world_box();
+            let inside = (0..3).all(|a| {
+                sphere.centre[a] - sphere.radius >= lo[a]
+                    && sphere.centre[a] + sphere.radius <= hi[a]
+            });
+            if !(sphere.radius > 0.0 && sphere.centre.is_finite() && inside) {
+                return bad(
+                    "obstacle",
+                    "a sphere with a positive radius inside the box".into(),
+                );
+            }
         }
         if self.camera_distance <= 1.0 {
             return bad(
@@ -239,6 +281,8 @@ pub struct Solver {
     cfg: SynthConfig,
     pub density: Grid,
     pub velocity: [Grid; 3],
+    /// Per cell, whether the obstacle fills it (cell centre inside the sphere).
+    pub solid: Vec<bool>,
     rng: SplitMix64,
 }
 
@@ -246,10 +290,26 @@ impl Solver {
     pub fn new(cfg: &SynthConfig) -> Result<Self> {
         cfg.validate()?;
         let n = cfg.grid;
+        let (lo, hi) = world_box();
+        let cell = (hi - lo) / n as f32;
+        let mut solid = vec![false; n * n * n];
+        if let Some(sphere) = cfg.obstacle {
+            for z in 0..n {
+                for y in 0..n {
+                    for x in 0..n {
+                        let centre = lo
+                            + cell * (Vec3::new(x as f32, y as f32, z as f32) + Vec3::splat(0.5));
+                        solid[(z * n + y) * n + x] =
+                            centre.distance_squared(sphere.centre) <= sphere.radius * sphere.radius;
+                    }
+                }
+            }
+        }
         Ok(Self {
             cfg: cfg.clone(),
             density: Grid::zeros(n),
             velocity: [Grid::zeros(n), Grid::zeros(n), Grid::zeros(n)],
+            solid,
             rng: SplitMix64::new(cfg.seed),
         })
     }
@@ -267,6 +327,11 @@ impl Solver {
             }
             self.project();
             self.density = advect(&self.density, &self.velocity, dt);
+            for (d, &solid) in self.density.data.iter_mut().zip(&self.solid) {
+                if solid {
+                    *d = 0.0;
+                }
+            }
         }
     }
 
@@ -352,15 +417,22 @@ impl Solver {
     /// Projects the velocity towards divergence-free: collocated central differences, the
     /// matching wide-stencil Poisson equation solved by Jacobi iterations, closed walls on
     /// the sides and floor (zero normal velocity, zero-gradient pressure), open top
-    /// (pressure 0 above). A fixed number of Jacobi iterations leaves a residual; the
-    /// generator records the mean |div u| per frame.
+    /// (pressure 0 above); obstacle cells hold no velocity and their faces are walls like
+    /// the sides. A fixed number of Jacobi iterations leaves a residual; the generator records
+    /// the mean |div u| per frame.
     fn project(&mut self) {
         let n = self.cfg.grid;
-        // Closed walls: zero the normal component in the boundary cells.
+        // Closed walls: zero the normal component in the boundary cells, and all of it in
+        // the obstacle.
         for z in 0..n {
             for y in 0..n {
                 for x in 0..n {
                     let i = self.density.idx(x, y, z);
+                    if self.solid[i] {
+                        for c in 0..3 {
+                            self.velocity[c].data[i] = 0.0;
+                        }
+                    }
                     if x == 0 || x == n - 1 {
                         self.velocity[0].data[i] = 0.0;
                     }
@@ -396,12 +468,26 @@ impl Solver {
         });
         let mut p = vec![0.0f32; n * n * n];
         let mut next = vec![0.0f32; n * n * n];
+        let solid = &self.solid;
+        // A neighbour inside the obstacle mirrors the cell (zero gradient, as at the walls).
+        let solid_at = |x: isize, y: isize, z: isize| -> bool {
+            x >= 0
+                && y >= 0
+                && z >= 0
+                && x < n as isize
+                && y < n as isize
+                && z < n as isize
+                && solid[(z as usize * n + y as usize) * n + x as usize]
+        };
         for _ in 0..self.cfg.jacobi_iterations {
             let pr = &p;
             let get = |x: isize, y: isize, z: isize, xc: usize, yc: usize, zc: usize| -> f32 {
                 // Zero-gradient at walls and floor, p = 0 above the open top.
                 if y >= n as isize {
                     return 0.0;
+                }
+                if solid_at(x, y, z) {
+                    return pr[(zc * n + yc) * n + xc];
                 }
                 let cx = if x < 0 || x >= n as isize {
                     xc
@@ -441,6 +527,9 @@ impl Solver {
             if y >= n as isize {
                 return 0.0;
             }
+            if solid_at(x, y, z) {
+                return p[(zc * n + yc) * n + xc];
+            }
             let cx = if x < 0 || x >= n as isize {
                 xc
             } else {
@@ -459,6 +548,9 @@ impl Solver {
                 for x in 0..n {
                     let (xi, yi, zi) = (x as isize, y as isize, z as isize);
                     let i = (z * n + y) * n + x;
+                    if solid[i] {
+                        continue;
+                    }
                     self.velocity[0].data[i] -=
                         0.5 * (pg(xi + 1, yi, zi, x, y, z) - pg(xi - 1, yi, zi, x, y, z));
                     self.velocity[1].data[i] -=
@@ -470,7 +562,8 @@ impl Solver {
         }
     }
 
-    /// Mean |div u| over the cells (central differences, cells per frame per cell).
+    /// Mean |div u| over the interior fluid cells (central differences, cells per frame per
+    /// cell).
     pub fn mean_abs_divergence(&self) -> f32 {
         let n = self.cfg.grid;
         let [u, v, w] = &self.velocity;
@@ -480,6 +573,9 @@ impl Solver {
         for z in 1..n - 1 {
             for y in 1..n - 1 {
                 for x in 1..n - 1 {
+                    if self.solid[(z * n + y) * n + x] {
+                        continue;
+                    }
                     let d = 0.5
                         * (at(u, x + 1, y, z) - at(u, x - 1, y, z) + at(v, x, y + 1, z)
                             - at(v, x, y - 1, z)
@@ -671,7 +767,13 @@ fn write_scene(cfg: &SynthConfig, dir: &Path) -> Result<SynthScene> {
     let mut stored = sim_to_world;
     std::mem::swap(&mut stored.x_axis, &mut stored.z_axis);
     let voxel_rows: Vec<Vec<f32>> = (0..4).map(|r| stored.row(r).to_array().to_vec()).collect();
+    let obstacles: Vec<serde_json::Value> = cfg
+        .obstacle
+        .iter()
+        .map(|s| json!({"sphere": {"centre": s.centre.to_array(), "radius": s.radius}}))
+        .collect();
     let info = json!({
+        "obstacles": obstacles,
         "train_videos": train,
         "test_videos": [entry(middle)],
         "frame_bkg_color": background,

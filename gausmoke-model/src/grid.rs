@@ -108,6 +108,20 @@ impl GridSpec {
         self.lo + (Vec3::new(i as f32, j as f32, k as f32) + 0.5) * self.cell_size()
     }
 
+    /// Per cell in the grid's flat order, whether `inside` holds at its centre.
+    pub fn cells_where(&self, inside: impl Fn(Vec3) -> bool) -> Vec<bool> {
+        let [nx, ny, nz] = self.resolution;
+        let mut out = Vec::with_capacity(self.num_cells());
+        for i in 0..nx {
+            for j in 0..ny {
+                for k in 0..nz {
+                    out.push(inside(self.cell_centre(i, j, k)));
+                }
+            }
+        }
+        out
+    }
+
     /// Centres of every cell in the grid's flat order, `[nx * ny * nz * 3]`.
     pub fn cell_centres(&self) -> Vec<f32> {
         let [nx, ny, nz] = self.resolution;

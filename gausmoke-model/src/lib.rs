@@ -28,7 +28,8 @@ pub use interp::{Interpolation, VelocitySample, grid_from_fn, sample_velocity};
 pub use losses::{advection_loss, divergence_loss, divergence_loss_of, refine_loss};
 pub use penalty::{PenaltyOptions, penalty_projection};
 pub use projection::{
-    ConvergenceTests, DeferredSolves, ProjectionBackend, ProjectionOptions, ProjectionReport,
-    ProjectionSpec, project_direct, project_velocity, project_with_report, settle_deferred_solves,
+    ConvergenceTests, DeferredSolves, OpenFaces, ProjectionBackend, ProjectionOptions,
+    ProjectionReport, ProjectionSpec, SolidCells, project_direct, project_velocity,
+    project_with_report, settle_deferred_solves,
 };
 pub use unet::{UNetConfig, UNetError, VelocityUNet};

@@ -89,6 +89,17 @@ pub enum LookaheadVelocity {
     Predicted,
 }
 
+/// What the training does with obstacles the data set describes (PINF `obstacles`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Obstacles {
+    /// Their cells become solid in the exact projection: no velocity inside, no flow through
+    /// their surface.
+    Solid,
+    /// Ignored: the flow is free to pass through them (the paper's behaviour, an ablation).
+    Ignore,
+}
+
 /// When the GPU projection's host learns that a solve converged
 /// ([`gausmoke_model::ConvergenceTests`], spelled for TOML); the CPU backends solve directly
 /// and ignore it.
@@ -229,6 +240,9 @@ pub struct TrainConfig {
     /// Box faces the flow may cross (`x-`, `x+`, `y-`, `y+`, `z-`, `z+`; `y+` is the top of
     /// a box with y up); the others are solid walls. Exact projection only.
     pub open_faces: Vec<String>,
+    /// Obstacles described by the data set: `"solid"` (default; no flow into them, exact
+    /// projection only) or `"ignore"`.
+    pub obstacles: Obstacles,
     /// Ablation switch: `false` drops L_div and L_adv (paper Table 3, "w/o physics").
     pub physics_losses: bool,
     /// Ablation switch: `false` skips the K' refinement iterations ("w/o refinement").
@@ -321,6 +335,7 @@ impl Default for TrainConfig {
             projection_max_iterations: 400,
             penalty_steps: 20,
             open_faces: Vec::new(),
+            obstacles: Obstacles::Solid,
             physics_losses: true,
             refinement: true,
             volumetric: true,

@@ -4,7 +4,7 @@
 //! * `train --data DIR --out DIR [--config FILE] [--set KEY=VALUE]...`: Algorithm 1;
 //! * `eval --run DIR`: held-out metrics, divergence, ground-truth errors;
 //! * `inspect DATASET`: what a data set holds, and a contact sheet with the box drawn in;
-//! * `synth tiny|long|scalarflow OUT`: write a synthetic scene with ground truth;
+//! * `synth tiny|long|scalarflow|obstacle OUT`: write a synthetic scene with ground truth;
 //! * `render`: render a procedural plume (checks the build and the renderer).
 
 use std::path::{Path, PathBuf};
@@ -81,6 +81,9 @@ enum SynthPreset {
     Long,
     /// 64^3, 5 views, 120 frames at 270x480, ScalarFlow-sized.
     Scalarflow,
+    /// The long plume's settings for 48 frames, rising past a solid sphere (not drawn; its
+    /// place is in `info.json` under `obstacles`).
+    Obstacle,
 }
 
 /// `--device`: the backends compiled into this build.
@@ -243,6 +246,7 @@ fn run_command(cli: Cli) -> Result<()> {
                 SynthPreset::Tiny => SynthConfig::tiny(),
                 SynthPreset::Long => SynthConfig::long_plume(),
                 SynthPreset::Scalarflow => SynthConfig::scalarflow(),
+                SynthPreset::Obstacle => SynthConfig::obstacle_plume(),
             };
             if let Some(seed) = seed {
                 config.seed = seed;

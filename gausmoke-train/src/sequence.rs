@@ -5,7 +5,9 @@ use std::path::{Path, PathBuf};
 
 use gausmoke_core::Camera;
 use gausmoke_core::glam::Vec3;
-use gausmoke_data::{Dataset, Image, LoadOptions, PlannedView, Split, load_dnerf, load_pinf};
+use gausmoke_data::{
+    Dataset, Image, LoadOptions, Obstacle, PlannedView, Split, load_dnerf, load_pinf,
+};
 
 use crate::hash::Fnv1a;
 use crate::{TrainConfig, TrainError};
@@ -37,6 +39,8 @@ pub struct Sequence {
     pub first_frame: usize,
     /// Density scale the synthetic generator rendered with (sigma = scale * density).
     pub ground_truth_density_scale: Option<f32>,
+    /// Solids inside the box that the data set describes (see `TrainConfig::obstacles`).
+    pub obstacles: Vec<Obstacle>,
 }
 
 impl Sequence {
@@ -232,6 +236,7 @@ impl Sequence {
             ground_truth: ground_truth.is_dir().then_some(ground_truth),
             first_frame: config.first_frame,
             ground_truth_density_scale: density_scale,
+            obstacles: dataset.obstacles.clone(),
         })
     }
 }

@@ -27,7 +27,7 @@ use gausmoke_core::phase;
 use gausmoke_model::penalty::penalty_projection_with_report;
 use gausmoke_model::{
     GaussianModel, GridSpec, Integrator, Interpolation, PenaltyOptions, ProjectionOptions,
-    ProjectionReport, SplatOptions, UNetConfig, VelocityUNet, advect, advection_loss,
+    ProjectionReport, SolidCells, SplatOptions, UNetConfig, VelocityUNet, advect, advection_loss,
     density_and_gradient_grid, density_grid, divergence_loss_of, penalty_projection,
     project_direct, project_velocity, refine_loss, settle_deferred_solves,
 };
@@ -41,7 +41,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::TrainError;
 use crate::config::{
-    IntegratorKind, InterpolationKind, LookaheadVelocity, ProjectionKind, TrainConfig,
+    IntegratorKind, InterpolationKind, LookaheadVelocity, Obstacles, ProjectionKind, TrainConfig,
 };
 use crate::respawn::{DeficitView, RespawnOptions, RespawnReport, SpawnLattice, respawn};
 use crate::sequence::{Observation, Sequence};
@@ -158,6 +158,8 @@ pub struct Trainer {
     pub state: TrainState,
     background: Tensor<1>,
     raster: RasterOptions,
+    /// The data set's obstacles on the grid, when the configuration makes them solid.
+    solids: Option<SolidCells>,
     quiet: bool,
 }
 
@@ -186,6 +188,7 @@ impl Trainer {
         let background =
             Tensor::<1>::from_data(TensorData::new(sequence.background.to_vec(), [3]), &device);
         let raster = config.raster_options();
+        let solids = solid_cells(&sequence, &config, &grid)?;
         let state = fresh_state(&sequence, &config, &grid, &device);
         Ok(Self {
             config,
@@ -195,8 +198,14 @@ impl Trainer {
             state,
             background,
             raster,
+            solids,
             quiet: false,
         })
+    }
+
+    /// The grid cells the projection keeps the flow out of (the data set's obstacles), if any.
+    pub fn solid_cells(&self) -> Option<&SolidCells> {
+        self.solids.as_ref()
     }
 
     /// Hides the progress bars (tests, notebooks).
@@ -230,6 +239,7 @@ impl Trainer {
             max_iterations: self.config.projection_max_iterations,
             // Validated with the configuration.
             open_faces: self.config.open_faces().unwrap_or_default(),
+            solids: self.solids.clone(),
             // Deferred solves are judged when the steps' losses are read (`read_log`).
             convergence_tests: self.config.solver_tests.into(),
         }
@@ -253,7 +263,9 @@ impl Trainer {
     /// What the configured `Pi` does to `velocity` (for the frame's metrics).
     fn projection_report(&self, velocity: Tensor<4>) -> ProjectionReport {
         match self.config.projection {
-            ProjectionKind::Exact => project_direct(&self.grid, &mut read_floats(velocity)),
+            ProjectionKind::Exact => {
+                project_direct(&self.grid, &mut read_floats(velocity), &self.projection())
+            }
             ProjectionKind::Penalty => {
                 penalty_projection_with_report(&self.grid, velocity, &self.penalty()).1
             }
@@ -751,6 +763,45 @@ impl Trainer {
             })
             .collect()
     }
+}
+
+/// The data set's obstacles as solid cells of `grid` (cell centre inside), when there are any
+/// and `config.obstacles` makes them solid; refused with the penalty form of `Pi`, which has no
+/// notion of them, and when they cover no cell (a sphere smaller than the grid can see).
+fn solid_cells(
+    sequence: &Sequence,
+    config: &TrainConfig,
+    grid: &GridSpec,
+) -> Result<Option<SolidCells>, TrainError> {
+    if sequence.obstacles.is_empty() || config.obstacles == Obstacles::Ignore {
+        return Ok(None);
+    }
+    let refuse = |reason: String| TrainError::Config {
+        origin: "obstacles".into(),
+        reason,
+    };
+    if config.projection != ProjectionKind::Exact {
+        return Err(refuse(format!(
+            "the data set describes {} obstacle(s), which only projection = \"exact\" keeps \
+             the flow out of: use it, or set obstacles = \"ignore\"",
+            sequence.obstacles.len()
+        )));
+    }
+    let flags = grid.cells_where(|p| sequence.obstacles.iter().any(|o| o.contains(p)));
+    let solids = SolidCells::new(grid.resolution(), flags).expect("one flag per cell");
+    if solids.count() == 0 {
+        return Err(refuse(format!(
+            "the data set's obstacles cover no cell centre of the {:?} grid: refine \
+             grid_resolution, or set obstacles = \"ignore\"",
+            grid.resolution()
+        )));
+    }
+    tracing::info!(
+        cells = solids.count(),
+        of = grid.num_cells(),
+        "obstacle cells are solid in the projection"
+    );
+    Ok(Some(solids))
 }
 
 /// The state Algorithm 1 starts from: Gaussians spread in the box, zero velocity, Phi's

@@ -20,16 +20,16 @@ fn deferred_solves_read_nothing_and_are_judged_later() {
     };
     let deferred = ProjectionOptions {
         convergence_tests: ConvergenceTests::Deferred,
-        ..immediate
+        ..immediate.clone()
     };
     let input = velocity(&grid, 21);
 
     // No history of this solve's kind: the first deferred solve tests as it goes.
     let fresh = ProjectionOptions {
         max_iterations: 398,
-        ..deferred
+        ..deferred.clone()
     };
-    let first = device_projection(&input, &grid, &device, fresh);
+    let first = device_projection(&input, &grid, &device, fresh.clone());
     assert_eq!(settle_deferred_solves(), DeferredSolves::default());
     let first_expected = device_projection(
         &input,
@@ -37,12 +37,12 @@ fn deferred_solves_read_nothing_and_are_judged_later() {
         &device,
         ProjectionOptions {
             convergence_tests: ConvergenceTests::Immediate,
-            ..fresh
+            ..fresh.clone()
         },
     );
     assert_eq!(first, first_expected, "{backend}: first deferred solve");
 
-    let expected = device_projection(&input, &grid, &device, immediate);
+    let expected = device_projection(&input, &grid, &device, immediate.clone());
 
     // Solves with a short history still test as they go; once enough in a row needed no more
     // than their budget, a solve reads nothing (the test's own read of the result is not the
@@ -50,7 +50,7 @@ fn deferred_solves_read_nothing_and_are_judged_later() {
     let mut silent = 0;
     for attempt in 0..20 {
         let before = Traffic::now();
-        let result = device_projection(&input, &grid, &device, deferred);
+        let result = device_projection(&input, &grid, &device, deferred.clone());
         let reads = Traffic::now().since(before);
         assert_eq!(result, expected, "{backend}: deferred solve {attempt}");
         if reads.solver_reads == 0 {
@@ -73,18 +73,18 @@ fn deferred_solves_read_nothing_and_are_judged_later() {
     // tests as it goes and converges.
     let easy = expected.clone();
     for _ in 0..20 {
-        let _ = device_projection(&easy, &grid, &device, deferred);
+        let _ = device_projection(&easy, &grid, &device, deferred.clone());
     }
     assert_eq!(settle_deferred_solves().unconverged, 0);
     let before = Traffic::now();
-    let short = device_projection(&input, &grid, &device, deferred);
+    let short = device_projection(&input, &grid, &device, deferred.clone());
     assert_eq!(Traffic::now().since(before).reads, 0, "a trusted solve");
     let settled = settle_deferred_solves();
     assert_eq!((settled.solves, settled.unconverged), (1, 1), "{settled:?}");
     assert!(settled.worst_relative_residual > immediate.rel_tolerance);
     assert_ne!(short, expected);
     let before = Traffic::now();
-    let retried = device_projection(&input, &grid, &device, deferred);
+    let retried = device_projection(&input, &grid, &device, deferred.clone());
     assert!(Traffic::now().since(before).solver_reads > 0, "tests again");
     assert_eq!(retried, expected);
     assert_eq!(settle_deferred_solves(), DeferredSolves::default());

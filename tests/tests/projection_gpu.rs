@@ -103,8 +103,9 @@ fn device_projection_backward_projects_the_gradient() {
         .collect();
     let ad = device.autodiff();
     let u = velocity_tensor(&input, &grid, &ad).require_grad();
-    let loss =
-        (project_velocity(&grid, u.clone(), options) * velocity_tensor(&weight, &grid, &ad)).sum();
+    let loss = (project_velocity(&grid, u.clone(), options.clone())
+        * velocity_tensor(&weight, &grid, &ad))
+    .sum();
     let grads = loss.backward();
     let actual = to_vec(u.grad(&grads).expect("the velocity takes a gradient"));
     let expected = host_projection(&weight, &grid, &options);
@@ -125,11 +126,11 @@ fn device_projection_leaves_a_divergence_free_field() {
     let (backend, device) = gpu_device();
     let options = ProjectionOptions::default();
     let zero = vec![0.0f32; 3 * grid.num_cells()];
-    let actual = device_projection(&zero, &grid, &device, options);
+    let actual = device_projection(&zero, &grid, &device, options.clone());
     assert_close(&format!("Pi(0) on {backend}"), &actual, &zero, 0.0, 0.0);
     // A projected field is a fixed point (to the solver's tolerance).
     let projected = host_projection(&velocity(&grid, 9), &grid, &options);
-    let again = device_projection(&projected, &grid, &device, options);
+    let again = device_projection(&projected, &grid, &device, options.clone());
     assert_close(
         &format!("Pi(Pi(u)) on {backend}"),
         &again,

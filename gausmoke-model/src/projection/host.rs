@@ -16,13 +16,84 @@
 //! `Pi` is symmetric and idempotent, so its backward pass is `Pi` applied to the incoming
 //! gradient; nothing is differentiated through the solver's iterations.
 //!
+//! * [`SolidCells`] inside the box (obstacles) hold no velocity: `Pi` zeroes them, and a face
+//!   between a fluid cell and a solid one is a solid wall like the box's, so no flow crosses
+//!   an obstacle's surface. `D` has no row for a solid cell and reads none of its velocity,
+//!   so `Pi = M - D^T (D D^T)^+ D` (`M` zeroing the solid cells) stays symmetric and
+//!   idempotent.
+//!
 //! Caveat (collocated grid): `D`'s central differences cannot see odd-even (checkerboard)
 //! velocity modes, so `Pi` leaves them. The default Gaussian interpolation smooths them out
 //! (`L_div` of a projected radial field drops 98.7%), but trilinear sampled at cell centres
 //! still sees them (only 66%). A staggered (MAC) velocity, or a `D` defined through the
 //! interpolant's own divergence, would remove the mismatch; see the issue 4 notes.
 
+use std::sync::Arc;
+
 use rayon::prelude::*;
+
+/// The cells of a grid that an obstacle fills (see the module's notes): no flow enters
+/// them. Cheap to clone (the flags are shared); two sets compare equal when they mark the
+/// same cells.
+#[derive(Debug, Clone)]
+pub struct SolidCells {
+    resolution: [usize; 3],
+    solid: Arc<[bool]>,
+    count: usize,
+    fingerprint: u64,
+}
+
+impl SolidCells {
+    /// `solid` per cell, flat in the grid's order (x slowest, z fastest); `None` when its
+    /// length is not the grid's cell count.
+    pub fn new(resolution: [usize; 3], solid: Vec<bool>) -> Option<Self> {
+        if solid.len() != resolution.iter().product::<usize>() {
+            return None;
+        }
+        // FNV-1a over the flags: tells solves on different obstacles apart cheaply.
+        let mut fingerprint = 0xcbf2_9ce4_8422_2325u64;
+        for &flag in &solid {
+            fingerprint = (fingerprint ^ flag as u64).wrapping_mul(0x0100_0000_01b3);
+        }
+        Some(Self {
+            resolution,
+            count: solid.iter().filter(|&&s| s).count(),
+            solid: solid.into(),
+            fingerprint,
+        })
+    }
+
+    pub fn resolution(&self) -> [usize; 3] {
+        self.resolution
+    }
+
+    pub fn is_solid(&self, cell: usize) -> bool {
+        self.solid[cell]
+    }
+
+    /// The flags, one per cell.
+    pub fn flags(&self) -> &[bool] {
+        &self.solid
+    }
+
+    /// How many cells are solid.
+    pub fn count(&self) -> usize {
+        self.count
+    }
+
+    /// A hash of the flags (equal sets have equal fingerprints).
+    pub fn fingerprint(&self) -> u64 {
+        self.fingerprint
+    }
+}
+
+impl PartialEq for SolidCells {
+    fn eq(&self, other: &Self) -> bool {
+        self.resolution == other.resolution
+            && self.fingerprint == other.fingerprint
+            && (Arc::ptr_eq(&self.solid, &other.solid) || self.solid == other.solid)
+    }
+}
 
 /// Which faces of the box let the flow through. A solid face (the default) has zero normal
 /// velocity; an open face takes its face velocity from the cell inside it (zero normal
@@ -98,13 +169,15 @@ pub enum ConvergenceTests {
 }
 
 /// Solver controls and what it reached.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct ProjectionOptions {
     /// Stop when `|D u - D D^T p| <= rel_tolerance * |D u|`.
     pub rel_tolerance: f64,
     pub max_iterations: usize,
     /// The box faces the flow may cross.
     pub open_faces: OpenFaces,
+    /// Obstacles inside the box, if any.
+    pub solids: Option<SolidCells>,
     pub convergence_tests: ConvergenceTests,
 }
 
@@ -114,6 +187,7 @@ impl Default for ProjectionOptions {
             rel_tolerance: 1e-6,
             max_iterations: 2000,
             open_faces: OpenFaces::NONE,
+            solids: None,
             convergence_tests: ConvergenceTests::Immediate,
         }
     }
@@ -140,7 +214,7 @@ pub struct ProjectionReport {
 }
 
 /// What the op needs to know about the grid (plain data, so it can cross the dispatch).
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct ProjectionSpec {
     pub resolution: [usize; 3],
     pub cell: [f64; 3],
@@ -166,17 +240,20 @@ impl ProjectionSpec {
             resolution: self.resolution,
             cell: self.cell,
             open: self.options.open_faces,
+            solids: self.options.solids.clone(),
         }
     }
 }
 
 /// The discrete operators on one grid.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct Divergence {
     pub resolution: [usize; 3],
     /// Cell size per axis, world units.
     pub cell: [f64; 3],
     pub open: OpenFaces,
+    /// Obstacle cells (no velocity, no flow through their faces).
+    pub solids: Option<SolidCells>,
 }
 
 impl Divergence {
@@ -187,6 +264,7 @@ impl Divergence {
             resolution: grid.resolution(),
             cell: [cell.x as f64, cell.y as f64, cell.z as f64],
             open: OpenFaces::NONE,
+            solids: None,
         }
     }
 
@@ -195,19 +273,43 @@ impl Divergence {
         Self { open, ..self }
     }
 
-    /// Row `c` of `D` along `axis` at coordinate `i`: the coefficient (times `h`) on the
-    /// cell's own velocity, and how many neighbours it reaches across interior faces (each
-    /// with `+-1/2`). An interior face adds `+-1/2` to the own coefficient, an open boundary
-    /// face `+-1`, a solid one nothing.
-    fn axis_row(&self, axis: usize, i: usize) -> (f64, usize) {
+    /// The same operator with obstacle cells.
+    pub fn with_solids(self, solids: Option<SolidCells>) -> Self {
+        Self { solids, ..self }
+    }
+
+    fn is_solid(&self, cell: usize) -> bool {
+        self.solids.as_ref().is_some_and(|s| s.is_solid(cell))
+    }
+
+    /// Whether cell `c`'s neighbour along `axis` on the high (`+`) or low side exists and
+    /// holds fluid: the face between them is interior (neither a box face nor an obstacle's).
+    fn fluid_neighbour(&self, c: usize, axis: usize, high: bool) -> bool {
+        let i = self.coord(c, axis);
+        let s = self.stride(axis);
+        if high {
+            i + 1 < self.resolution[axis] && !self.is_solid(c + s)
+        } else {
+            i > 0 && !self.is_solid(c - s)
+        }
+    }
+
+    /// Row `c` of `D` along `axis`: the coefficient (times `h`) on the cell's own velocity,
+    /// and how many neighbours it reaches across interior faces (each with `+-1/2`). An
+    /// interior face adds `+-1/2` to the own coefficient, an open boundary face `+-1`, a solid
+    /// one (a box wall or an obstacle's face) nothing.
+    fn axis_row(&self, axis: usize, c: usize) -> (f64, usize) {
+        let i = self.coord(c, axis);
         let n = self.resolution[axis];
-        let (after, before) = (i + 1 < n, i > 0);
-        let plus = match (after, self.open.high[axis]) {
+        let after = self.fluid_neighbour(c, axis, true);
+        let before = self.fluid_neighbour(c, axis, false);
+        let (after_box, before_box) = (i + 1 >= n, i == 0);
+        let plus = match (after, after_box && self.open.high[axis]) {
             (true, _) => 0.5,
             (false, true) => 1.0,
             (false, false) => 0.0,
         };
-        let minus = match (before, self.open.low[axis]) {
+        let minus = match (before, before_box && self.open.low[axis]) {
             (true, _) => 0.5,
             (false, true) => 1.0,
             (false, false) => 0.0,
@@ -238,25 +340,30 @@ impl Divergence {
     }
 
     /// `(D u)_c = sum_axis (u_face+ - u_face-) / h`, face velocity = mean of its two cells,
-    /// zero on solid walls, the inner cell's on open faces. `u` is `[cells * 3]`.
+    /// zero on solid walls and obstacle faces, the inner cell's on open faces; 0 in obstacle
+    /// cells. `u` is `[cells * 3]`.
     pub fn apply(&self, u: &[f64], out: &mut [f64]) {
         let n = self.resolution;
         out.par_iter_mut().enumerate().for_each(|(c, o)| {
+            if self.is_solid(c) {
+                *o = 0.0;
+                return;
+            }
             let mut acc = 0.0;
             for a in 0..3 {
                 let i = self.coord(c, a);
                 let s = self.stride(a);
                 let own = u[3 * c + a];
-                let plus = if i + 1 < n[a] {
+                let plus = if self.fluid_neighbour(c, a, true) {
                     0.5 * (own + u[3 * (c + s) + a])
-                } else if self.open.high[a] {
+                } else if i + 1 >= n[a] && self.open.high[a] {
                     own
                 } else {
                     0.0
                 };
-                let minus = if i > 0 {
+                let minus = if self.fluid_neighbour(c, a, false) {
                     0.5 * (own + u[3 * (c - s) + a])
-                } else if self.open.low[a] {
+                } else if i == 0 && self.open.low[a] {
                     own
                 } else {
                     0.0
@@ -267,10 +374,14 @@ impl Divergence {
         });
     }
 
-    /// The adjoint `D^T p`, `[cells * 3]`.
+    /// The adjoint `D^T p`, `[cells * 3]` (0 in obstacle cells).
     pub fn apply_transpose(&self, p: &[f64], out: &mut [f64]) {
         let n = self.resolution;
         out.par_chunks_mut(3).enumerate().for_each(|(c, o)| {
+            if self.is_solid(c) {
+                o.fill(0.0);
+                return;
+            }
             for a in 0..3 {
                 let i = self.coord(c, a);
                 let s = self.stride(a);
@@ -278,14 +389,14 @@ impl Divergence {
                 // -1/2h at c's - face and in the cell below (interior faces); with +-1/h at
                 // c's own open boundary faces.
                 let mut acc = 0.0;
-                if i + 1 < n[a] {
+                if self.fluid_neighbour(c, a, true) {
                     acc += 0.5 * (p[c] - p[c + s]);
-                } else if self.open.high[a] {
+                } else if i + 1 >= n[a] && self.open.high[a] {
                     acc += p[c];
                 }
-                if i > 0 {
+                if self.fluid_neighbour(c, a, false) {
                     acc -= 0.5 * (p[c] - p[c - s]);
-                } else if self.open.low[a] {
+                } else if i == 0 && self.open.low[a] {
                     acc -= p[c];
                 }
                 o[a] = acc / self.cell[a];
@@ -299,13 +410,31 @@ impl Divergence {
         (0..n.iter().product::<usize>())
             .into_par_iter()
             .map(|c| {
+                if self.is_solid(c) {
+                    // No row: the residual stays 0 there, any scale will do.
+                    return 1.0;
+                }
                 (0..3)
                     .map(|a| {
-                        let (own, interior) = self.axis_row(a, self.coord(c, a));
+                        let (own, interior) = self.axis_row(a, c);
                         (interior as f64 * 0.25 + own * own) / (self.cell[a] * self.cell[a])
                     })
                     .sum::<f64>()
                     .max(1e-30)
+            })
+            .collect()
+    }
+}
+
+impl Divergence {
+    /// `M u - D^T p`: the projected velocity from `u` and `D^T p`, obstacle cells zeroed.
+    pub fn subtract_gradient(&self, u: &[f64], gradient: &[f64]) -> Vec<f64> {
+        u.par_chunks(3)
+            .zip(gradient.par_chunks(3))
+            .enumerate()
+            .flat_map_iter(|(c, (u, g))| {
+                let fluid = !self.is_solid(c);
+                (0..3).map(move |a| if fluid { u[a] - g[a] } else { 0.0 })
             })
             .collect()
     }
@@ -334,6 +463,11 @@ pub fn project(op: &Divergence, u: &mut [f32], options: &ProjectionOptions) -> P
     let rms = |v: &[f64]| (dot(v, v) / cells as f64).sqrt();
     let divergence_rms_before = rms(&b);
     if b_norm == 0.0 {
+        for (c, cell) in u.chunks_mut(3).enumerate() {
+            if op.is_solid(c) {
+                cell.fill(0.0);
+            }
+        }
         return ProjectionReport {
             iterations: 0,
             relative_residual: 0.0,
@@ -381,7 +515,7 @@ pub fn project(op: &Divergence, u: &mut [f32], options: &ProjectionOptions) -> P
             .for_each(|(d, z)| *d = z + beta * *d);
     }
     op.apply_transpose(&p, &mut grad);
-    let projected: Vec<f64> = u64.iter().zip(&grad).map(|(u, g)| u - g).collect();
+    let projected = op.subtract_gradient(&u64, &grad);
     let mut after = vec![0.0; cells];
     op.apply(&projected, &mut after);
     for (dst, src) in u.iter_mut().zip(&projected) {

@@ -15,11 +15,12 @@ use burn::tensor::Tensor;
 use crate::grid::GridSpec;
 pub use host::{
     ConvergenceTests, Divergence, OpenFaces, ProjectionOptions, ProjectionReport, ProjectionSpec,
-    SolveKind,
+    SolidCells, SolveKind,
 };
 pub use op::ProjectionBackend;
 
-/// `Pi(u)`: the divergence-free, wall-tangent part of the velocity grid `[nx, ny, nz, 3]`.
+/// `Pi(u)`: the divergence-free, wall-tangent part of the velocity grid `[nx, ny, nz, 3]`
+/// (zero in `options`' obstacle cells).
 /// Differentiable: its gradient is `Pi` of the incoming gradient.
 pub fn project_velocity(
     grid: &GridSpec,
@@ -59,11 +60,25 @@ pub fn settle_deferred_solves() -> DeferredSolves {
     }
 }
 
-/// Projects on the host with the direct solve the CPU backends use ([`spectral`]) and returns
-/// its report (for diagnostics and the CLI).
-pub fn project_direct(grid: &GridSpec, velocity: &mut [f32]) -> ProjectionReport {
-    let op = Divergence::on_grid(grid);
-    spectral::project(&op, &spectral::SpectralSolver::for_grid(&op), velocity)
+/// Projects on the host as the CPU backends do and returns the report (for diagnostics and the
+/// CLI): the direct solve of [`spectral`], with `options`' open faces; with obstacle cells,
+/// which the direct solve cannot separate, Jacobi-PCG in f64 to `options`' tolerance.
+pub fn project_direct(
+    grid: &GridSpec,
+    velocity: &mut [f32],
+    options: &ProjectionOptions,
+) -> ProjectionReport {
+    project_on_host(&ProjectionSpec::new(grid, options.clone()), velocity)
+}
+
+/// [`project_direct`] for a [`ProjectionSpec`].
+pub(crate) fn project_on_host(spec: &ProjectionSpec, velocity: &mut [f32]) -> ProjectionReport {
+    let op = spec.operator();
+    if op.solids.is_some() {
+        host::project(&op, velocity, &spec.options)
+    } else {
+        spectral::project(&op, &spectral::SpectralSolver::for_grid(&op), velocity)
+    }
 }
 
 /// Projects on the host with Jacobi-PCG, `options`' tolerance and iteration limit (the twin
@@ -74,7 +89,7 @@ pub fn project_with_report(
     options: &ProjectionOptions,
 ) -> ProjectionReport {
     host::project(
-        &ProjectionSpec::new(grid, *options).operator(),
+        &ProjectionSpec::new(grid, options.clone()).operator(),
         velocity,
         options,
     )

@@ -15,7 +15,6 @@ use burn::backend::{Backend, TensorMetadata, backend_extension};
 use burn::tensor::{TensorData, read_sync};
 
 use super::host::{ProjectionSpec, SolveKind};
-use super::spectral::{self, SpectralSolver};
 
 #[backend_extension(
     Cube: cfg(feature = "cube"),
@@ -28,8 +27,8 @@ pub trait ProjectionBackend: Backend {
     fn project_velocity(velocity: FloatTensor<Self>, spec: ProjectionSpec) -> FloatTensor<Self>;
 }
 
-/// Host implementation shared by the CPU backends (the direct solve of [`spectral`]); logs
-/// the solver report.
+/// Host implementation shared by the CPU backends (the direct solve of [`super::spectral`],
+/// or PCG with obstacles: see [`super::project_on_host`]); logs the solver report.
 fn host_project<B: Backend>(velocity: FloatTensor<B>, spec: ProjectionSpec) -> FloatTensor<B> {
     let device = velocity.device();
     let shape = velocity.shape();
@@ -37,8 +36,7 @@ fn host_project<B: Backend>(velocity: FloatTensor<B>, spec: ProjectionSpec) -> F
         .expect("reading the velocity grid back to the host failed")
         .try_into_vec_as::<f32>()
         .expect("CPU backends hold float tensors");
-    let op = spec.operator();
-    let report = spectral::project(&op, &SpectralSolver::for_grid(&op), &mut values);
+    let report = super::project_on_host(&spec, &mut values);
     tracing::debug!(?report, "velocity projection");
     B::float_from_data(TensorData::new(values, shape), &device)
 }
@@ -82,7 +80,7 @@ impl<B: Backend + ProjectionBackend> Backward<B, 1> for ProjectBackward {
             let _phase = gausmoke_core::phase!("projection backward");
             let spec = ProjectionSpec {
                 kind: SolveKind::Gradient,
-                ..ops.state
+                ..ops.state.clone()
             };
             grads.register::<B>(parent.id, B::project_velocity(grad, spec));
         }
@@ -94,7 +92,7 @@ impl<B: Backend + ProjectionBackend, C: CheckpointStrategy> ProjectionBackend fo
         let node = velocity.node();
         let output = {
             let _phase = gausmoke_core::phase!("projection");
-            B::project_velocity(velocity.into_primitive(), spec)
+            B::project_velocity(velocity.into_primitive(), spec.clone())
         };
         match ProjectBackward
             .prepare::<C>([node])

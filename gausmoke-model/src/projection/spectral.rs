@@ -292,7 +292,14 @@ impl SpectralSolver {
 
 /// Projects `u` (`[cells * 3]`, f32) in place with the direct solve; the report's
 /// `iterations` is 1 and its residual what f64 arithmetic left.
+///
+/// Obstacles make the operator inseparable: with [`Divergence::solids`] set this panics;
+/// callers solve those with [`super::host::project`] (see `super::project_on_host`).
 pub fn project(op: &Divergence, solver: &SpectralSolver, u: &mut [f32]) -> ProjectionReport {
+    assert!(
+        op.solids.is_none(),
+        "the direct solve separates the axes, which obstacle cells prevent"
+    );
     let cells: usize = op.resolution.iter().product();
     assert_eq!(u.len(), 3 * cells, "velocity must be [nx, ny, nz, 3]");
     let u64: Vec<f64> = u.iter().map(|&v| v as f64).collect();
@@ -353,6 +360,7 @@ mod tests {
             resolution: [6, 5, 7],
             cell: [0.2, 0.3, 0.25],
             open: OpenFaces::NONE,
+            solids: None,
         };
         let cells = 6 * 5 * 7;
         let mut rng = gausmoke_core::SplitMix64::new(4);
@@ -398,6 +406,7 @@ mod tests {
                 resolution: [6, 5, 7],
                 cell: [0.2, 0.3, 0.25],
                 open,
+                solids: None,
             };
             let cells = 6 * 5 * 7;
             let mut rng = gausmoke_core::SplitMix64::new(5);

@@ -489,7 +489,7 @@ fn physics(args: PhysicsArgs) -> Result<()> {
     let mut direct_report = None;
     let direct = time_ms(args.reps, || {
         let mut u = field.clone();
-        direct_report = Some(gausmoke_model::project_direct(&grid, &mut u));
+        direct_report = Some(gausmoke_model::project_direct(&grid, &mut u, &options));
         Ok(())
     })?;
 
@@ -498,7 +498,8 @@ fn physics(args: PhysicsArgs) -> Result<()> {
     let field_tensor =
         Tensor::<4>::from_data(TensorData::new(field.clone(), [n, n, n, 3]), &device);
     let projection_op = time_ms(args.reps, || {
-        let projected = gausmoke_model::project_velocity(&grid, field_tensor.clone(), options);
+        let projected =
+            gausmoke_model::project_velocity(&grid, field_tensor.clone(), options.clone());
         let _ = projected.into_data();
         Ok(())
     })?;

@@ -6,7 +6,7 @@
 use cubecl::prelude::*;
 use gausmoke_render::kernels::reduce::tree_sum;
 
-use super::operators::{divergence_at, inverse_diagonal};
+use super::operators::{divergence_at, inverse_diagonal, is_fluid};
 
 /// Units per cube of every kernel here (one unit per cell).
 pub const CELL_BLOCK: usize = 256;
@@ -99,6 +99,8 @@ pub fn operator_direction_kernel(
     floor_squared: f32,
     inverse_cell: &[f32],
     open_faces: u32,
+    fluid: &[f32],
+    has_solids: u32,
     nx: u32,
     ny: u32,
     nz: u32,
@@ -114,7 +116,18 @@ pub fn operator_direction_kernel(
     // Cells past the grid only pad the cube's sum (every unit reaches its barriers, so the
     // converged case skips the work, not the sum).
     if cell < nx * ny * nz && !converged {
-        let value = divergence_at(cell, direction, inverse_cell, open_faces, nx, ny, nz, true);
+        let value = divergence_at(
+            cell,
+            direction,
+            inverse_cell,
+            open_faces,
+            fluid,
+            has_solids,
+            nx,
+            ny,
+            nz,
+            true,
+        );
         operator_direction[cell as usize] = value;
         curvature = direction[cell as usize] * value;
     }
@@ -148,6 +161,8 @@ pub fn step_kernel(
     tolerance_squared: f32,
     floor_squared: f32,
     open_faces: u32,
+    fluid: &[f32],
+    has_solids: u32,
     nx: u32,
     ny: u32,
     nz: u32,
@@ -172,7 +187,16 @@ pub fn step_kernel(
         pressure[c] += step * direction[c];
         r = residual[c] - step * operator_direction[c];
         residual[c] = r;
-        z = r * inverse_diagonal(cell, inverse_cell, open_faces, nx, ny, nz);
+        z = r * inverse_diagonal(
+            cell,
+            inverse_cell,
+            open_faces,
+            fluid,
+            has_solids,
+            nx,
+            ny,
+            nz,
+        );
         preconditioned[c] = z;
     }
     cube_partial(r * r, partials, 0u32);
@@ -214,12 +238,23 @@ pub fn direction_kernel(
     direction[c] = preconditioned[c] + beta * direction[c];
 }
 
-/// `u - D^T p`, the projected velocity.
+/// `M u - D^T p`, the projected velocity (`M` zeroes the obstacle cells).
 #[cube(launch)]
-pub fn subtract_kernel(velocity: &[f32], gradient: &[f32], output: &mut [f32], len: u32) {
+pub fn subtract_kernel(
+    velocity: &[f32],
+    gradient: &[f32],
+    output: &mut [f32],
+    fluid: &[f32],
+    has_solids: u32,
+    len: u32,
+) {
     let index = ABSOLUTE_POS as u32;
     if index >= len {
         terminate!();
     }
-    output[index as usize] = velocity[index as usize] - gradient[index as usize];
+    let mut value = 0.0f32;
+    if is_fluid(index / 3, fluid, has_solids) {
+        value = velocity[index as usize] - gradient[index as usize];
+    }
+    output[index as usize] = value;
 }

@@ -74,8 +74,9 @@ const MAX_PENDING: usize = 64;
 /// whatever the hint.
 struct IterationHints;
 
-/// Grid resolution, open faces, stopping rule and kind of a solve.
-type HintKey = ([u32; 3], u32, u64, usize, SolveKind);
+/// Grid resolution, open faces, obstacles (their fingerprint), stopping rule and kind of a
+/// solve.
+type HintKey = ([u32; 3], u32, u64, u64, usize, SolveKind);
 
 /// What the solves of one key needed.
 #[derive(Debug, Clone, Copy, Default)]
@@ -289,6 +290,9 @@ struct Solver {
     inverse_cell: CubeTensor,
     /// `OpenFaces::bits` of the box.
     open_faces: u32,
+    /// Per cell 1 (fluid) or 0 (obstacle); read only when `has_solids` is 1.
+    fluid: CubeTensor,
+    has_solids: u32,
     dims: [u32; 3],
     cells: usize,
 }
@@ -331,6 +335,8 @@ impl Solver {
             buffer(output),
             buffer(&self.inverse_cell),
             self.open_faces,
+            buffer(&self.fluid),
+            self.has_solids,
             nx,
             ny,
             nz,
@@ -347,6 +353,8 @@ impl Solver {
             buffer(output),
             buffer(&self.inverse_cell),
             self.open_faces,
+            buffer(&self.fluid),
+            self.has_solids,
             nx,
             ny,
             nz,
@@ -445,6 +453,7 @@ pub fn project_velocity(
         rel_tolerance,
         max_iterations,
         open_faces,
+        ref solids,
         convergence_tests,
     } = spec.options;
     let inverse_cell = {
@@ -458,10 +467,37 @@ pub fn project_velocity(
     let dims = spec.resolution.map(|n| {
         u32::try_from(n).expect("grid resolution checked by GridSpec (under 8 GiB per tensor)")
     });
+    // One flag per cell, uploaded with the solve (a write, not a read); a placeholder the
+    // kernels never read without obstacles.
+    let fluid = {
+        use burn::backend::ops::FloatTensorOps;
+        let flags: Vec<f32> = match solids {
+            Some(solids) => {
+                assert_eq!(
+                    solids.resolution(),
+                    spec.resolution,
+                    "obstacle cells must be on the projected grid"
+                );
+                solids
+                    .flags()
+                    .iter()
+                    .map(|&s| if s { 0.0 } else { 1.0 })
+                    .collect()
+            }
+            None => vec![1.0],
+        };
+        let len = flags.len();
+        burn_cubecl::CubeBackend::float_from_data(
+            burn::tensor::TensorData::new(flags, [len]),
+            &velocity.device,
+        )
+    };
     let solver = Solver {
         like: velocity.clone(),
         inverse_cell,
         open_faces: open_faces.bits(),
+        fluid,
+        has_solids: solids.is_some() as u32,
         dims,
         cells,
     };
@@ -504,6 +540,8 @@ pub fn project_velocity(
         buffer(&direction),
         buffer(&solver.inverse_cell),
         solver.open_faces,
+        buffer(&solver.fluid),
+        solver.has_solids,
         nx,
         ny,
         nz,
@@ -518,6 +556,7 @@ pub fn project_velocity(
     let hint_key = (
         dims,
         solver.open_faces,
+        solids.as_ref().map_or(0, |s| s.fingerprint()),
         rel_tolerance.to_bits(),
         max_iterations,
         spec.kind,
@@ -553,6 +592,8 @@ pub fn project_velocity(
             stopping.floor_squared,
             buffer(&solver.inverse_cell),
             solver.open_faces,
+            buffer(&solver.fluid),
+            solver.has_solids,
             nx,
             ny,
             nz,
@@ -577,6 +618,8 @@ pub fn project_velocity(
             stopping.tolerance_squared,
             stopping.floor_squared,
             solver.open_faces,
+            buffer(&solver.fluid),
+            solver.has_solids,
             nx,
             ny,
             nz,
@@ -645,6 +688,8 @@ pub fn project_velocity(
         buffer(&velocity),
         buffer(&gradient),
         buffer(&output),
+        buffer(&solver.fluid),
+        solver.has_solids,
         (3 * cells) as u32,
     );
     let output = CubeTensor::new_contiguous(

@@ -1,5 +1,9 @@
 //! The grid operators of the projection as kernels, one unit per cell: the divergence `D`,
 //! its transpose, and the Jacobi preconditioner (as `projection::host::Divergence`).
+//!
+//! Obstacles: with `has_solids` set, `fluid` holds one flag per cell (1 fluid, 0 solid); a
+//! solid cell has no row in `D` and no velocity, and a face between a fluid cell and a solid
+//! one is a wall. Without, `fluid` is a placeholder that is never read.
 
 use cubecl::prelude::*;
 
@@ -46,56 +50,111 @@ fn face_is_open(open_faces: u32, axis: u32, side: u32) -> bool {
     ((open_faces >> (2 * axis + side)) & 1) == 1
 }
 
+/// Whether `cell` holds fluid (see the module's notes on obstacles).
+#[cube]
+pub fn is_fluid(cell: u32, fluid: &[f32], has_solids: u32) -> bool {
+    let mut result = true;
+    if has_solids != 0 {
+        result = fluid[cell as usize] > 0.5;
+    }
+    result
+}
+
+/// The neighbours of `cell` along `axis` (`i` its coordinate there, `n` the cells, `stride`
+/// the flat step) that exist and hold fluid, high side first: the faces between them and
+/// `cell` are interior.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn fluid_neighbours(
+    cell: u32,
+    i: u32,
+    n: u32,
+    stride: u32,
+    fluid: &[f32],
+    has_solids: u32,
+) -> (bool, bool) {
+    let mut high = false;
+    if i + 1 < n {
+        high = is_fluid(cell + stride, fluid, has_solids);
+    }
+    let mut low = false;
+    if i > 0 {
+        low = is_fluid(cell - stride, fluid, has_solids);
+    }
+    (high, low)
+}
+
 /// Jacobi preconditioner `1 / (D D^T)_cc` of one cell (as `Divergence::normal_diagonal`).
 #[cube]
+#[allow(clippy::too_many_arguments)]
 pub fn inverse_diagonal(
     cell: u32,
     inverse_cell: &[f32],
     open_faces: u32,
+    fluid: &[f32],
+    has_solids: u32,
     nx: u32,
     ny: u32,
     nz: u32,
 ) -> f32 {
     let mut diagonal = 0.0f32;
-    let mut axis = 0u32;
-    while axis < 3 {
-        let i = axis_coordinate(cell, axis, ny, nz);
-        let n = axis_cells(axis, nx, ny, nz);
-        let mut interior = 0.0f32;
-        let mut own = 0.0f32;
-        if i + 1 < n {
-            interior += 1.0;
-            own += 0.5;
-        } else if face_is_open(open_faces, axis, 1) {
-            own += 1.0;
+    if is_fluid(cell, fluid, has_solids) {
+        let mut axis = 0u32;
+        while axis < 3 {
+            let i = axis_coordinate(cell, axis, ny, nz);
+            let n = axis_cells(axis, nx, ny, nz);
+            let stride = axis_stride(axis, ny, nz);
+            let (high, low) = fluid_neighbours(cell, i, n, stride, fluid, has_solids);
+            let mut interior = 0.0f32;
+            let mut own = 0.0f32;
+            if high {
+                interior += 1.0;
+                own += 0.5;
+            } else if i + 1 >= n && face_is_open(open_faces, axis, 1) {
+                own += 1.0;
+            }
+            if low {
+                interior += 1.0;
+                own -= 0.5;
+            } else if i == 0 && face_is_open(open_faces, axis, 0) {
+                own -= 1.0;
+            }
+            let h_inv = inverse_cell[axis as usize];
+            diagonal += (0.25 * interior + own * own) * h_inv * h_inv;
+            axis += 1;
         }
-        if i > 0 {
-            interior += 1.0;
-            own -= 0.5;
-        } else if face_is_open(open_faces, axis, 0) {
-            own -= 1.0;
-        }
-        let h_inv = inverse_cell[axis as usize];
-        diagonal += (0.25 * interior + own * own) * h_inv * h_inv;
-        axis += 1;
+    } else {
+        // No row: the residual stays 0 there, any scale will do.
+        diagonal = 1.0;
     }
     1.0 / diagonal.max(1e-30)
 }
 
 /// The net outflow along one axis of a cell whose velocity component is `own`, with `high` and
-/// `low` its neighbours' (read only where they exist): face velocity = mean of its two cells,
-/// zero on solid walls, the inner cell's on open faces.
+/// `low` its neighbours' (read only where `high_fluid` / `low_fluid`): face velocity = mean of
+/// its two cells, zero on solid walls and obstacle faces, the inner cell's on open faces.
 #[cube]
-fn axis_flux(own: f32, high: f32, low: f32, i: u32, n: u32, open_faces: u32, axis: u32) -> f32 {
+#[allow(clippy::too_many_arguments)]
+fn axis_flux(
+    own: f32,
+    high: f32,
+    low: f32,
+    high_fluid: bool,
+    low_fluid: bool,
+    i: u32,
+    n: u32,
+    open_faces: u32,
+    axis: u32,
+) -> f32 {
     let mut flux = 0.0f32;
-    if i + 1 < n {
+    if high_fluid {
         flux += 0.5 * (own + high);
-    } else if face_is_open(open_faces, axis, 1) {
+    } else if i + 1 >= n && face_is_open(open_faces, axis, 1) {
         flux += own;
     }
-    if i > 0 {
+    if low_fluid {
         flux -= 0.5 * (own + low);
-    } else if face_is_open(open_faces, axis, 0) {
+    } else if i == 0 && face_is_open(open_faces, axis, 0) {
         flux -= own;
     }
     flux
@@ -112,13 +171,26 @@ fn velocity_component(
     source: &[f32],
     inverse_cell: &[f32],
     open_faces: u32,
+    fluid: &[f32],
+    has_solids: u32,
     nx: u32,
     ny: u32,
     nz: u32,
     #[comptime] of_gradient: bool,
 ) -> f32 {
     if comptime!(of_gradient) {
-        gradient_component(cell, axis, source, inverse_cell, open_faces, nx, ny, nz)
+        gradient_component(
+            cell,
+            axis,
+            source,
+            inverse_cell,
+            open_faces,
+            fluid,
+            has_solids,
+            nx,
+            ny,
+            nz,
+        )
     } else {
         source[(3 * cell + axis) as usize]
     }
@@ -134,69 +206,85 @@ pub fn divergence_at(
     source: &[f32],
     inverse_cell: &[f32],
     open_faces: u32,
+    fluid: &[f32],
+    has_solids: u32,
     nx: u32,
     ny: u32,
     nz: u32,
     #[comptime] of_gradient: bool,
 ) -> f32 {
     let mut total = 0.0f32;
-    let mut axis = 0u32;
-    while axis < 3 {
-        let i = axis_coordinate(cell, axis, ny, nz);
-        let n = axis_cells(axis, nx, ny, nz);
-        let stride = axis_stride(axis, ny, nz);
-        let own = velocity_component(
-            cell,
-            axis,
-            source,
-            inverse_cell,
-            open_faces,
-            nx,
-            ny,
-            nz,
-            of_gradient,
-        );
-        let mut high = 0.0f32;
-        if i + 1 < n {
-            high = velocity_component(
-                cell + stride,
+    if is_fluid(cell, fluid, has_solids) {
+        let mut axis = 0u32;
+        while axis < 3 {
+            let i = axis_coordinate(cell, axis, ny, nz);
+            let n = axis_cells(axis, nx, ny, nz);
+            let stride = axis_stride(axis, ny, nz);
+            let (high_fluid, low_fluid) = fluid_neighbours(cell, i, n, stride, fluid, has_solids);
+            let own = velocity_component(
+                cell,
                 axis,
                 source,
                 inverse_cell,
                 open_faces,
+                fluid,
+                has_solids,
                 nx,
                 ny,
                 nz,
                 of_gradient,
             );
+            let mut high = 0.0f32;
+            if high_fluid {
+                high = velocity_component(
+                    cell + stride,
+                    axis,
+                    source,
+                    inverse_cell,
+                    open_faces,
+                    fluid,
+                    has_solids,
+                    nx,
+                    ny,
+                    nz,
+                    of_gradient,
+                );
+            }
+            let mut low = 0.0f32;
+            if low_fluid {
+                low = velocity_component(
+                    cell - stride,
+                    axis,
+                    source,
+                    inverse_cell,
+                    open_faces,
+                    fluid,
+                    has_solids,
+                    nx,
+                    ny,
+                    nz,
+                    of_gradient,
+                );
+            }
+            total += axis_flux(
+                own, high, low, high_fluid, low_fluid, i, n, open_faces, axis,
+            ) * inverse_cell[axis as usize];
+            axis += 1;
         }
-        let mut low = 0.0f32;
-        if i > 0 {
-            low = velocity_component(
-                cell - stride,
-                axis,
-                source,
-                inverse_cell,
-                open_faces,
-                nx,
-                ny,
-                nz,
-                of_gradient,
-            );
-        }
-        total += axis_flux(own, high, low, i, n, open_faces, axis) * inverse_cell[axis as usize];
-        axis += 1;
     }
     total
 }
 
 /// `D u`, one unit per cell.
 #[cube(launch)]
+#[allow(clippy::too_many_arguments)]
 pub fn divergence_kernel(
     velocity: &[f32],
     divergence: &mut [f32],
     inverse_cell: &[f32],
     open_faces: u32,
+    fluid: &[f32],
+    has_solids: u32,
     nx: u32,
     ny: u32,
     nz: u32,
@@ -205,11 +293,21 @@ pub fn divergence_kernel(
     if cell >= nx * ny * nz {
         terminate!();
     }
-    divergence[cell as usize] =
-        divergence_at(cell, velocity, inverse_cell, open_faces, nx, ny, nz, false);
+    divergence[cell as usize] = divergence_at(
+        cell,
+        velocity,
+        inverse_cell,
+        open_faces,
+        fluid,
+        has_solids,
+        nx,
+        ny,
+        nz,
+        false,
+    );
 }
 
-/// Component `axis` of `(D^T p)_c` (`-D^T` is the discrete gradient).
+/// Component `axis` of `(D^T p)_c` (`-D^T` is the discrete gradient; 0 in obstacle cells).
 #[cube]
 #[allow(clippy::too_many_arguments)]
 fn gradient_component(
@@ -218,35 +316,44 @@ fn gradient_component(
     pressure: &[f32],
     inverse_cell: &[f32],
     open_faces: u32,
+    fluid: &[f32],
+    has_solids: u32,
     nx: u32,
     ny: u32,
     nz: u32,
 ) -> f32 {
-    let own = pressure[cell as usize];
-    let i = axis_coordinate(cell, axis, ny, nz);
-    let n = axis_cells(axis, nx, ny, nz);
-    let stride = axis_stride(axis, ny, nz);
     let mut value = 0.0f32;
-    if i + 1 < n {
-        value += 0.5 * (own - pressure[(cell + stride) as usize]);
-    } else if face_is_open(open_faces, axis, 1) {
-        value += own;
+    if is_fluid(cell, fluid, has_solids) {
+        let own = pressure[cell as usize];
+        let i = axis_coordinate(cell, axis, ny, nz);
+        let n = axis_cells(axis, nx, ny, nz);
+        let stride = axis_stride(axis, ny, nz);
+        let (high, low) = fluid_neighbours(cell, i, n, stride, fluid, has_solids);
+        if high {
+            value += 0.5 * (own - pressure[(cell + stride) as usize]);
+        } else if i + 1 >= n && face_is_open(open_faces, axis, 1) {
+            value += own;
+        }
+        if low {
+            value -= 0.5 * (own - pressure[(cell - stride) as usize]);
+        } else if i == 0 && face_is_open(open_faces, axis, 0) {
+            value -= own;
+        }
+        value *= inverse_cell[axis as usize];
     }
-    if i > 0 {
-        value -= 0.5 * (own - pressure[(cell - stride) as usize]);
-    } else if face_is_open(open_faces, axis, 0) {
-        value -= own;
-    }
-    value * inverse_cell[axis as usize]
+    value
 }
 
 /// `D^T p`, three components per cell.
 #[cube(launch)]
+#[allow(clippy::too_many_arguments)]
 pub fn divergence_transpose_kernel(
     pressure: &[f32],
     output: &mut [f32],
     inverse_cell: &[f32],
     open_faces: u32,
+    fluid: &[f32],
+    has_solids: u32,
     nx: u32,
     ny: u32,
     nz: u32,
@@ -257,20 +364,33 @@ pub fn divergence_transpose_kernel(
     }
     let mut axis = 0u32;
     while axis < 3 {
-        output[(3 * cell + axis) as usize] =
-            gradient_component(cell, axis, pressure, inverse_cell, open_faces, nx, ny, nz);
+        output[(3 * cell + axis) as usize] = gradient_component(
+            cell,
+            axis,
+            pressure,
+            inverse_cell,
+            open_faces,
+            fluid,
+            has_solids,
+            nx,
+            ny,
+            nz,
+        );
         axis += 1;
     }
 }
 
 /// Start of CG from `p = 0`: `z = M^-1 r` and `d = z`.
 #[cube(launch)]
+#[allow(clippy::too_many_arguments)]
 pub fn precondition_kernel(
     residual: &[f32],
     preconditioned: &mut [f32],
     direction: &mut [f32],
     inverse_cell: &[f32],
     open_faces: u32,
+    fluid: &[f32],
+    has_solids: u32,
     nx: u32,
     ny: u32,
     nz: u32,
@@ -279,7 +399,17 @@ pub fn precondition_kernel(
     if cell >= nx * ny * nz {
         terminate!();
     }
-    let z = residual[cell as usize] * inverse_diagonal(cell, inverse_cell, open_faces, nx, ny, nz);
+    let z = residual[cell as usize]
+        * inverse_diagonal(
+            cell,
+            inverse_cell,
+            open_faces,
+            fluid,
+            has_solids,
+            nx,
+            ny,
+            nz,
+        );
     preconditioned[cell as usize] = z;
     direction[cell as usize] = z;
 }
