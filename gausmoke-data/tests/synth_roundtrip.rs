@@ -181,3 +181,120 @@ fn long_plume_leaves_through_the_top() {
     }
     assert!(mass(&s) > halfway, "{} -> {}", halfway, mass(&s));
 }
+
+/// The obstacle preset: no smoke and no velocity ever inside the sphere, the plume gets past
+/// it (smoke above it, sideways flow beside it), and where the free plume rises through the
+/// sphere's place the obstacle's stands still.
+#[test]
+fn obstacle_plume_flows_around_the_sphere() {
+    let cfg = SynthConfig::obstacle_plume();
+    let sphere = cfg.obstacle.unwrap();
+    let mut s = Solver::new(&cfg).unwrap();
+    let mut free = Solver::new(&SynthConfig {
+        obstacle: None,
+        ..cfg.clone()
+    })
+    .unwrap();
+    let n = s.density.n;
+    let solid: Vec<usize> = (0..n * n * n).filter(|&i| s.solid[i]).collect();
+    assert!(solid.len() > 100, "{} solid cells", solid.len());
+    let (lo, hi) = synth::world_box();
+    let top_cell = ((sphere.centre.y + sphere.radius - lo.y) / (hi.y - lo.y) * n as f32) as usize;
+    for frame in 0..30 {
+        s.step_frame();
+        free.step_frame();
+        for &i in &solid {
+            let values = [
+                s.density.data[i],
+                s.velocity[0].data[i],
+                s.velocity[1].data[i],
+                s.velocity[2].data[i],
+            ];
+            assert_eq!(values, [0.0; 4], "frame {frame}, cell {i}");
+        }
+    }
+    let above: f32 = (top_cell + 1..n)
+        .flat_map(|y| (0..n * n).map(move |zx| (zx / n * n + y) * n + zx % n))
+        .map(|i| s.density.data[i])
+        .sum();
+    assert!(above > 1.0, "smoke above the obstacle: {above}");
+    // Just under the sphere the flow turns outwards, away from its axis.
+    let cell = (hi - lo) / n as f32;
+    let outward = |solver: &Solver| -> f32 {
+        let mut sum = 0.0;
+        for z in 0..n {
+            for y in 0..n {
+                for x in 0..n {
+                    let p = lo
+                        + cell
+                            * (gausmoke_data::glam::Vec3::new(x as f32, y as f32, z as f32) + 0.5);
+                    let d = p - sphere.centre;
+                    let shell = d.length() - sphere.radius;
+                    if !(0.0..2.0 * cell.x).contains(&shell) || d.y > 0.0 {
+                        continue;
+                    }
+                    let i = (z * n + y) * n + x;
+                    let h = gausmoke_data::glam::Vec2::new(d.x, d.z).normalize_or_zero();
+                    sum += h.x * solver.velocity[0].data[i] + h.y * solver.velocity[2].data[i];
+                }
+            }
+        }
+        sum
+    };
+    let (with, without) = (outward(&s), outward(&free));
+    assert!(
+        with > 0.0 && with > 2.0 * without.abs(),
+        "outward flow under the sphere {with} with the obstacle, {without} without"
+    );
+    let rising_free: f32 = solid.iter().map(|&i| free.velocity[1].data[i]).sum();
+    assert!(
+        rising_free > 0.1 * solid.len() as f32,
+        "the free plume does not pass the sphere's place ({rising_free})"
+    );
+}
+
+/// `info.json` describes the obstacle; the loader reads it back, and refuses a bad one naming
+/// the field.
+#[test]
+fn obstacles_round_trip_through_the_pinf_loader() {
+    let cfg = SynthConfig {
+        frames: 2,
+        obstacle: SynthConfig::obstacle_plume().obstacle,
+        ..SynthConfig::tiny()
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("ball");
+    synth::generate(&cfg, &out).unwrap();
+    let ds = load_pinf(&out, &LoadOptions::default()).unwrap();
+    let sphere = cfg.obstacle.unwrap();
+    assert_eq!(
+        ds.obstacles,
+        vec![gausmoke_data::Obstacle::Sphere {
+            centre: sphere.centre,
+            radius: sphere.radius
+        }]
+    );
+    let info = out.join("info.json");
+    let text = std::fs::read_to_string(&info).unwrap();
+    std::fs::write(&info, text.replace("\"radius\"", "\"raduis\"")).unwrap();
+    let err = load_pinf(&out, &LoadOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("radius") && err.contains("obstacles"), "{err}");
+    // Without the key there are none (every published data set).
+    let tiny = tmp.path().join("tiny");
+    synth::generate(
+        &SynthConfig {
+            frames: 1,
+            ..SynthConfig::tiny()
+        },
+        &tiny,
+    )
+    .unwrap();
+    assert!(
+        load_pinf(&tiny, &LoadOptions::default())
+            .unwrap()
+            .obstacles
+            .is_empty()
+    );
+}
