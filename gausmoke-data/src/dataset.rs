@@ -36,8 +36,20 @@ pub enum Obstacle {
 impl Obstacle {
     /// Whether the world point `p` lies inside the solid.
     pub fn contains(&self, p: Vec3) -> bool {
+        self.signed_distance(p) <= 0.0
+    }
+
+    /// Distance from `p` to the surface, negative inside.
+    pub fn signed_distance(&self, p: Vec3) -> f32 {
         match *self {
-            Obstacle::Sphere { centre, radius } => p.distance_squared(centre) <= radius * radius,
+            Obstacle::Sphere { centre, radius } => p.distance(centre) - radius,
+        }
+    }
+
+    /// The unit normal pointing out of the solid at the surface point nearest `p`.
+    pub fn outward_normal(&self, p: Vec3) -> Vec3 {
+        match *self {
+            Obstacle::Sphere { centre, .. } => (p - centre).normalize_or(Vec3::Y),
         }
     }
 }

@@ -3,7 +3,7 @@
 //! Images are `[H, W, 3]` row-major f32 in `[0, 1]`.
 
 use gausmoke_model::GridSpec;
-use gausmoke_model::projection::{Divergence, OpenFaces};
+use gausmoke_model::projection::{Divergence, OpenFaces, SolidCells};
 
 /// Peak signal-to-noise ratio in dB for images in `[0, 1]` (inputs are clamped first, as a
 /// saved PNG would be). Identical images give `f64::INFINITY`.
@@ -114,10 +114,17 @@ pub fn ssim(rendered: &[f32], reference: &[f32], width: usize, height: usize) ->
 
 /// Mean over cells of |div u| of a velocity grid (`[nx, ny, nz, 3]` flat, world units per
 /// frame), with the same face-averaged discrete divergence (and the same open faces) the
-/// projection makes zero; in 1/frame. This is the paper's Table 3 quantity on our grid.
-pub fn mean_abs_divergence(grid: &GridSpec, open: OpenFaces, velocity: &[f32]) -> f64 {
+/// projection makes zero, and its obstacle cells (which hold no divergence); in 1/frame.
+/// This is the paper's Table 3 quantity on our grid.
+pub fn mean_abs_divergence(
+    grid: &GridSpec,
+    open: OpenFaces,
+    solids: Option<&SolidCells>,
+    velocity: &[f32],
+) -> f64 {
     let divergence = Divergence::on_grid(grid)
         .with_open_faces(open)
+        .with_solids(solids.cloned())
         .of_velocity(velocity);
     divergence.iter().map(|d| d.abs()).sum::<f64>() / divergence.len().max(1) as f64
 }

@@ -9,7 +9,7 @@ use std::time::Instant;
 use burn::tensor::Device;
 use gausmoke_core::phases::{self, PhaseTime, PhaseTotals};
 use gausmoke_model::GridSpec;
-use gausmoke_model::projection::OpenFaces;
+use gausmoke_model::projection::{OpenFaces, SolidCells};
 
 use crate::checkpoint::{self, CheckpointMeta};
 use crate::config::RESUMABLE_KEYS;
@@ -367,7 +367,14 @@ impl Run {
         let train = &trainer.sequence.train[t];
         let test_renders = trainer.render_host(test)?;
         let open = self.trainer.config.open_faces()?;
-        let report = frame_report(&outcome, &state, test, &test_renders, (&grid, open), start);
+        let report = frame_report(
+            &outcome,
+            &state,
+            test,
+            &test_renders,
+            (&grid, open, trainer.solid_cells()),
+            start,
+        );
 
         self.folder.write_frame_state(t, &grid, &state)?;
         let frames = trainer.sequence.frames();
@@ -466,7 +473,7 @@ fn frame_report(
     state: &FrameState,
     test: &[Observation],
     test_renders: &[Vec<f32>],
-    (grid, open): (&GridSpec, OpenFaces),
+    (grid, open, solids): (&GridSpec, OpenFaces, Option<&SolidCells>),
     start: Instant,
 ) -> FrameReport {
     let (mut l1, mut psnr, mut ssim) = (0.0, 0.0, 0.0);
@@ -492,7 +499,7 @@ fn frame_report(
         test_l1: (tests > 0.0).then_some(l1 / tests),
         test_psnr: (tests > 0.0).then_some(psnr / tests),
         test_ssim: (tests > 0.0).then_some(ssim / tests),
-        mean_abs_divergence: metrics::mean_abs_divergence(grid, open, &state.velocity),
+        mean_abs_divergence: metrics::mean_abs_divergence(grid, open, solids, &state.velocity),
         projection_iterations: projection.iterations,
         projection_residual: projection.relative_residual,
         divergence_rms_before: projection.divergence_rms_before,

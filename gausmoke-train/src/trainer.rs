@@ -768,7 +768,7 @@ impl Trainer {
 /// The data set's obstacles as solid cells of `grid` (cell centre inside), when there are any
 /// and `config.obstacles` makes them solid; refused with the penalty form of `Pi`, which has no
 /// notion of them, and when they cover no cell (a sphere smaller than the grid can see).
-fn solid_cells(
+pub(crate) fn solid_cells(
     sequence: &Sequence,
     config: &TrainConfig,
     grid: &GridSpec,

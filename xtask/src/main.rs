@@ -9,6 +9,9 @@
 //!   `docs/results/` and `docs/RESULTS.md`.
 //! * `results`: rebuild the generated tables of `docs/RESULTS.md` from `docs/results/`.
 
+// The reproduction record is one large `json!` literal.
+#![recursion_limit = "256"]
+
 mod bench;
 mod lpips_weights;
 mod reproduce;

@@ -1,4 +1,4 @@
-//! The paper's Table 3 ablations as variants of a configuration.
+//! The paper's Table 3 ablations, and ours, as variants of a configuration.
 
 use gausmoke_train::TrainConfig;
 
@@ -8,6 +8,8 @@ pub enum Ablation {
     Physics,
     Refinement,
     Volumetric,
+    /// Ours (issue 20): the data set's obstacles ignored by the projection.
+    Solid,
 }
 
 impl Ablation {
@@ -17,12 +19,21 @@ impl Ablation {
         Ablation::Volumetric,
     ];
 
+    /// Every ablation a record's group may end with (the paper's and ours).
+    pub const KNOWN: [Ablation; 4] = [
+        Ablation::Physics,
+        Ablation::Refinement,
+        Ablation::Volumetric,
+        Ablation::Solid,
+    ];
+
     /// Appended to the full method's run key and group.
     pub fn suffix(self) -> &'static str {
         match self {
             Ablation::Physics => "-no-physics",
             Ablation::Refinement => "-no-refinement",
             Ablation::Volumetric => "-no-volumetric",
+            Ablation::Solid => "-no-solid",
         }
     }
 
@@ -31,6 +42,7 @@ impl Ablation {
             Ablation::Physics => "w/o physical losses",
             Ablation::Refinement => "w/o refinement",
             Ablation::Volumetric => "w/o volumetric rendering",
+            Ablation::Solid => "w/o solid obstacles",
         }
     }
 
@@ -46,6 +58,10 @@ impl Ablation {
             },
             Ablation::Volumetric => TrainConfig {
                 volumetric: false,
+                ..config
+            },
+            Ablation::Solid => TrainConfig {
+                obstacles: gausmoke_train::config::Obstacles::Ignore,
                 ..config
             },
         }

@@ -34,6 +34,9 @@ pub enum Target {
     /// A long synthetic plume with ground truth that leaves through the box's top while the
     /// source keeps feeding it (the drift test; `--quick`: 72 frames, 32^3, 64x96).
     SyntheticLong,
+    /// A synthetic plume rising past a solid sphere (issue 20), with the solid condition on
+    /// and off (`--quick`: 48 frames, 32^3, 64x96).
+    Obstacle,
 }
 
 #[derive(Debug, Args)]
@@ -192,6 +195,11 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
             open_faces: synthetic_open_faces(),
             ..TrainConfig::default()
         },
+        (Target::Obstacle, true) => quick_synthetic_long(),
+        (Target::Obstacle, false) => TrainConfig {
+            open_faces: synthetic_open_faces(),
+            ..TrainConfig::default()
+        },
     };
     if let Some(frames) = args.frames {
         base.frames = Some(frames);
@@ -222,6 +230,19 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
     Ok(match args.target {
         Target::ScalarReal => vec![keyed("scalar-real", "", "full method", base)],
         Target::SyntheticLong => vec![keyed("synthetic-long", "", "full method", base)],
+        Target::Obstacle => {
+            let mut list = vec![keyed("obstacle", "", "full method", base.clone())];
+            if !args.no_ablations {
+                let ablation = Ablation::Solid;
+                list.push(keyed(
+                    "obstacle",
+                    ablation.suffix(),
+                    ablation.label(),
+                    ablation.apply(base),
+                ));
+            }
+            list
+        }
         Target::Synthetic => {
             let mut list = vec![keyed("synthetic", "", "full method", base.clone())];
             if !args.no_ablations {
@@ -321,6 +342,7 @@ fn command_line(args: &ReproduceArgs) -> String {
             Target::ScalarReal => "scalar-real",
             Target::Synthetic => "synthetic",
             Target::SyntheticLong => "synthetic-long",
+            Target::Obstacle => "obstacle",
         }
     );
     if args.quick {
@@ -371,10 +393,18 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
     let data = match (args.target, &args.data) {
         (_, Some(path)) => path.clone(),
         (Target::ScalarReal, None) => root.join("../shared/datasets/scalar_real"),
-        (Target::Synthetic | Target::SyntheticLong, None) => {
+        (Target::Synthetic | Target::SyntheticLong | Target::Obstacle, None) => {
             let (preset, config) = match (args.target, args.quick) {
                 (Target::Synthetic, true) => ("tiny", SynthConfig::tiny()),
                 (Target::SyntheticLong, true) => ("long", SynthConfig::long_plume()),
+                (Target::Obstacle, true) => ("obstacle", SynthConfig::obstacle_plume()),
+                (Target::Obstacle, false) => (
+                    "obstacle-scalarflow",
+                    SynthConfig {
+                        obstacle: SynthConfig::obstacle_plume().obstacle,
+                        ..SynthConfig::scalarflow()
+                    },
+                ),
                 _ => ("scalarflow", SynthConfig::scalarflow()),
             };
             let path = args.out.join(format!("data-synthetic-{preset}"));
@@ -486,6 +516,10 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             "velocity_cosine_per_frame": per_frame(|f| f.velocity_cosine),
             "density_relative_error_per_frame": per_frame(|f| f.density_relative_error),
             "density_correlation_per_frame": per_frame(|f| f.density_correlation),
+            "obstacle_density_fraction": report.obstacle_density_fraction_mean,
+            "obstacle_normal_flow": report.obstacle_normal_flow_mean,
+            "obstacle_density_fraction_per_frame": per_frame(|f| f.obstacle_density_fraction),
+            "obstacle_normal_flow_per_frame": per_frame(|f| f.obstacle_normal_flow),
             "mean_abs_divergence_per_frame": per_frame(|f| Some(f.mean_abs_divergence)),
             "train_l1_per_frame": from_metrics("train_l1"),
             "clamped_to_box_per_frame": from_metrics("clamped_to_box"),
