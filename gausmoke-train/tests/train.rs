@@ -969,3 +969,92 @@ fn the_kinetic_prior_slows_the_velocity() {
         "mean |u|^2: {held} with the prior, {free} without"
     );
 }
+
+/// A data set with an obstacle: its cells are solid in the trained velocity (no flow in
+/// them), eval reports the leakage into it, `obstacles = "ignore"` lets the flow through,
+/// and the penalty form, which cannot keep the flow out, is refused naming the setting.
+#[test]
+fn obstacles_of_the_data_set_are_solid_in_the_trained_velocity() {
+    use gausmoke_train::config::{Obstacles, ProjectionKind};
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    generate(
+        &SynthConfig {
+            frames: 3,
+            obstacle: SynthConfig::obstacle_plume().obstacle,
+            ..SynthConfig::tiny()
+        },
+        &data,
+    )
+    .unwrap();
+    let config = TrainConfig {
+        frames: Some(3),
+        init_iterations: 40,
+        advect_iterations: 8,
+        refine_iterations: 2,
+        open_faces: vec!["y+".into()],
+        ..test_config()
+    };
+    let device = device_by_name("flex").unwrap().autodiff();
+    let mut inside_speed = Vec::new();
+    for obstacles in [Obstacles::Solid, Obstacles::Ignore] {
+        let config = TrainConfig {
+            obstacles,
+            ..config.clone()
+        };
+        let scene = Sequence::open(&data, &config).unwrap();
+        assert_eq!(scene.obstacles.len(), 1);
+        let run = dir.path().join(format!("run-{obstacles:?}"));
+        let mut training = Run::new(scene, config.clone(), device.clone(), &run, false)
+            .unwrap()
+            .quiet(true);
+        let solids = training.trainer.solid_cells().cloned();
+        assert_eq!(solids.is_some(), obstacles == Obstacles::Solid);
+        training.run().unwrap();
+        drop(training);
+        let arrays = read_arrays(&run.join("frames/frame_002.safetensors")).unwrap();
+        let velocity = &arrays["velocity"].1;
+        let grid = config
+            .grid(
+                gausmoke_data::synth::world_box().0,
+                gausmoke_data::synth::world_box().1,
+            )
+            .unwrap();
+        let obstacle = SynthConfig::obstacle_plume().obstacle.unwrap();
+        let inside = grid.cells_where(|p| p.distance(obstacle.centre) <= obstacle.radius);
+        assert!(inside.iter().filter(|&&s| s).count() > 20);
+        if let Some(solids) = &solids {
+            assert_eq!(solids.flags(), &inside[..]);
+        }
+        let speed: f32 = (0..inside.len())
+            .filter(|&c| inside[c])
+            .map(|c| {
+                velocity[3 * c..3 * c + 3]
+                    .iter()
+                    .map(|v| v.abs())
+                    .sum::<f32>()
+            })
+            .sum();
+        inside_speed.push(speed);
+        let report = eval::evaluate(&run, &device_by_name("flex").unwrap(), None).unwrap();
+        let fraction = report.obstacle_density_fraction_mean.unwrap();
+        let normal = report.obstacle_normal_flow_mean.unwrap();
+        eprintln!("{obstacles:?}: density inside {fraction:.4}, normal flow {normal:.3}");
+        assert!((0.0..=1.0).contains(&fraction) && (0.0..=1.0).contains(&normal));
+        assert!(report.frames[0].obstacle_normal_flow.is_none());
+    }
+    assert_eq!(inside_speed[0], 0.0, "velocity inside the solid obstacle");
+    assert!(inside_speed[1] > 0.0, "ignored, the obstacle holds no flow");
+
+    let penalty = TrainConfig {
+        projection: ProjectionKind::Penalty,
+        open_faces: Vec::new(),
+        ..config
+    };
+    let scene = Sequence::open(&data, &penalty).unwrap();
+    let err = match Run::new(scene, penalty, device, &dir.path().join("penalty"), false) {
+        Ok(_) => panic!("the penalty form was accepted with obstacles"),
+        Err(e) => e.to_string(),
+    };
+    assert!(err.contains("obstacles") && err.contains("exact"), "{err}");
+}
