@@ -369,8 +369,8 @@ fn open_faces_let_the_flow_through() {
     }
 }
 
-/// Obstacle cells inside the box (`SolidCells`): `Pi` leaves no velocity in them, no
-/// divergence in the fluid, keeps its algebra (symmetric, idempotent, backward = `Pi` of the
+/// Obstacle cells inside the box (`SolidCells`): `Pi` leaves no velocity in them nor towards
+/// them in the cells touching them, no divergence in the fluid, keeps its algebra (symmetric, idempotent, backward = `Pi` of the
 /// gradient), and makes a uniform stream go around the obstacle instead of through it.
 mod obstacles {
     use super::*;
@@ -405,23 +405,48 @@ mod obstacles {
             let mut u = random_field(g.num_cells(), 7);
             let report = project_with_report(&g, &mut u, &options);
             assert!(report.relative_residual <= 1e-10, "{open:?}: {report:?}");
+            let op = Divergence::on_grid(&g)
+                .with_open_faces(options.open_faces)
+                .with_solids(Some(solids.clone()));
+            // No velocity in the obstacle, none towards it from the cells touching it.
+            let mut pinned = 0;
             for c in 0..g.num_cells() {
                 if solids.is_solid(c) {
                     assert_eq!(&u[3 * c..3 * c + 3], &[0.0; 3], "{open:?}: solid cell {c}");
                 }
+                for a in 0..3 {
+                    if !solids.is_solid(c) && !op.component_is_free(c, a) {
+                        assert_eq!(u[3 * c + a], 0.0, "{open:?}: cell {c} axis {a}");
+                        pinned += 1;
+                    }
+                }
             }
-            let op = Divergence::on_grid(&g)
-                .with_open_faces(options.open_faces)
-                .with_solids(Some(solids.clone()));
+            assert!(pinned > 30, "{pinned} pinned components");
             let after = op.of_velocity(&u);
             let worst = after.iter().fold(0.0f64, |m, v| m.max(v.abs()));
             assert!(worst < 1e-4, "{open:?}: max |D u| {worst:.2e} after Pi");
-            // Without the obstacle the same field keeps a divergence in the cells next to it.
-            let free = Divergence::on_grid(&g)
+            // With no flow in or towards the obstacle, the operator that does not know of it
+            // finds no divergence either: nothing crosses the obstacle's faces.
+            let unaware = Divergence::on_grid(&g)
                 .with_open_faces(options.open_faces)
                 .of_velocity(&u);
-            let worst_free = free.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-            assert!(worst_free > 1.0, "{open:?}: the obstacle changed nothing");
+            let worst_unaware = unaware.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            assert!(worst_unaware < 1e-4, "{open:?}: {worst_unaware:.2e}");
+            // And the obstacle matters: the projection without it differs.
+            let mut without = random_field(g.num_cells(), 7);
+            project_with_report(
+                &g,
+                &mut without,
+                &ProjectionOptions {
+                    solids: None,
+                    ..options.clone()
+                },
+            );
+            let moved = without
+                .iter()
+                .zip(&u)
+                .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+            assert!(moved > 0.5, "{open:?}: the obstacle changed {moved}");
 
             // Symmetric and idempotent.
             let once = u.clone();

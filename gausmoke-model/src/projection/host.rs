@@ -16,11 +16,14 @@
 //! `Pi` is symmetric and idempotent, so its backward pass is `Pi` applied to the incoming
 //! gradient; nothing is differentiated through the solver's iterations.
 //!
-//! * [`SolidCells`] inside the box (obstacles) hold no velocity: `Pi` zeroes them, and a face
-//!   between a fluid cell and a solid one is a solid wall like the box's, so no flow crosses
-//!   an obstacle's surface. `D` has no row for a solid cell and reads none of its velocity,
-//!   so `Pi = M - D^T (D D^T)^+ D` (`M` zeroing the solid cells) stays symmetric and
-//!   idempotent.
+//! * [`SolidCells`] inside the box (obstacles) hold no velocity, and a face between a fluid
+//!   cell and a solid one is a wall like the box's. A fluid cell next to an obstacle along an
+//!   axis has no velocity component along that axis either (it is *pinned*): a face flux of
+//!   zero alone would leave the cell free to point into the obstacle, and an interpolated
+//!   velocity would then carry smoke into it. `D` has no row for a solid cell and reads no
+//!   pinned component, so `Pi = M - D^T (D D^T)^+ D` (`M` zeroing the solid cells and the
+//!   pinned components) stays the orthogonal projection onto `{u = M u, D u = 0}`:
+//!   symmetric and idempotent.
 //!
 //! Caveat (collocated grid): `D`'s central differences cannot see odd-even (checkerboard)
 //! velocity modes, so `Pi` leaves them. The default Gaussian interpolation smooths them out
@@ -294,13 +297,36 @@ impl Divergence {
         }
     }
 
-    /// Row `c` of `D` along `axis`: the coefficient (times `h`) on the cell's own velocity,
-    /// and how many neighbours it reaches across interior faces (each with `+-1/2`). An
-    /// interior face adds `+-1/2` to the own coefficient, an open boundary face `+-1`, a solid
-    /// one (a box wall or an obstacle's face) nothing.
+    /// Whether the velocity component `axis` of cell `c` is free: the cell holds fluid and
+    /// has no obstacle cell next to it along `axis` (else it is zero, see the module's notes).
+    pub fn component_is_free(&self, c: usize, axis: usize) -> bool {
+        let Some(solids) = &self.solids else {
+            return true;
+        };
+        let i = self.coord(c, axis);
+        let s = self.stride(axis);
+        !solids.is_solid(c)
+            && (i + 1 >= self.resolution[axis] || !solids.is_solid(c + s))
+            && (i == 0 || !solids.is_solid(c - s))
+    }
+
+    /// Component `axis` of cell `c` of `u`, or 0 where it is pinned.
+    fn free_component(&self, u: &[f64], c: usize, axis: usize) -> f64 {
+        if self.component_is_free(c, axis) {
+            u[3 * c + axis]
+        } else {
+            0.0
+        }
+    }
+
+    /// Row `c` of `D` along `axis`: the coefficient (times `h`) on the cell's own velocity
+    /// (0 when pinned), and how many free neighbour components it reaches across interior
+    /// faces (each with `+-1/2`). An interior face adds `+-1/2` to the own coefficient, an
+    /// open boundary face `+-1`, a solid one (a box wall or an obstacle's face) nothing.
     fn axis_row(&self, axis: usize, c: usize) -> (f64, usize) {
         let i = self.coord(c, axis);
         let n = self.resolution[axis];
+        let s = self.stride(axis);
         let after = self.fluid_neighbour(c, axis, true);
         let before = self.fluid_neighbour(c, axis, false);
         let (after_box, before_box) = (i + 1 >= n, i == 0);
@@ -314,7 +340,14 @@ impl Divergence {
             (false, true) => 1.0,
             (false, false) => 0.0,
         };
-        (plus - minus, after as usize + before as usize)
+        let own = if self.component_is_free(c, axis) {
+            plus - minus
+        } else {
+            0.0
+        };
+        let reached = (after && self.component_is_free(c + s, axis)) as usize
+            + (before && self.component_is_free(c - s, axis)) as usize;
+        (own, reached)
     }
 
     /// `D u` per cell (1 / frame) of a velocity grid `[nx, ny, nz, 3]`, flat, in f64.
@@ -341,7 +374,7 @@ impl Divergence {
 
     /// `(D u)_c = sum_axis (u_face+ - u_face-) / h`, face velocity = mean of its two cells,
     /// zero on solid walls and obstacle faces, the inner cell's on open faces; 0 in obstacle
-    /// cells. `u` is `[cells * 3]`.
+    /// cells; pinned components read as 0. `u` is `[cells * 3]`.
     pub fn apply(&self, u: &[f64], out: &mut [f64]) {
         let n = self.resolution;
         out.par_iter_mut().enumerate().for_each(|(c, o)| {
@@ -353,16 +386,16 @@ impl Divergence {
             for a in 0..3 {
                 let i = self.coord(c, a);
                 let s = self.stride(a);
-                let own = u[3 * c + a];
+                let own = self.free_component(u, c, a);
                 let plus = if self.fluid_neighbour(c, a, true) {
-                    0.5 * (own + u[3 * (c + s) + a])
+                    0.5 * (own + self.free_component(u, c + s, a))
                 } else if i + 1 >= n[a] && self.open.high[a] {
                     own
                 } else {
                     0.0
                 };
                 let minus = if self.fluid_neighbour(c, a, false) {
-                    0.5 * (own + u[3 * (c - s) + a])
+                    0.5 * (own + self.free_component(u, c - s, a))
                 } else if i == 0 && self.open.low[a] {
                     own
                 } else {
@@ -374,15 +407,15 @@ impl Divergence {
         });
     }
 
-    /// The adjoint `D^T p`, `[cells * 3]` (0 in obstacle cells).
+    /// The adjoint `D^T p`, `[cells * 3]` (0 in obstacle cells and pinned components).
     pub fn apply_transpose(&self, p: &[f64], out: &mut [f64]) {
         let n = self.resolution;
         out.par_chunks_mut(3).enumerate().for_each(|(c, o)| {
-            if self.is_solid(c) {
-                o.fill(0.0);
-                return;
-            }
             for a in 0..3 {
+                if !self.component_is_free(c, a) {
+                    o[a] = 0.0;
+                    continue;
+                }
                 let i = self.coord(c, a);
                 let s = self.stride(a);
                 // u_c appears with weight +1/2h in D at c's + face and in the cell above, and
@@ -427,14 +460,20 @@ impl Divergence {
 }
 
 impl Divergence {
-    /// `M u - D^T p`: the projected velocity from `u` and `D^T p`, obstacle cells zeroed.
+    /// `M u - D^T p`: the projected velocity from `u` and `D^T p`, obstacle cells and pinned
+    /// components zeroed.
     pub fn subtract_gradient(&self, u: &[f64], gradient: &[f64]) -> Vec<f64> {
         u.par_chunks(3)
             .zip(gradient.par_chunks(3))
             .enumerate()
             .flat_map_iter(|(c, (u, g))| {
-                let fluid = !self.is_solid(c);
-                (0..3).map(move |a| if fluid { u[a] - g[a] } else { 0.0 })
+                (0..3).map(move |a| {
+                    if self.component_is_free(c, a) {
+                        u[a] - g[a]
+                    } else {
+                        0.0
+                    }
+                })
             })
             .collect()
     }
@@ -464,8 +503,10 @@ pub fn project(op: &Divergence, u: &mut [f32], options: &ProjectionOptions) -> P
     let divergence_rms_before = rms(&b);
     if b_norm == 0.0 {
         for (c, cell) in u.chunks_mut(3).enumerate() {
-            if op.is_solid(c) {
-                cell.fill(0.0);
+            for (a, value) in cell.iter_mut().enumerate() {
+                if !op.component_is_free(c, a) {
+                    *value = 0.0;
+                }
             }
         }
         return ProjectionReport {

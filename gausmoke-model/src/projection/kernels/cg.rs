@@ -6,7 +6,7 @@
 use cubecl::prelude::*;
 use gausmoke_render::kernels::reduce::tree_sum;
 
-use super::operators::{divergence_at, inverse_diagonal, is_fluid};
+use super::operators::{component_is_free, divergence_at, inverse_diagonal};
 
 /// Units per cube of every kernel here (one unit per cell).
 pub const CELL_BLOCK: usize = 256;
@@ -238,22 +238,26 @@ pub fn direction_kernel(
     direction[c] = preconditioned[c] + beta * direction[c];
 }
 
-/// `M u - D^T p`, the projected velocity (`M` zeroes the obstacle cells).
+/// `M u - D^T p`, the projected velocity (`M` zeroes the obstacle cells and the pinned
+/// components).
 #[cube(launch)]
+#[allow(clippy::too_many_arguments)]
 pub fn subtract_kernel(
     velocity: &[f32],
     gradient: &[f32],
     output: &mut [f32],
     fluid: &[f32],
     has_solids: u32,
-    len: u32,
+    nx: u32,
+    ny: u32,
+    nz: u32,
 ) {
     let index = ABSOLUTE_POS as u32;
-    if index >= len {
+    if index >= 3 * nx * ny * nz {
         terminate!();
     }
     let mut value = 0.0f32;
-    if is_fluid(index / 3, fluid, has_solids) {
+    if component_is_free(index / 3, index % 3, fluid, has_solids, nx, ny, nz) {
         value = velocity[index as usize] - gradient[index as usize];
     }
     output[index as usize] = value;

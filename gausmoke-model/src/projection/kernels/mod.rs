@@ -690,7 +690,9 @@ pub fn project_velocity(
         buffer(&output),
         buffer(&solver.fluid),
         solver.has_solids,
-        (3 * cells) as u32,
+        nx,
+        ny,
+        nz,
     );
     let output = CubeTensor::new_contiguous(
         output.client,

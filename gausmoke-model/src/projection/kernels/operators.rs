@@ -2,8 +2,10 @@
 //! its transpose, and the Jacobi preconditioner (as `projection::host::Divergence`).
 //!
 //! Obstacles: with `has_solids` set, `fluid` holds one flag per cell (1 fluid, 0 solid); a
-//! solid cell has no row in `D` and no velocity, and a face between a fluid cell and a solid
-//! one is a wall. Without, `fluid` is a placeholder that is never read.
+//! solid cell has no row in `D` and no velocity, a face between a fluid cell and a solid one
+//! is a wall, and a fluid cell's component along an axis on which it touches an obstacle is
+//! pinned to zero (`Divergence::component_is_free`). Without, `fluid` is a placeholder that
+//! is never read.
 
 use cubecl::prelude::*;
 
@@ -60,6 +62,35 @@ pub fn is_fluid(cell: u32, fluid: &[f32], has_solids: u32) -> bool {
     result
 }
 
+/// Whether component `axis` of `cell` is free: a fluid cell with no obstacle cell next to it
+/// along `axis` (as `Divergence::component_is_free`).
+#[cube]
+#[allow(clippy::too_many_arguments)]
+pub fn component_is_free(
+    cell: u32,
+    axis: u32,
+    fluid: &[f32],
+    has_solids: u32,
+    nx: u32,
+    ny: u32,
+    nz: u32,
+) -> bool {
+    let mut free = true;
+    if has_solids != 0 {
+        let i = axis_coordinate(cell, axis, ny, nz);
+        let n = axis_cells(axis, nx, ny, nz);
+        let stride = axis_stride(axis, ny, nz);
+        free = is_fluid(cell, fluid, has_solids);
+        if i + 1 < n {
+            free = free && is_fluid(cell + stride, fluid, has_solids);
+        }
+        if i > 0 {
+            free = free && is_fluid(cell - stride, fluid, has_solids);
+        }
+    }
+    free
+}
+
 /// The neighbours of `cell` along `axis` (`i` its coordinate there, `n` the cells, `stride`
 /// the flat step) that exist and hold fluid, high side first: the faces between them and
 /// `cell` are interior.
@@ -108,16 +139,23 @@ pub fn inverse_diagonal(
             let mut interior = 0.0f32;
             let mut own = 0.0f32;
             if high {
-                interior += 1.0;
                 own += 0.5;
+                if component_is_free(cell + stride, axis, fluid, has_solids, nx, ny, nz) {
+                    interior += 1.0;
+                }
             } else if i + 1 >= n && face_is_open(open_faces, axis, 1) {
                 own += 1.0;
             }
             if low {
-                interior += 1.0;
                 own -= 0.5;
+                if component_is_free(cell - stride, axis, fluid, has_solids, nx, ny, nz) {
+                    interior += 1.0;
+                }
             } else if i == 0 && face_is_open(open_faces, axis, 0) {
                 own -= 1.0;
+            }
+            if !component_is_free(cell, axis, fluid, has_solids, nx, ny, nz) {
+                own = 0.0;
             }
             let h_inv = inverse_cell[axis as usize];
             diagonal += (0.25 * interior + own * own) * h_inv * h_inv;
@@ -192,7 +230,11 @@ fn velocity_component(
             nz,
         )
     } else {
-        source[(3 * cell + axis) as usize]
+        let mut value = 0.0f32;
+        if component_is_free(cell, axis, fluid, has_solids, nx, ny, nz) {
+            value = source[(3 * cell + axis) as usize];
+        }
+        value
     }
 }
 
@@ -307,7 +349,8 @@ pub fn divergence_kernel(
     );
 }
 
-/// Component `axis` of `(D^T p)_c` (`-D^T` is the discrete gradient; 0 in obstacle cells).
+/// Component `axis` of `(D^T p)_c` (`-D^T` is the discrete gradient; 0 in obstacle cells and
+/// pinned components).
 #[cube]
 #[allow(clippy::too_many_arguments)]
 fn gradient_component(
@@ -323,7 +366,7 @@ fn gradient_component(
     nz: u32,
 ) -> f32 {
     let mut value = 0.0f32;
-    if is_fluid(cell, fluid, has_solids) {
+    if component_is_free(cell, axis, fluid, has_solids, nx, ny, nz) {
         let own = pressure[cell as usize];
         let i = axis_coordinate(cell, axis, ny, nz);
         let n = axis_cells(axis, nx, ny, nz);
