@@ -24,6 +24,7 @@
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Device, Gradients, Tensor, TensorData};
 use gausmoke_core::phase;
+use gausmoke_data::Obstacle;
 use gausmoke_model::penalty::penalty_projection_with_report;
 use gausmoke_model::{
     GaussianModel, GridSpec, Integrator, Interpolation, PenaltyOptions, ProjectionOptions,
@@ -332,6 +333,18 @@ impl Trainer {
             }
         }
         self.state.gaussians = model.clamped();
+        self.keep_out_of_obstacles();
+    }
+
+    /// Moves the Gaussians whose centre lies inside a solid obstacle onto its surface: smoke
+    /// has no business there, and the velocity, zero inside, would never carry it out.
+    fn keep_out_of_obstacles(&mut self) {
+        if self.solids.is_none() {
+            return;
+        }
+        let means = self.state.gaussians.means.val().detach();
+        let outside = outside_obstacles(means, &self.sequence.obstacles);
+        self.state.gaussians = self.state.gaussians.clone().with_means(outside);
     }
 
     fn progress(&self, frame: usize, length: usize) -> ProgressBar {
@@ -638,6 +651,7 @@ impl Trainer {
 
         // K' refinement iterations (lines 11-13): free centres tied to the advected ones.
         self.state.gaussians = self.state.gaussians.clone().with_means(advected);
+        self.keep_out_of_obstacles();
         // Recycling sees the transported Gaussians against frame t: what they miss entered
         // the box (or was never fitted), and the refinement fits the recycled ones.
         let respawned = self.respawn(t)?.indices.len();
@@ -763,6 +777,29 @@ impl Trainer {
             })
             .collect()
     }
+}
+
+/// `means` `[N, 3]` with every centre inside one of `obstacles` moved radially onto its
+/// surface (a hair outside), in tensor operations (no read).
+fn outside_obstacles(means: Tensor<2>, obstacles: &[Obstacle]) -> Tensor<2> {
+    let device = means.device();
+    let [n, _] = means.dims();
+    obstacles
+        .iter()
+        .fold(means, |means, obstacle| match *obstacle {
+            Obstacle::Sphere { centre, radius } => {
+                let centre = Tensor::<2>::from_data(
+                    TensorData::new(centre.to_array().to_vec(), [1, 3]),
+                    &device,
+                );
+                let offset = means.clone() - centre.clone();
+                let squared = offset.clone().powi_scalar(2).sum_dim(1);
+                let inside = squared.clone().lower_elem(radius * radius).expand([n, 3]);
+                let distance = squared.sqrt().clamp_min(1e-12);
+                let surface = centre + offset / distance * (radius * 1.001);
+                means.mask_where(inside, surface)
+            }
+        })
 }
 
 /// The data set's obstacles as solid cells of `grid` (cell centre inside), when there are any

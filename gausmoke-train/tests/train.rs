@@ -971,7 +971,7 @@ fn the_kinetic_prior_slows_the_velocity() {
 }
 
 /// A data set with an obstacle: its cells are solid in the trained velocity (no flow in
-/// them), eval reports the leakage into it, `obstacles = "ignore"` lets the flow through,
+/// them), no Gaussian's centre stays inside it, eval reports the leakage into it, `obstacles = "ignore"` lets the flow through,
 /// and the penalty form, which cannot keep the flow out, is refused naming the setting.
 #[test]
 fn obstacles_of_the_data_set_are_solid_in_the_trained_velocity() {
@@ -1036,6 +1036,21 @@ fn obstacles_of_the_data_set_are_solid_in_the_trained_velocity() {
             })
             .sum();
         inside_speed.push(speed);
+        let centres_inside = arrays["means"]
+            .1
+            .chunks(3)
+            .filter(|m| {
+                gausmoke_data::glam::Vec3::from_slice(m).distance(obstacle.centre) < obstacle.radius
+            })
+            .count();
+        if obstacles == Obstacles::Solid {
+            assert_eq!(
+                centres_inside, 0,
+                "Gaussian centres inside the solid obstacle"
+            );
+        } else {
+            assert!(centres_inside > 0, "ignored, the obstacle holds Gaussians");
+        }
         let report = eval::evaluate(&run, &device_by_name("flex").unwrap(), None).unwrap();
         let fraction = report.obstacle_density_fraction_mean.unwrap();
         let normal = report.obstacle_normal_flow_mean.unwrap();
