@@ -493,6 +493,23 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 
 /// Projects `u` (`[cells * 3]`, f32) in place; returns what the solver reached.
 pub fn project(op: &Divergence, u: &mut [f32], options: &ProjectionOptions) -> ProjectionReport {
+    let inv_diag: Vec<f64> = op.normal_diagonal().iter().map(|d| 1.0 / d).collect();
+    project_preconditioned(op, u, options, |r, z| {
+        z.iter_mut()
+            .zip(r)
+            .zip(&inv_diag)
+            .for_each(|((z, r), m)| *z = r * m)
+    })
+}
+
+/// [`project`] with the preconditioner `precondition(r, z)`, which writes `z = M^-1 r` for a
+/// symmetric positive (semi-)definite `M^-1`.
+pub fn project_preconditioned(
+    op: &Divergence,
+    u: &mut [f32],
+    options: &ProjectionOptions,
+    precondition: impl Fn(&[f64], &mut [f64]),
+) -> ProjectionReport {
     let cells: usize = op.resolution.iter().product();
     assert_eq!(u.len(), 3 * cells, "velocity must be [nx, ny, nz, 3]");
     let u64: Vec<f64> = u.iter().map(|&v| v as f64).collect();
@@ -516,11 +533,11 @@ pub fn project(op: &Divergence, u: &mut [f32], options: &ProjectionOptions) -> P
             divergence_rms_after: 0.0,
         };
     }
-    // CG on D D^T p = b with Jacobi preconditioning, from p = 0.
-    let inv_diag: Vec<f64> = op.normal_diagonal().iter().map(|d| 1.0 / d).collect();
+    // Preconditioned CG on D D^T p = b, from p = 0.
     let mut p = vec![0.0; cells];
     let mut r = b.clone();
-    let mut z: Vec<f64> = r.iter().zip(&inv_diag).map(|(r, m)| r * m).collect();
+    let mut z = vec![0.0; cells];
+    precondition(&r, &mut z);
     let mut dir = z.clone();
     let mut rz = dot(&r, &z);
     let mut grad = vec![0.0; 3 * cells];
@@ -544,10 +561,7 @@ pub fn project(op: &Divergence, u: &mut [f32], options: &ProjectionOptions) -> P
         if residual <= options.rel_tolerance {
             break;
         }
-        z.par_iter_mut()
-            .zip(&r)
-            .zip(&inv_diag)
-            .for_each(|((z, r), m)| *z = r * m);
+        precondition(&r, &mut z);
         let rz_next = dot(&r, &z);
         let beta = rz_next / rz;
         rz = rz_next;
