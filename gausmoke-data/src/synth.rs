@@ -15,15 +15,18 @@
 //! [`SynthConfig::camera_distance`] in the horizontal plane through it, spread over
 //! [`SynthConfig::arc_degrees`] centred on +Z. The middle camera is the test view.
 //!
-//! Rendering (emission-absorption, grey smoke of albedo 1, black background): along each
+//! Rendering (emission-absorption, grey smoke of albedo 1, [`SynthConfig::background`]): along each
 //! pixel-centre ray, `sigma = density_scale * density`, `L = sum T_k (1 - exp(-sigma_k ds))`,
 //! `T_{k+1} = T_k exp(-sigma_k ds)`, step `ds` = half a cell, pixel = `L + T * background`.
 //! PNGs store it in 8 bits, so loaded pixels match the marcher to 0.5/255.
 //!
 //! An optional spherical obstacle ([`SynthConfig::obstacle`]) is solid in the solver: its
 //! cells hold no velocity and no smoke, and the pressure solve treats their faces as walls.
-//! It is not drawn (the renders show only smoke), so what a reconstruction puts inside it is
-//! leaked smoke; `info.json` describes it under `obstacles` in world units.
+//! Unless [`SynthSphere::visible`], it is not drawn (the renders show only smoke), so what a
+//! reconstruction puts inside it is leaked smoke; a visible one is an opaque, lit sphere with a
+//! checker texture (8 x 4 tiles in longitude and latitude, albedo 0.35 and 0.75, light from
+//! `(0.3, 1, 0.5)` plus 0.3 ambient) in front of which the smoke is composited. `info.json`
+//! describes it under `obstacles` in world units.
 //!
 //! Nothing is partially written: the scene is built in a sibling `.partial` folder and
 //! renamed into place at the end; an existing non-empty output folder is refused.
@@ -69,6 +72,8 @@ pub struct SynthConfig {
     pub fov_x: f32,
     /// A solid sphere in the box (world units), or none.
     pub obstacle: Option<SynthSphere>,
+    /// Linear RGB behind the box.
+    pub background: [f32; 3],
 }
 
 /// A sphere in world units (see [`world_box`]).
@@ -76,6 +81,33 @@ pub struct SynthConfig {
 pub struct SynthSphere {
     pub centre: Vec3,
     pub radius: f32,
+    /// Drawn as an opaque textured ball (else only its effect on the smoke shows).
+    pub visible: bool,
+}
+
+impl SynthSphere {
+    /// The ray parameter where `origin + t dir` (unit `dir`) first enters the sphere.
+    fn hit(&self, origin: Vec3, dir: Vec3) -> Option<f32> {
+        let offset = origin - self.centre;
+        let b = offset.dot(dir);
+        let c = offset.length_squared() - self.radius * self.radius;
+        let discriminant = b * b - c;
+        (discriminant >= 0.0)
+            .then(|| -b - discriminant.sqrt())
+            .filter(|&t| t > 0.0)
+    }
+
+    /// The lit, textured colour of the surface point `p` (see the module's notes).
+    fn shade(&self, p: Vec3) -> f32 {
+        let n = (p - self.centre) / self.radius;
+        let longitude = n.z.atan2(n.x);
+        let latitude = n.y.clamp(-1.0, 1.0).asin();
+        let tile = ((longitude / std::f32::consts::TAU * 8.0).floor()
+            + (latitude / std::f32::consts::PI * 4.0).floor()) as i32;
+        let albedo = if tile.rem_euclid(2) == 0 { 0.35 } else { 0.75 };
+        let light = Vec3::new(0.3, 1.0, 0.5).normalize();
+        albedo * (0.3 + 0.7 * n.dot(light).max(0.0))
+    }
 }
 
 impl SynthConfig {
@@ -101,6 +133,7 @@ impl SynthConfig {
             arc_degrees: 120.0,
             fov_x: 0.75,
             obstacle: None,
+            background: [0.0; 3],
         }
     }
 
@@ -144,8 +177,23 @@ impl SynthConfig {
             obstacle: Some(SynthSphere {
                 centre: Vec3::new(0.04, 0.4, 0.0),
                 radius: 0.14,
+                visible: false,
             }),
             ..Self::long_plume()
+        }
+    }
+
+    /// The static-primitives test (issue 20): the obstacle plume with the sphere drawn as a
+    /// textured ball, over a grey-blue background.
+    pub fn ball_plume() -> Self {
+        let obstacle = Self::obstacle_plume().obstacle.map(|sphere| SynthSphere {
+            visible: true,
+            ..sphere
+        });
+        Self {
+            obstacle,
+            background: [0.12, 0.14, 0.18],
+            ..Self::obstacle_plume()
         }
     }
 
@@ -175,6 +223,9 @@ impl SynthConfig {
         ];
         if finite.iter().any(|v| !v.is_finite()) {
             return bad("config", "non-finite value".into());
+        }
+        if self.background.iter().any(|v| !(0.0..=1.0).contains(v)) {
+            return bad("background", "3 values in [0, 1]".into());
         }
         if let Some(sphere) = self.obstacle {
             let (lo, hi) = world_box();
@@ -621,6 +672,7 @@ pub fn render(
     camera: &Camera,
     density_scale: f32,
     background: [f32; 3],
+    ball: Option<&SynthSphere>,
 ) -> Result<Image> {
     let (lo, hi) = world_box();
     let n = density.n as f32;
@@ -642,6 +694,14 @@ pub fn render(
                 t1 = t1.min(ta.max(tb));
             }
             let (mut light, mut trans) = (0.0f32, 1.0f32);
+            // A visible ball hides what lies behind it: march up to it, then show it.
+            let hit = ball.filter(|b| b.visible).and_then(|b| b.hit(origin, dir));
+            let behind = hit.map_or(background, |t| {
+                [ball.expect("hit").shade(origin + dir * t); 3]
+            });
+            if let Some(t) = hit {
+                t1 = t1.min(t);
+            }
             if t1 > t0 {
                 let steps = ((t1 - t0) / ds).ceil() as usize;
                 let step = (t1 - t0) / steps.max(1) as f32;
@@ -655,7 +715,7 @@ pub fn render(
                 }
             }
             for c in 0..3 {
-                row[i * 3 + c] = light + trans * background[c];
+                row[i * 3 + c] = light + trans * behind[c];
             }
         }
     });
@@ -713,7 +773,7 @@ pub fn generate(cfg: &SynthConfig, out: &Path) -> Result<SynthScene> {
 
 fn write_scene(cfg: &SynthConfig, dir: &Path) -> Result<SynthScene> {
     let cams = cameras(cfg)?;
-    let background = [0.0f32; 3];
+    let background = cfg.background;
     std::fs::create_dir_all(dir.join("gt")).map_err(io_err(dir))?;
     let view_names: Vec<String> = (0..cfg.views).map(|k| format!("view{k:02}")).collect();
     for v in &view_names {
@@ -727,7 +787,13 @@ fn write_scene(cfg: &SynthConfig, dir: &Path) -> Result<SynthScene> {
         solver.step_frame();
         divergence.push(solver.mean_abs_divergence());
         for (k, cam) in cams.iter().enumerate() {
-            let img = render(&solver.density, cam, cfg.density_scale, background)?;
+            let img = render(
+                &solver.density,
+                cam,
+                cfg.density_scale,
+                background,
+                cfg.obstacle.as_ref(),
+            )?;
             img.save_png(&dir.join(&view_names[k]).join(format!("{t:03}.png")))?;
             frames[k].push(img);
         }

@@ -232,6 +232,13 @@ impl<S: AsRef<[f32]>> Gaussians<S> {
 }
 
 impl HostGaussians {
+    /// Appends `other`'s Gaussians after these.
+    pub fn append(&mut self, other: &HostGaussians) {
+        for (mine, theirs) in self.as_mut().zip(other.as_ref()).into_array() {
+            mine.extend_from_slice(theirs);
+        }
+    }
+
     pub fn with_capacity(n: usize) -> Self {
         Self::default().map(|attribute, _| Vec::with_capacity(attribute.columns * n))
     }
@@ -254,6 +261,18 @@ impl HostGaussians {
 }
 
 impl GaussianTensors {
+    /// These Gaussians followed by `other`'s, as one set (what one render composites in a
+    /// single depth-sorted pass).
+    pub fn concat(self, other: GaussianTensors) -> GaussianTensors {
+        Gaussians {
+            means: Tensor::cat(vec![self.means, other.means], 0),
+            rotations: Tensor::cat(vec![self.rotations, other.rotations], 0),
+            log_scales: Tensor::cat(vec![self.log_scales, other.log_scales], 0),
+            raw_densities: Tensor::cat(vec![self.raw_densities, other.raw_densities], 0),
+            colors: Tensor::cat(vec![self.colors, other.colors], 0),
+        }
+    }
+
     pub fn len(&self) -> usize {
         self.raw_densities.dims()[0]
     }

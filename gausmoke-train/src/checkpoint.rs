@@ -16,7 +16,7 @@ use crate::arrays::{HostArrays, read_arrays, take_array, write_arrays};
 use crate::config::TrainConfig;
 use crate::export::sync_to_disk;
 use crate::hash::Fnv1a;
-use crate::state::{FrameReport, LossRow, PhaseSeconds, TrainState};
+use crate::state::{FrameReport, LossRow, PhaseSeconds, StaticGaussians, TrainState};
 
 fn checkpoint_error(path: &Path, reason: impl ToString) -> TrainError {
     TrainError::Checkpoint {
@@ -51,6 +51,8 @@ const GAUSSIAN_OPTIM_FILE: &str = "gaussian_optim.bpk";
 const PHI_OPTIM_FILE: &str = "phi_optim.bpk";
 const VELOCITY_FILE: &str = "velocity.safetensors";
 const META_FILE: &str = "state.json";
+const STATICS_FILE: &str = "statics.bpk";
+const STATIC_OPTIM_FILE: &str = "static_optim.bpk";
 const TENSOR_FILES: [&str; 5] = [
     GAUSSIANS_FILE,
     PHI_FILE,
@@ -172,6 +174,19 @@ fn write_files(dir: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<
         .phi_optim
         .save(dir.join(PHI_OPTIM_FILE))
         .map_err(record)?;
+    let mut files = TENSOR_FILES.to_vec();
+    if let Some(statics) = &state.statics {
+        statics
+            .gaussians
+            .clone()
+            .save_file(dir.join(STATICS_FILE))
+            .map_err(record)?;
+        statics
+            .optim
+            .save(dir.join(STATIC_OPTIM_FILE))
+            .map_err(record)?;
+        files.extend([STATICS_FILE, STATIC_OPTIM_FILE]);
+    }
     let velocity = state.velocity.clone();
     let shape = velocity.dims().to_vec();
     let values = gausmoke_render::device_traffic::read_floats(velocity);
@@ -181,7 +196,7 @@ fn write_files(dir: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<
     )?;
     let mut meta = meta.clone();
     meta.checksums.clear();
-    for file in TENSOR_FILES {
+    for &file in &files {
         meta.checksums
             .insert(file.into(), checksum(&dir.join(file))?);
     }
@@ -190,7 +205,7 @@ fn write_files(dir: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<
         path: dir.join(META_FILE),
         source,
     })?;
-    for file in TENSOR_FILES.iter().chain(&[META_FILE]) {
+    for file in files.iter().chain(&[META_FILE]) {
         sync_to_disk(&dir.join(file))?;
     }
     sync_to_disk(dir)
@@ -261,6 +276,19 @@ pub fn load(
         .phi_optim
         .load(dir.join(PHI_OPTIM_FILE))
         .map_err(record(PHI_OPTIM_FILE))?;
+    let statics = match state.statics {
+        Some(statics) => Some(StaticGaussians {
+            gaussians: statics
+                .gaussians
+                .try_load_file(dir.join(STATICS_FILE))
+                .map_err(record(STATICS_FILE))?,
+            optim: statics
+                .optim
+                .load(dir.join(STATIC_OPTIM_FILE))
+                .map_err(record(STATIC_OPTIM_FILE))?,
+        }),
+        None => None,
+    };
     let path = dir.join(VELOCITY_FILE);
     let mut arrays = read_arrays(&path)?;
     let shape = state.velocity.dims();
@@ -269,6 +297,7 @@ pub fn load(
     Ok((
         TrainState {
             gaussians,
+            statics,
             velocity,
             phi,
             gaussian_optim,

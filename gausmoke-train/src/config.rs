@@ -173,6 +173,12 @@ pub const MAX_TIME_FREQUENCIES: usize = 16;
 pub struct TrainConfig {
     /// Number of Gaussians, initialised uniformly inside the data set's smoke box.
     pub gaussians: usize,
+    /// Static Gaussians for solids and background (issue 20; 0, the default, has none): the
+    /// same primitives as the smoke's, rendered with them in one pass, but never advected,
+    /// one set for every frame, fitted first to the training views' per-pixel minimum over
+    /// time (where smoke, which only adds light, is absent at least once) and then with the
+    /// smoke at every step from frame 1 on. Phi and the physics see the smoke's density only.
+    pub static_gaussians: usize,
     /// Cells along each axis of the velocity/density grid (paper: 64). Must be a multiple
     /// of 4 (the U-Net halves it twice).
     pub grid_resolution: usize,
@@ -305,6 +311,7 @@ impl Default for TrainConfig {
     fn default() -> Self {
         Self {
             gaussians: 30_000,
+            static_gaussians: 0,
             grid_resolution: 64,
             image_size: None,
             frames: None,

@@ -283,7 +283,7 @@ pub fn evaluate(
         };
         let velocity = &state.velocity;
         let density = &state.density;
-        let gaussians = state.gaussians.to_tensors(device)?;
+        let gaussians = state.rendered().to_tensors(device)?;
         let mut psnr = Vec::new();
         let mut ssim = Vec::new();
         let mut perceptual = Vec::new();

@@ -4,7 +4,7 @@
 //! * `train --data DIR --out DIR [--config FILE] [--set KEY=VALUE]...`: Algorithm 1;
 //! * `eval --run DIR`: held-out metrics, divergence, ground-truth errors;
 //! * `inspect DATASET`: what a data set holds, and a contact sheet with the box drawn in;
-//! * `synth tiny|long|scalarflow|obstacle OUT`: write a synthetic scene with ground truth;
+//! * `synth tiny|long|scalarflow|obstacle|ball OUT`: write a synthetic scene with ground truth;
 //! * `render`: render a procedural plume (checks the build and the renderer).
 
 use std::path::{Path, PathBuf};
@@ -84,6 +84,9 @@ enum SynthPreset {
     /// The long plume's settings for 48 frames, rising past a solid sphere (not drawn; its
     /// place is in `info.json` under `obstacles`).
     Obstacle,
+    /// The obstacle scene with the sphere drawn as a textured ball, over a grey-blue
+    /// background.
+    Ball,
 }
 
 /// `--device`: the backends compiled into this build.
@@ -247,6 +250,7 @@ fn run_command(cli: Cli) -> Result<()> {
                 SynthPreset::Long => SynthConfig::long_plume(),
                 SynthPreset::Scalarflow => SynthConfig::scalarflow(),
                 SynthPreset::Obstacle => SynthConfig::obstacle_plume(),
+                SynthPreset::Ball => SynthConfig::ball_plume(),
             };
             if let Some(seed) = seed {
                 config.seed = seed;

@@ -303,7 +303,7 @@ pub fn render_run(
                         "missing: the run's frame state was removed while rendering",
                     )
                 })?;
-                loaded = Some((t, state.gaussians.to_tensors(device)?));
+                loaded = Some((t, state.rendered().to_tensors(device)?));
             }
             let gaussians = &loaded.as_ref().expect("loaded above").1;
             let camera = &cameras[c];

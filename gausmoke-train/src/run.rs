@@ -360,6 +360,11 @@ impl Run {
         let grid = trainer.grid;
         let state = FrameState {
             gaussians: trainer.state.gaussians.to_host(),
+            statics: trainer
+                .state
+                .statics
+                .as_ref()
+                .map(|s| s.gaussians.to_host()),
             velocity: gausmoke_render::device_traffic::read_floats(trainer.state.velocity.clone()),
             density: trainer.density_host(),
         };

@@ -56,11 +56,30 @@ pub struct Metrics {
 /// What one frame leaves for evaluation: the Gaussians and the grids (`frames/frame_TTT`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct FrameState {
+    /// The smoke's Gaussians.
     pub gaussians: HostGaussians,
+    /// The static Gaussians, when the run has them (`static_gaussians`).
+    pub statics: Option<HostGaussians>,
     /// `[nx, ny, nz, 3]`, world units per frame.
     pub velocity: Vec<f32>,
     /// `[nx, ny, nz]`.
     pub density: Vec<f32>,
+}
+
+impl FrameState {
+    /// Everything a render of the frame composites: the smoke's Gaussians, then the static ones.
+    pub fn rendered(&self) -> HostGaussians {
+        let mut all = self.gaussians.clone();
+        if let Some(statics) = &self.statics {
+            all.append(statics);
+        }
+        all
+    }
+}
+
+/// Array names of the static Gaussians' attributes in a frame file.
+fn static_name(attribute: &str) -> String {
+    format!("static_{attribute}")
 }
 
 /// A run folder on disk.
@@ -177,6 +196,17 @@ impl RunFolder {
             .into_array()
             .into_iter()
             .collect();
+        if let Some(statics) = &state.statics {
+            let m = statics.len();
+            arrays.extend(
+                statics
+                    .clone()
+                    .map(|attribute, values| {
+                        (static_name(attribute.name), (attribute.shape(m), values))
+                    })
+                    .into_array(),
+            );
+        }
         arrays.insert(
             "velocity".into(),
             (vec![nx, ny, nz, 3], state.velocity.clone()),
@@ -211,8 +241,29 @@ impl RunFolder {
         {
             *values = take_array(&mut arrays, attribute.name, &attribute.shape(n), &path)?;
         }
+        let statics = match arrays.get(&static_name("raw_densities")) {
+            Some((shape, _)) => {
+                let m = shape[0];
+                let mut statics = HostGaussians::default();
+                for (attribute, values) in statics
+                    .as_mut()
+                    .map(|attribute, values| (attribute, values))
+                    .into_array()
+                {
+                    *values = take_array(
+                        &mut arrays,
+                        &static_name(attribute.name),
+                        &attribute.shape(m),
+                        &path,
+                    )?;
+                }
+                Some(statics)
+            }
+            None => None,
+        };
         Ok(Some(FrameState {
             gaussians,
+            statics,
             velocity: take_array(&mut arrays, "velocity", &[nx, ny, nz, 3], &path)?,
             density: take_array(&mut arrays, "density", &[nx, ny, nz], &path)?,
         }))
@@ -258,6 +309,9 @@ impl RunFolder {
             &state.gaussians,
             ply_axes,
         )?;
+        if let Some(statics) = &state.statics {
+            export::write_ply(&dir.join(format!("statics_{t:03}.ply")), statics, ply_axes)?;
+        }
         export::write_vti(
             &dir.join(format!("grid_{t:03}.vti")),
             grid,

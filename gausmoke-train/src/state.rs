@@ -9,11 +9,19 @@ use serde::{Deserialize, Serialize};
 /// Everything the optimisation changes; what a checkpoint stores.
 pub struct TrainState {
     pub gaussians: GaussianModel,
+    /// The static Gaussians (`static_gaussians > 0`), and their optimiser.
+    pub statics: Option<StaticGaussians>,
     /// The velocity grid `u` at the current frame, `[nx, ny, nz, 3]`, world units per frame.
     pub velocity: Tensor<4>,
     pub phi: VelocityUNet,
     pub gaussian_optim: ModuleOptimizer,
     pub phi_optim: ModuleOptimizer,
+}
+
+/// Gaussians that are the same in every frame (solids, background): never advected.
+pub struct StaticGaussians {
+    pub gaussians: GaussianModel,
+    pub optim: ModuleOptimizer,
 }
 
 /// Wall time of one phase (see `gausmoke_core::phases`).
@@ -27,6 +35,8 @@ pub struct PhaseSeconds {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Phase {
+    /// The fit of the static Gaussians, before frame 0's (`static_gaussians > 0`).
+    Statics,
     /// The static fit of frame 0.
     Init,
     /// The K joint iterations (lines 3-9).
@@ -38,6 +48,7 @@ pub enum Phase {
 impl Phase {
     pub fn name(self) -> &'static str {
         match self {
+            Phase::Statics => "statics",
             Phase::Init => "init",
             Phase::Advect => "advect",
             Phase::Refine => "refine",

@@ -46,7 +46,7 @@ use crate::config::{
 };
 use crate::respawn::{DeficitView, RespawnOptions, RespawnReport, SpawnLattice, respawn};
 use crate::sequence::{Observation, Sequence};
-use crate::state::{LoopTraffic, LossRow, Phase, TrainState};
+use crate::state::{LoopTraffic, LossRow, Phase, StaticGaussians, TrainState};
 use crate::step_log::{StepLog, StepLosses};
 
 /// What training one frame produced.
@@ -89,7 +89,7 @@ fn read_log(
     }
     if let Some(row) = flushed.rows.last() {
         bar.set_message(match row.phase {
-            Phase::Init => format!("L1 {:.5}", row.render),
+            Phase::Statics | Phase::Init => format!("L1 {:.5}", row.render),
             Phase::Advect => format!(
                 "L1 {:.5} div {:.2e} adv {:.2e}",
                 row.render, row.divergence, row.advection
@@ -321,6 +321,123 @@ impl Trainer {
         ))
     }
 
+    /// What the renders composite: the smoke Gaussians `smoke` and, when there are any, the
+    /// static ones after them, tracked for their optimiser when `learn_statics`.
+    fn scene(&self, smoke: GaussianTensors, learn_statics: bool) -> GaussianTensors {
+        match &self.state.statics {
+            Some(statics) => {
+                let fixed = statics.gaussians.tensors();
+                let fixed = if learn_statics { fixed } else { fixed.detach() };
+                smoke.concat(fixed)
+            }
+            None => smoke,
+        }
+    }
+
+    /// One Adam step of the static Gaussians (every attribute at `lr`), if there are any.
+    fn step_statics(&mut self, grads: &mut Gradients, lr: f64) {
+        let Some(statics) = &mut self.state.statics else {
+            return;
+        };
+        let params = GradientsParams::from_module(grads, &statics.gaussians);
+        if lr > 0.0 && !params.is_empty() {
+            let _phase = phase!("optimizer");
+            statics.gaussians = statics
+                .optim
+                .step(lr, statics.gaussians.clone(), params)
+                .clamped();
+        }
+    }
+
+    /// Fits the static Gaussians alone to the training views' per-pixel minimum over the
+    /// loaded frames: smoke only adds light (emission over what it attenuates), so the minimum
+    /// is what each pixel shows when the smoke in front of it is thinnest, the static scene
+    /// wherever smoke is absent at least once. Frame 0's settings (iterations, learning rates).
+    fn fit_statics(&mut self) -> Result<Vec<LossRow>, TrainError> {
+        if self.state.statics.is_none() {
+            return Ok(Vec::new());
+        }
+        let observations = self.sequence.train[0].clone();
+        let targets: Vec<Tensor<3>> = (0..observations.len())
+            .map(|view| {
+                let mut least = observations[view].image.data().to_vec();
+                for frame in &self.sequence.train[1..] {
+                    for (l, v) in least.iter_mut().zip(frame[view].image.data()) {
+                        *l = l.min(*v);
+                    }
+                }
+                let image = &observations[view].image;
+                Tensor::from_data(
+                    TensorData::new(least, [image.height() as usize, image.width() as usize, 3]),
+                    &self.device,
+                )
+            })
+            .collect();
+        let learning_rates = self.init_learning_rates();
+        let iterations = self.config.init_iterations;
+        let bar = self.progress(0, iterations);
+        bar.set_prefix("statics");
+        let mut losses = Vec::with_capacity(iterations);
+        let mut log = StepLog::new(self.config.log_every);
+        let mut lists = ListCapacities::new(self.config.tile_list_headroom);
+        for iteration in 0..iterations {
+            let statics = &self
+                .state
+                .statics
+                .as_ref()
+                .expect("checked above")
+                .gaussians;
+            let (loss, check) =
+                self.render_loss(&statics.tensors(), &observations, &targets, &mut lists)?;
+            log.push(
+                (0, Phase::Statics, iteration),
+                StepLosses {
+                    total: loss.clone(),
+                    render: loss.clone(),
+                    divergence: None,
+                    advection: None,
+                    refine: None,
+                },
+                None,
+                vec![check],
+            );
+            let mut grads = {
+                let _phase = phase!("backward (all ops)");
+                loss.backward()
+            };
+            let statics = self.state.statics.as_mut().expect("checked above");
+            let mut model = statics.gaussians.clone();
+            for (id, lr) in model.param_ids().zip(learning_rates).into_array() {
+                let params = GradientsParams::from_params(&mut grads, &model, &[id]);
+                if lr > 0.0 && !params.is_empty() {
+                    let _phase = phase!("optimizer");
+                    model = statics.optim.step(lr, model, params);
+                }
+            }
+            statics.gaussians = model.clamped();
+            if log.due() || iteration + 1 == iterations {
+                read_log(&mut log, &mut losses, &bar, None)?;
+                lists.expire();
+            }
+            bar.inc(1);
+        }
+        bar.finish_and_clear();
+        Ok(losses)
+    }
+
+    /// Frame 0's learning rates per attribute (the centres' scaled by the box's extent).
+    fn init_learning_rates(&self) -> Gaussians<f64> {
+        let rates = &self.config.init_learning_rates;
+        let extent = (self.sequence.hi - self.sequence.lo).max_element() as f64;
+        Gaussians {
+            means: rates.means * extent,
+            rotations: rates.rotations,
+            log_scales: rates.log_scales,
+            raw_densities: rates.raw_densities,
+            colors: rates.colors,
+        }
+    }
+
     /// One Adam step per Gaussian attribute, each with its own learning rate (0 skips it).
     fn step_gaussians(&mut self, grads: &mut Gradients, learning_rates: Gaussians<f64>) {
         let ids = self.state.gaussians.param_ids();
@@ -380,24 +497,17 @@ impl Trainer {
             .iter()
             .map(|o| image_tensor(o, &self.device))
             .collect();
-        let rates = &self.config.init_learning_rates;
-        let extent = (self.sequence.hi - self.sequence.lo).max_element() as f64;
-        let learning_rates = Gaussians {
-            means: rates.means * extent,
-            rotations: rates.rotations,
-            log_scales: rates.log_scales,
-            raw_densities: rates.raw_densities,
-            colors: rates.colors,
-        };
+        let learning_rates = self.init_learning_rates();
+        let start = Traffic::now();
+        let mut losses = self.fit_statics()?;
         let iterations = self.config.init_iterations;
         let bar = self.progress(0, iterations);
-        let mut losses = Vec::with_capacity(iterations);
         let mut log = StepLog::new(self.config.log_every);
         let mut lists = ListCapacities::new(self.config.tile_list_headroom);
-        let start = Traffic::now();
         for iteration in 0..iterations {
+            // The statics were fitted first; frame 0 fits the smoke in front of them.
             let (loss, check) = self.render_loss(
-                &self.state.gaussians.tensors(),
+                &self.scene(self.state.gaussians.tensors(), false),
                 &observations,
                 &targets,
                 &mut lists,
@@ -426,7 +536,7 @@ impl Trainer {
             bar.inc(1);
         }
         bar.finish_and_clear();
-        let traffic = vec![LoopTraffic::of(Phase::Init, iterations, start)];
+        let traffic = vec![LoopTraffic::of(Phase::Init, losses.len(), start)];
         Ok(FrameOutcome {
             frame: 0,
             train_l1: losses.last().map_or(f32::NAN, |r| r.render) as f64,
@@ -510,7 +620,12 @@ impl Trainer {
                 interpolation,
             );
             let next = self.state.gaussians.tensors_at(moved.positions.clone());
-            let (render, check) = self.render_loss(&next, &observations, &targets, &mut lists)?;
+            let (render, check) = self.render_loss(
+                &self.scene(next.clone(), true),
+                &observations,
+                &targets,
+                &mut lists,
+            )?;
             let mut checks = vec![check];
             let mut loss = render.clone();
             if let Some((views, ahead_targets)) = &ahead {
@@ -544,8 +659,12 @@ impl Trainer {
                     raw_densities: live.raw_densities.detach(),
                     colors: live.colors.detach(),
                 };
-                let (lookahead, check) =
-                    self.render_loss(&carried, views, ahead_targets, &mut ahead_lists)?;
+                let (lookahead, check) = self.render_loss(
+                    &self.scene(carried, false),
+                    views,
+                    ahead_targets,
+                    &mut ahead_lists,
+                )?;
                 checks.push(check);
                 loss = loss + lookahead * config.lambda_lookahead;
             }
@@ -620,6 +739,7 @@ impl Trainer {
                     colors: lr_gaussians,
                 },
             );
+            self.step_statics(&mut grads, lr_gaussians);
             if log.due() || iteration + 1 == config.advect_iterations {
                 // The clamped count of the last step is read with its losses.
                 let tail = (iteration + 1 == config.advect_iterations).then_some(left_box);
@@ -660,8 +780,12 @@ impl Trainer {
         let start = Traffic::now();
         for iteration in 0..refine_iterations {
             let gaussians = self.state.gaussians.tensors();
-            let (render, check) =
-                self.render_loss(&gaussians, &observations, &targets, &mut lists)?;
+            let (render, check) = self.render_loss(
+                &self.scene(gaussians.clone(), true),
+                &observations,
+                &targets,
+                &mut lists,
+            )?;
             let refine = refine_loss(&gaussians.means, &anchor);
             let loss = render.clone() + refine.clone() * config.lambda_refine;
             log.push(
@@ -681,6 +805,7 @@ impl Trainer {
                 loss.backward()
             };
             self.step_gaussians(&mut grads, Gaussians::default().map(|_, ()| lr_gaussians));
+            self.step_statics(&mut grads, lr_gaussians);
             if log.due() || iteration + 1 == refine_iterations {
                 read_log(&mut log, &mut losses, &bar, None)?;
                 lists.expire();
@@ -766,9 +891,10 @@ impl Trainer {
         ))
     }
 
-    /// Renders of the current Gaussians for `observations`, as `[H, W, 3]` host images.
+    /// Renders of the current Gaussians (the static ones with them) for `observations`, as
+    /// `[H, W, 3]` host images.
     pub fn render_host(&self, observations: &[Observation]) -> Result<Vec<Vec<f32>>, TrainError> {
-        let detached = self.state.gaussians.tensors().detach();
+        let detached = self.scene(self.state.gaussians.tensors(), false).detach();
         observations
             .iter()
             .map(|o| {
@@ -865,6 +991,17 @@ fn fresh_state(
             config.seed,
             device,
         ),
+        statics: (config.static_gaussians > 0).then(|| StaticGaussians {
+            gaussians: GaussianModel::init_in_box(
+                config.static_gaussians,
+                sequence.lo,
+                sequence.hi,
+                // Their own stream: not the smoke's positions again.
+                config.seed ^ 0x5747_4943,
+                device,
+            ),
+            optim: AdamConfig::new().with_epsilon(1e-15).init(),
+        }),
         velocity: Tensor::zeros([nx, ny, nz, 3], device),
         phi: VelocityUNet::new(&unet, device),
         // 3DGS practice: a tiny epsilon, so rarely-seen Gaussians still move.

@@ -10,6 +10,8 @@ pub enum Ablation {
     Volumetric,
     /// Ours (issue 20): the data set's obstacles ignored by the projection.
     Solid,
+    /// Ours (issue 20): no static Gaussians.
+    Statics,
 }
 
 impl Ablation {
@@ -20,11 +22,12 @@ impl Ablation {
     ];
 
     /// Every ablation a record's group may end with (the paper's and ours).
-    pub const KNOWN: [Ablation; 4] = [
+    pub const KNOWN: [Ablation; 5] = [
         Ablation::Physics,
         Ablation::Refinement,
         Ablation::Volumetric,
         Ablation::Solid,
+        Ablation::Statics,
     ];
 
     /// Appended to the full method's run key and group.
@@ -34,6 +37,7 @@ impl Ablation {
             Ablation::Refinement => "-no-refinement",
             Ablation::Volumetric => "-no-volumetric",
             Ablation::Solid => "-no-solid",
+            Ablation::Statics => "-no-statics",
         }
     }
 
@@ -43,6 +47,7 @@ impl Ablation {
             Ablation::Refinement => "w/o refinement",
             Ablation::Volumetric => "w/o volumetric rendering",
             Ablation::Solid => "w/o solid obstacles",
+            Ablation::Statics => "w/o static primitives",
         }
     }
 
@@ -62,6 +67,10 @@ impl Ablation {
             },
             Ablation::Solid => TrainConfig {
                 obstacles: gausmoke_train::config::Obstacles::Ignore,
+                ..config
+            },
+            Ablation::Statics => TrainConfig {
+                static_gaussians: 0,
                 ..config
             },
         }

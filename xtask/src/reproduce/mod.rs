@@ -37,6 +37,9 @@ pub enum Target {
     /// A synthetic plume rising past a solid sphere (issue 20), with the solid condition on
     /// and off (`--quick`: 48 frames, 32^3, 64x96).
     Obstacle,
+    /// The same plume past the sphere drawn as a textured ball over a grey-blue background
+    /// (issue 20), with and without static primitives.
+    Ball,
 }
 
 #[derive(Debug, Args)]
@@ -200,6 +203,16 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
             open_faces: synthetic_open_faces(),
             ..TrainConfig::default()
         },
+        // A quarter as many static Gaussians as smoke ones.
+        (Target::Ball, true) => TrainConfig {
+            static_gaussians: 1000,
+            ..quick_synthetic_long()
+        },
+        (Target::Ball, false) => TrainConfig {
+            open_faces: synthetic_open_faces(),
+            static_gaussians: 7500,
+            ..TrainConfig::default()
+        },
     };
     if let Some(frames) = args.frames {
         base.frames = Some(frames);
@@ -230,12 +243,15 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
     Ok(match args.target {
         Target::ScalarReal => vec![keyed("scalar-real", "", "full method", base)],
         Target::SyntheticLong => vec![keyed("synthetic-long", "", "full method", base)],
-        Target::Obstacle => {
-            let mut list = vec![keyed("obstacle", "", "full method", base.clone())];
+        Target::Obstacle | Target::Ball => {
+            let (name, ablation) = match args.target {
+                Target::Obstacle => ("obstacle", Ablation::Solid),
+                _ => ("ball", Ablation::Statics),
+            };
+            let mut list = vec![keyed(name, "", "full method", base.clone())];
             if !args.no_ablations {
-                let ablation = Ablation::Solid;
                 list.push(keyed(
-                    "obstacle",
+                    name,
                     ablation.suffix(),
                     ablation.label(),
                     ablation.apply(base),
@@ -343,6 +359,7 @@ fn command_line(args: &ReproduceArgs) -> String {
             Target::Synthetic => "synthetic",
             Target::SyntheticLong => "synthetic-long",
             Target::Obstacle => "obstacle",
+            Target::Ball => "ball",
         }
     );
     if args.quick {
@@ -393,11 +410,20 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
     let data = match (args.target, &args.data) {
         (_, Some(path)) => path.clone(),
         (Target::ScalarReal, None) => root.join("../shared/datasets/scalar_real"),
-        (Target::Synthetic | Target::SyntheticLong | Target::Obstacle, None) => {
+        (Target::Synthetic | Target::SyntheticLong | Target::Obstacle | Target::Ball, None) => {
             let (preset, config) = match (args.target, args.quick) {
                 (Target::Synthetic, true) => ("tiny", SynthConfig::tiny()),
                 (Target::SyntheticLong, true) => ("long", SynthConfig::long_plume()),
                 (Target::Obstacle, true) => ("obstacle", SynthConfig::obstacle_plume()),
+                (Target::Ball, true) => ("ball", SynthConfig::ball_plume()),
+                (Target::Ball, false) => (
+                    "ball-scalarflow",
+                    SynthConfig {
+                        obstacle: SynthConfig::ball_plume().obstacle,
+                        background: SynthConfig::ball_plume().background,
+                        ..SynthConfig::scalarflow()
+                    },
+                ),
                 (Target::Obstacle, false) => (
                     "obstacle-scalarflow",
                     SynthConfig {
