@@ -176,8 +176,9 @@ pub struct TrainConfig {
     /// Static Gaussians for solids and background (issue 20; 0, the default, has none): the
     /// same primitives as the smoke's, rendered with them in one pass, but never advected,
     /// one set for every frame, fitted first to the training views' per-pixel minimum over
-    /// time (where smoke, which only adds light, is absent at least once) and then with the
-    /// smoke at every step from frame 1 on. Phi and the physics see the smoke's density only.
+    /// time (where smoke, which only adds light, is absent at least once), then their shape,
+    /// density and colour with the smoke at every step from frame 1 on (their centres stay).
+    /// Phi and the physics see the smoke's density only.
     pub static_gaussians: usize,
     /// Cells along each axis of the velocity/density grid (paper: 64). Must be a multiple
     /// of 4 (the U-Net halves it twice).

@@ -334,19 +334,23 @@ impl Trainer {
         }
     }
 
-    /// One Adam step of the static Gaussians (every attribute at `lr`), if there are any.
+    /// One Adam step of the static Gaussians' shape, density and colour at `lr`, if there are
+    /// any. Their centres stay where their own fit put them: Adam moves every parameter by
+    /// about `lr` per step whatever its gradient, which would make a still object jitter.
     fn step_statics(&mut self, grads: &mut Gradients, lr: f64) {
         let Some(statics) = &mut self.state.statics else {
             return;
         };
-        let params = GradientsParams::from_module(grads, &statics.gaussians);
-        if lr > 0.0 && !params.is_empty() {
-            let _phase = phase!("optimizer");
-            statics.gaussians = statics
-                .optim
-                .step(lr, statics.gaussians.clone(), params)
-                .clamped();
+        let ids = statics.gaussians.param_ids();
+        let mut model = statics.gaussians.clone();
+        for id in [ids.rotations, ids.log_scales, ids.raw_densities, ids.colors] {
+            let params = GradientsParams::from_params(grads, &model, &[id]);
+            if lr > 0.0 && !params.is_empty() {
+                let _phase = phase!("optimizer");
+                model = statics.optim.step(lr, model, params);
+            }
         }
+        statics.gaussians = model.clamped();
     }
 
     /// Fits the static Gaussians alone to the training views' per-pixel minimum over the
