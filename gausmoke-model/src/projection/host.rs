@@ -383,13 +383,13 @@ impl Divergence {
                 return;
             }
             let mut acc = 0.0;
-            for a in 0..3 {
+            for (a, &cells) in n.iter().enumerate() {
                 let i = self.coord(c, a);
                 let s = self.stride(a);
                 let own = self.free_component(u, c, a);
                 let plus = if self.fluid_neighbour(c, a, true) {
                     0.5 * (own + self.free_component(u, c + s, a))
-                } else if i + 1 >= n[a] && self.open.high[a] {
+                } else if i + 1 >= cells && self.open.high[a] {
                     own
                 } else {
                     0.0
