@@ -21,7 +21,7 @@
 //! The trainer only trains: what each frame produced comes back as a [`FrameOutcome`];
 //! evaluating it, writing files and checkpoints is [`crate::run::Run`]'s business.
 
-use burn::optim::{AdamConfig, GradientsParams};
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Gradients, Tensor, TensorData};
 use gausmoke_core::phase;
 use gausmoke_data::Obstacle;
@@ -148,6 +148,33 @@ impl ListCapacities {
             })
             .clone()
     }
+}
+
+/// One Adam step per attribute of `model` with its own learning rate (0 skips it), the
+/// gradients taken from `grads`.
+fn adam_per_attribute(
+    mut model: GaussianModel,
+    optim: &mut ModuleOptimizer,
+    grads: &mut Gradients,
+    learning_rates: Gaussians<f64>,
+) -> GaussianModel {
+    for (id, lr) in model.param_ids().zip(learning_rates).into_array() {
+        let params = GradientsParams::from_params(grads, &model, &[id]);
+        if lr > 0.0 && !params.is_empty() {
+            let _phase = phase!("optimizer");
+            model = optim.step(lr, model, params);
+        }
+    }
+    model.clamped()
+}
+
+/// Which Gaussians a fit to still images trains (see [`Trainer::fit_to_images`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum StillFit {
+    /// The static Gaussians alone, before frame 0.
+    Statics,
+    /// Frame 0's smoke, in front of the (fixed) static Gaussians.
+    FirstFrame,
 }
 
 /// Runs Algorithm 1 on a [`Sequence`].
@@ -341,16 +368,18 @@ impl Trainer {
         let Some(statics) = &mut self.state.statics else {
             return;
         };
-        let ids = statics.gaussians.param_ids();
-        let mut model = statics.gaussians.clone();
-        for id in [ids.rotations, ids.log_scales, ids.raw_densities, ids.colors] {
-            let params = GradientsParams::from_params(grads, &model, &[id]);
-            if lr > 0.0 && !params.is_empty() {
-                let _phase = phase!("optimizer");
-                model = statics.optim.step(lr, model, params);
-            }
-        }
-        statics.gaussians = model.clamped();
+        statics.gaussians = adam_per_attribute(
+            statics.gaussians.clone(),
+            &mut statics.optim,
+            grads,
+            Gaussians {
+                means: 0.0,
+                rotations: lr,
+                log_scales: lr,
+                raw_densities: lr,
+                colors: lr,
+            },
+        );
     }
 
     /// Fits the static Gaussians alone to the training views' per-pixel minimum over the
@@ -377,24 +406,38 @@ impl Trainer {
                 )
             })
             .collect();
+        self.fit_to_images(StillFit::Statics, &observations, &targets)
+    }
+
+    /// `init_iterations` steps of `L_render` against the still images `targets` of
+    /// `observations`' cameras, every attribute learning at frame 0's rates.
+    fn fit_to_images(
+        &mut self,
+        fit: StillFit,
+        observations: &[Observation],
+        targets: &[Tensor<3>],
+    ) -> Result<Vec<LossRow>, TrainError> {
         let learning_rates = self.init_learning_rates();
         let iterations = self.config.init_iterations;
         let bar = self.progress(0, iterations);
-        bar.set_prefix("statics");
+        let phase = match fit {
+            StillFit::Statics => {
+                bar.set_prefix("statics");
+                Phase::Statics
+            }
+            StillFit::FirstFrame => Phase::Init,
+        };
         let mut losses = Vec::with_capacity(iterations);
         let mut log = StepLog::new(self.config.log_every);
         let mut lists = ListCapacities::new(self.config.tile_list_headroom);
         for iteration in 0..iterations {
-            let statics = &self
-                .state
-                .statics
-                .as_ref()
-                .expect("checked above")
-                .gaussians;
-            let (loss, check) =
-                self.render_loss(&statics.tensors(), &observations, &targets, &mut lists)?;
+            let gaussians = match (fit, &self.state.statics) {
+                (StillFit::Statics, Some(statics)) => statics.gaussians.tensors(),
+                _ => self.scene(self.state.gaussians.tensors(), false),
+            };
+            let (loss, check) = self.render_loss(&gaussians, observations, targets, &mut lists)?;
             log.push(
-                (0, Phase::Statics, iteration),
+                (0, phase, iteration),
                 StepLosses {
                     total: loss.clone(),
                     render: loss.clone(),
@@ -409,16 +452,17 @@ impl Trainer {
                 let _phase = phase!("backward (all ops)");
                 loss.backward()
             };
-            let statics = self.state.statics.as_mut().expect("checked above");
-            let mut model = statics.gaussians.clone();
-            for (id, lr) in model.param_ids().zip(learning_rates).into_array() {
-                let params = GradientsParams::from_params(&mut grads, &model, &[id]);
-                if lr > 0.0 && !params.is_empty() {
-                    let _phase = phase!("optimizer");
-                    model = statics.optim.step(lr, model, params);
+            match (fit, &mut self.state.statics) {
+                (StillFit::Statics, Some(statics)) => {
+                    statics.gaussians = adam_per_attribute(
+                        statics.gaussians.clone(),
+                        &mut statics.optim,
+                        &mut grads,
+                        learning_rates,
+                    );
                 }
+                _ => self.step_gaussians(&mut grads, learning_rates),
             }
-            statics.gaussians = model.clamped();
             if log.due() || iteration + 1 == iterations {
                 read_log(&mut log, &mut losses, &bar, None)?;
                 lists.expire();
@@ -444,16 +488,12 @@ impl Trainer {
 
     /// One Adam step per Gaussian attribute, each with its own learning rate (0 skips it).
     fn step_gaussians(&mut self, grads: &mut Gradients, learning_rates: Gaussians<f64>) {
-        let ids = self.state.gaussians.param_ids();
-        let mut model = self.state.gaussians.clone();
-        for (id, lr) in ids.zip(learning_rates).into_array() {
-            let param_grads = GradientsParams::from_params(grads, &model, &[id]);
-            if lr > 0.0 && !param_grads.is_empty() {
-                let _phase = phase!("optimizer");
-                model = self.state.gaussian_optim.step(lr, model, param_grads);
-            }
-        }
-        self.state.gaussians = model.clamped();
+        self.state.gaussians = adam_per_attribute(
+            self.state.gaussians.clone(),
+            &mut self.state.gaussian_optim,
+            grads,
+            learning_rates,
+        );
         self.keep_out_of_obstacles();
     }
 
@@ -501,45 +541,10 @@ impl Trainer {
             .iter()
             .map(|o| image_tensor(o, &self.device))
             .collect();
-        let learning_rates = self.init_learning_rates();
         let start = Traffic::now();
         let mut losses = self.fit_statics()?;
-        let iterations = self.config.init_iterations;
-        let bar = self.progress(0, iterations);
-        let mut log = StepLog::new(self.config.log_every);
-        let mut lists = ListCapacities::new(self.config.tile_list_headroom);
-        for iteration in 0..iterations {
-            // The statics were fitted first; frame 0 fits the smoke in front of them.
-            let (loss, check) = self.render_loss(
-                &self.scene(self.state.gaussians.tensors(), false),
-                &observations,
-                &targets,
-                &mut lists,
-            )?;
-            log.push(
-                (0, Phase::Init, iteration),
-                StepLosses {
-                    total: loss.clone(),
-                    render: loss.clone(),
-                    divergence: None,
-                    advection: None,
-                    refine: None,
-                },
-                None,
-                vec![check],
-            );
-            let mut grads = {
-                let _phase = phase!("backward (all ops)");
-                loss.backward()
-            };
-            self.step_gaussians(&mut grads, learning_rates);
-            if log.due() || iteration + 1 == iterations {
-                read_log(&mut log, &mut losses, &bar, None)?;
-                lists.expire();
-            }
-            bar.inc(1);
-        }
-        bar.finish_and_clear();
+        // The statics were fitted first; frame 0 fits the smoke in front of them.
+        losses.extend(self.fit_to_images(StillFit::FirstFrame, &observations, &targets)?);
         let traffic = vec![LoopTraffic::of(Phase::Init, losses.len(), start)];
         Ok(FrameOutcome {
             frame: 0,
