@@ -42,6 +42,9 @@ use rayon::prelude::*;
 pub struct SolidCells {
     resolution: [usize; 3],
     solid: Arc<[bool]>,
+    /// Per cell and axis (`[cells * 3]`), whether that velocity component is free (see
+    /// [`Divergence::component_is_free`]), worked out once.
+    free: Arc<[bool]>,
     count: usize,
     fingerprint: u64,
 }
@@ -58,10 +61,25 @@ impl SolidCells {
         for &flag in &solid {
             fingerprint = (fingerprint ^ flag as u64).wrapping_mul(0x0100_0000_01b3);
         }
+        let [_, ny, nz] = resolution;
+        let strides = [ny * nz, nz, 1];
+        let free: Vec<bool> = (0..solid.len())
+            .flat_map(|c| {
+                let solid = &solid;
+                (0..3).map(move |axis| {
+                    let i = (c / strides[axis]) % resolution[axis];
+                    let s = strides[axis];
+                    !solid[c]
+                        && (i + 1 >= resolution[axis] || !solid[c + s])
+                        && (i == 0 || !solid[c - s])
+                })
+            })
+            .collect();
         Some(Self {
             resolution,
             count: solid.iter().filter(|&&s| s).count(),
             solid: solid.into(),
+            free: free.into(),
             fingerprint,
         })
     }
@@ -300,14 +318,9 @@ impl Divergence {
     /// Whether the velocity component `axis` of cell `c` is free: the cell holds fluid and
     /// has no obstacle cell next to it along `axis` (else it is zero, see the module's notes).
     pub fn component_is_free(&self, c: usize, axis: usize) -> bool {
-        let Some(solids) = &self.solids else {
-            return true;
-        };
-        let i = self.coord(c, axis);
-        let s = self.stride(axis);
-        !solids.is_solid(c)
-            && (i + 1 >= self.resolution[axis] || !solids.is_solid(c + s))
-            && (i == 0 || !solids.is_solid(c - s))
+        self.solids
+            .as_ref()
+            .is_none_or(|solids| solids.free[3 * c + axis])
     }
 
     /// Component `axis` of cell `c` of `u`, or 0 where it is pinned.
