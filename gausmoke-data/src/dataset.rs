@@ -46,6 +46,17 @@ impl Obstacle {
         }
     }
 
+    /// The solid's bounding box and volume (world units).
+    pub fn bounds(&self) -> (Vec3, Vec3, f32) {
+        match *self {
+            Obstacle::Sphere { centre, radius } => (
+                centre - Vec3::splat(radius),
+                centre + Vec3::splat(radius),
+                4.0 / 3.0 * std::f32::consts::PI * radius.powi(3),
+            ),
+        }
+    }
+
     /// The unit normal pointing out of the solid at the surface point nearest `p`.
     pub fn outward_normal(&self, p: Vec3) -> Vec3 {
         match *self {

@@ -23,13 +23,43 @@ impl GaussianModel {
     /// tiles the box (`std = 0.5 * (volume / count)^(1/3)`), a low density so the initial
     /// render is translucent, grey colour, random orientation.
     pub fn init_in_box(count: usize, lo: Vec3, hi: Vec3, seed: u64, device: &Device) -> Self {
-        let mut rng = SplitMix64::new(seed);
         let extent = hi - lo;
-        let spacing = (extent.x * extent.y * extent.z / count as f32).cbrt();
+        Self::init_where(
+            count,
+            (lo, hi),
+            extent.x * extent.y * extent.z,
+            |_| true,
+            seed,
+            device,
+        )
+        .expect("every point of the box is inside it")
+    }
+
+    /// As [`GaussianModel::init_in_box`], with the centres drawn uniformly from the points of
+    /// `bounds` where `inside` holds (a region of `volume` world units cubed, which sizes the
+    /// Gaussians); `None` when a thousand draws per Gaussian found too few such points.
+    pub fn init_where(
+        count: usize,
+        (lo, hi): (Vec3, Vec3),
+        volume: f32,
+        inside: impl Fn(Vec3) -> bool,
+        seed: u64,
+        device: &Device,
+    ) -> Option<Self> {
+        let mut rng = SplitMix64::new(seed);
+        let spacing = (volume / count as f32).cbrt();
         let log_std = (0.5 * spacing).ln();
         let mut host = HostGaussians::with_capacity(count);
-        for _ in 0..count {
+        let mut draws = 0usize;
+        while host.len() < count {
+            draws += 1;
+            if draws > 1000 * count.max(1) {
+                return None;
+            }
             let mean = [0, 1, 2].map(|axis| rng.range(lo[axis], hi[axis]));
+            if !inside(Vec3::from_array(mean)) {
+                continue;
+            }
             let q = [rng.normal(), rng.normal(), rng.normal(), rng.normal()];
             let norm = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-6);
             host.push(&Gaussian {
@@ -41,7 +71,7 @@ impl GaussianModel {
                 color: [0.5; 3],
             });
         }
-        Self::from_host(&host, device)
+        Some(Self::from_host(&host, device))
     }
 
     pub fn from_host(host: &HostGaussians, device: &Device) -> Self {

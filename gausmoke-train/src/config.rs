@@ -175,7 +175,8 @@ pub struct TrainConfig {
     pub gaussians: usize,
     /// Static Gaussians for solids and background (issue 20; 0, the default, has none): the
     /// same primitives as the smoke's, rendered with them in one pass, but never advected,
-    /// one set for every frame, fitted first to the training views' per-pixel minimum over
+    /// one set for every frame, placed inside the obstacles the data set describes (their
+    /// centres stay there) or else spread through the box, fitted first to the training views' per-pixel minimum over
     /// time (where smoke, which only adds light, is absent at least once), then their shape,
     /// density and colour with the smoke at every step from frame 1 on (their centres stay).
     /// Phi and the physics see the smoke's density only.

@@ -23,6 +23,7 @@
 
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Gradients, Tensor, TensorData};
+use gausmoke_core::glam::Vec3;
 use gausmoke_core::phase;
 use gausmoke_data::Obstacle;
 use gausmoke_model::penalty::penalty_projection_with_report;
@@ -417,7 +418,11 @@ impl Trainer {
         observations: &[Observation],
         targets: &[Tensor<3>],
     ) -> Result<Vec<LossRow>, TrainError> {
-        let learning_rates = self.init_learning_rates();
+        let mut learning_rates = self.init_learning_rates();
+        if fit == StillFit::Statics && !self.sequence.obstacles.is_empty() {
+            // Placed where the data set says the solids are: they stay there.
+            learning_rates.means = 0.0;
+        }
         let iterations = self.config.init_iterations;
         let bar = self.progress(0, iterations);
         let phase = match fit {
@@ -976,6 +981,40 @@ pub(crate) fn solid_cells(
     Ok(Some(solids))
 }
 
+/// The static Gaussians before their fit: inside the obstacles the data set describes, if any
+/// (where the solids are), else spread through the box like the smoke's.
+fn static_gaussians_at_start(
+    sequence: &Sequence,
+    config: &TrainConfig,
+    device: &Device,
+) -> GaussianModel {
+    // Their own stream: not the smoke's positions again.
+    let seed = config.seed ^ 0x5747_4943;
+    let count = config.static_gaussians;
+    let mut bounds: Option<(Vec3, Vec3)> = None;
+    let mut volume = 0.0;
+    for obstacle in &sequence.obstacles {
+        let (lo, hi, v) = obstacle.bounds();
+        volume += v;
+        bounds = Some(bounds.map_or((lo, hi), |(a, b)| (a.min(lo), b.max(hi))));
+    }
+    match bounds {
+        Some((lo, hi)) => GaussianModel::init_where(
+            count,
+            (lo.max(sequence.lo), hi.min(sequence.hi)),
+            volume,
+            |p| sequence.obstacles.iter().any(|o| o.contains(p)),
+            seed,
+            device,
+        )
+        // An obstacle reaching outside the box: fall back to the box.
+        .unwrap_or_else(|| {
+            GaussianModel::init_in_box(count, sequence.lo, sequence.hi, seed, device)
+        }),
+        None => GaussianModel::init_in_box(count, sequence.lo, sequence.hi, seed, device),
+    }
+}
+
 /// The state Algorithm 1 starts from: Gaussians spread in the box, zero velocity, Phi's
 /// initial weights.
 fn fresh_state(
@@ -1001,14 +1040,7 @@ fn fresh_state(
             device,
         ),
         statics: (config.static_gaussians > 0).then(|| StaticGaussians {
-            gaussians: GaussianModel::init_in_box(
-                config.static_gaussians,
-                sequence.lo,
-                sequence.hi,
-                // Their own stream: not the smoke's positions again.
-                config.seed ^ 0x5747_4943,
-                device,
-            ),
+            gaussians: static_gaussians_at_start(sequence, config, device),
             optim: AdamConfig::new().with_epsilon(1e-15).init(),
         }),
         velocity: Tensor::zeros([nx, ny, nz, 3], device),

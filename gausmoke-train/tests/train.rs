@@ -1074,7 +1074,8 @@ fn obstacles_of_the_data_set_are_solid_in_the_trained_velocity() {
     assert!(err.contains("obstacles") && err.contains("exact"), "{err}");
 }
 
-/// Static Gaussians on the ball scene: fitted before frame 0 (their own loss rows), rendered
+/// Static Gaussians on the ball scene: placed in the ball the data set describes, fitted
+/// before frame 0 (their own loss rows), rendered
 /// with the smoke (the held-out view is better than without them where the ball is the only
 /// thing the smoke Gaussians would otherwise have to explain), never advected, written to
 /// every frame file and exported, and resumed from a checkpoint to what an uninterrupted run
@@ -1129,7 +1130,12 @@ fn static_gaussians_fit_the_ball_and_resume() {
     assert_eq!(first["static_means"].0, vec![300, 3]);
     assert_eq!(first["means"].0, vec![1500, 3]);
     assert!(straight.join("exports/statics_002.ply").is_file());
-    // Never carried by the flow, nor moved after their fit; their looks still learn.
+    // Placed in the ball the data set describes, never carried by the flow nor moved; their
+    // looks still learn.
+    let ball = SynthConfig::ball_plume().obstacle.unwrap();
+    assert!(first["static_means"].1.chunks(3).all(|m| {
+        gausmoke_data::glam::Vec3::from_slice(m).distance(ball.centre) <= ball.radius
+    }));
     assert_eq!(first["static_means"], last["static_means"]);
     assert_ne!(first["means"], last["means"]);
     assert_ne!(first["static_raw_densities"], last["static_raw_densities"]);
