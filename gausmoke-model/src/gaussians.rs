@@ -6,6 +6,10 @@ use gausmoke_core::SplitMix64;
 use gausmoke_core::glam::Vec3;
 use gausmoke_render::{Gaussian, GaussianTensors, Gaussians, HostGaussians};
 
+/// The raw density [`GaussianModel::init_in_box`] gives: softplus(-2) = 0.13 per world unit,
+/// so a 0.5-unit box starts mostly transparent.
+pub const INITIAL_RAW_DENSITY: f32 = -2.0;
+
 /// Trainable Gaussian parameters, in the renderer's parameterisation (see [`Gaussians`]):
 /// world-space centres, quaternions (w first), log standard deviations, raw densities
 /// (`sigma = softplus(raw)`), linear RGB colours.
@@ -29,6 +33,7 @@ impl GaussianModel {
             (lo, hi),
             extent.x * extent.y * extent.z,
             |_| true,
+            INITIAL_RAW_DENSITY,
             seed,
             device,
         )
@@ -37,12 +42,14 @@ impl GaussianModel {
 
     /// As [`GaussianModel::init_in_box`], with the centres drawn uniformly from the points of
     /// `bounds` where `inside` holds (a region of `volume` world units cubed, which sizes the
-    /// Gaussians); `None` when a thousand draws per Gaussian found too few such points.
+    /// Gaussians) and raw density `raw_density`; `None` when a thousand draws per Gaussian
+    /// found too few such points.
     pub fn init_where(
         count: usize,
         (lo, hi): (Vec3, Vec3),
         volume: f32,
         inside: impl Fn(Vec3) -> bool,
+        raw_density: f32,
         seed: u64,
         device: &Device,
     ) -> Option<Self> {
@@ -66,8 +73,7 @@ impl GaussianModel {
                 mean,
                 rotation: q.map(|v| v / norm),
                 log_scale: [log_std; 3],
-                // softplus(-2) = 0.13 per world unit: a 0.5-unit box starts mostly transparent.
-                raw_density: -2.0,
+                raw_density,
                 color: [0.5; 3],
             });
         }

@@ -28,10 +28,10 @@ use gausmoke_core::phase;
 use gausmoke_data::Obstacle;
 use gausmoke_model::penalty::penalty_projection_with_report;
 use gausmoke_model::{
-    GaussianModel, GridSpec, Integrator, Interpolation, PenaltyOptions, ProjectionOptions,
-    ProjectionReport, SolidCells, SplatOptions, UNetConfig, VelocityUNet, advect, advection_loss,
-    density_and_gradient_grid, density_grid, divergence_loss_of, penalty_projection,
-    project_direct, project_velocity, refine_loss, settle_deferred_solves,
+    GaussianModel, GridSpec, INITIAL_RAW_DENSITY, Integrator, Interpolation, PenaltyOptions,
+    ProjectionOptions, ProjectionReport, SolidCells, SplatOptions, UNetConfig, VelocityUNet,
+    advect, advection_loss, density_and_gradient_grid, density_grid, divergence_loss_of,
+    penalty_projection, project_direct, project_velocity, refine_loss, settle_deferred_solves,
 };
 use gausmoke_render::cpu::TILE_SIZE;
 use gausmoke_render::device_traffic::{ReadKind, Traffic, read_floats, read_floats_for};
@@ -998,12 +998,23 @@ fn static_gaussians_at_start(
         volume += v;
         bounds = Some(bounds.map_or((lo, hi), |(a, b)| (a.min(lo), b.max(hi))));
     }
+    // Packed into a smaller volume, the Gaussians are smaller: as dense as the smoke's at
+    // their start, a ray through one would see so little that the renderer skips it
+    // (`alpha_min`) and it would never learn. Give them the optical depth through the centre
+    // that a smoke Gaussian starts with instead (it scales with density times size).
+    let size = |volume: f32, count: usize| (volume / count.max(1) as f32).cbrt();
+    let extent = sequence.hi - sequence.lo;
+    let softplus = |x: f32| x.exp().ln_1p();
+    let depth_scale =
+        softplus(INITIAL_RAW_DENSITY) * size(extent.x * extent.y * extent.z, config.gaussians);
     match bounds {
         Some((lo, hi)) => GaussianModel::init_where(
             count,
             (lo.max(sequence.lo), hi.min(sequence.hi)),
             volume,
             |p| sequence.obstacles.iter().any(|o| o.contains(p)),
+            // The raw value (softplus^-1) of the density that keeps density x size.
+            (depth_scale / size(volume, count)).exp_m1().ln(),
             seed,
             device,
         )
