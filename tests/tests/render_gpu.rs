@@ -382,3 +382,78 @@ fn kernel_gradients_match_finite_differences() {
         }
     }
 }
+
+/// A mixed scene (static Gaussians after the smoke's, `GaussianTensors::concat`, what the
+/// trainer renders): the same image as the one set made on the host, and each set's gradients
+/// the matching rows of that set's, on every backend. An opaque ball of static Gaussians sits
+/// among translucent smoke ones, so the composite crosses both in depth.
+#[test]
+fn a_mixed_scene_renders_and_splits_its_gradients_like_one_set() {
+    let smoke = random_scene(600, 21);
+    let mut ball = random_scene(200, 22);
+    // Dense and gathered near the centre: an opaque ball.
+    for (i, raw) in ball[3].iter_mut().enumerate() {
+        *raw = 6.0 + (i % 5) as f32;
+    }
+    for coordinate in ball[0].iter_mut() {
+        *coordinate *= 0.3;
+    }
+    let joined: [Vec<f32>; 5] =
+        std::array::from_fn(|k| [smoke[k].clone(), ball[k].clone()].concat());
+    let camera = camera(120, 90);
+    let options = RasterOptions::default();
+    let devices = cpu_devices().into_iter().chain(gpu());
+    for (backend, device) in devices {
+        let whole = render_with_grads(&joined, &camera, &options, &device);
+        let ad = device.clone().autodiff();
+        let parts = [&smoke, &ball].map(|part| {
+            Gaussians::from_array(part.clone())
+                .to_tensors(&ad)
+                .unwrap()
+                .require_grad()
+        });
+        let background = Tensor::<1>::from_data(TensorData::new(vec![0.1f32, 0.2, 0.3], [3]), &ad);
+        let mixed = parts[0].clone().concat(parts[1].clone());
+        let out = render_volume(&mixed, &camera, &background, &options).unwrap();
+        let [h, w, _] = out.rgb.dims();
+        let weights: Vec<f32> = (0..h * w * 3)
+            .map(|i| ((i * 7919) % 101) as f32 / 101.0 - 0.3)
+            .collect();
+        let weights = Tensor::<3>::from_data(TensorData::new(weights, [h, w, 3]), &ad);
+        let loss = (out.rgb.clone() * weights).sum() + out.transmittance.clone().sum() * 0.5;
+        let grads = loss.backward();
+        assert_eq!(to_vec(out.rgb), whole.rgb, "{backend}: rgb");
+        let min_t = whole.transmittance.iter().cloned().fold(1.0f32, f32::min);
+        assert!(
+            min_t < 0.01,
+            "{backend}: the ball is not opaque (min T {min_t})"
+        );
+        let n = smoke[3].len();
+        for (part, rows) in parts.iter().zip([0..n, n..n + ball[3].len()]) {
+            let got = [
+                to_vec(part.means.grad(&grads).unwrap()),
+                to_vec(part.raw_densities.grad(&grads).unwrap()),
+                to_vec(part.colors.grad(&grads).unwrap()),
+            ];
+            let expected = [
+                &whole.grads[0][3 * rows.start..3 * rows.end],
+                &whole.grads[3][rows.clone()],
+                &whole.grads[4][3 * rows.start..3 * rows.end],
+            ];
+            for (name, (g, e)) in ["means", "raw_densities", "colors"]
+                .iter()
+                .zip(got.iter().zip(expected))
+            {
+                // The device backward sums with atomics, in no fixed order: the last bits differ
+                // from run to run.
+                assert_close(
+                    &format!("{backend}: grad {name} rows {rows:?}"),
+                    g,
+                    e,
+                    0.0,
+                    1e-5,
+                );
+            }
+        }
+    }
+}
