@@ -499,7 +499,10 @@ impl Trainer {
             grads,
             learning_rates,
         );
-        self.keep_out_of_obstacles();
+        // Only a step that moved the centres can have moved one into an obstacle.
+        if learning_rates.means > 0.0 {
+            self.keep_out_of_obstacles();
+        }
     }
 
     /// Moves the Gaussians whose centre lies inside a solid obstacle onto its surface: smoke
