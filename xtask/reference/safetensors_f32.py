@@ -1,4 +1,4 @@
-"""Writing float32 arrays as a safetensors file with numpy alone (the reference scripts that
+"""Float32 arrays to and from safetensors files with numpy alone (the reference scripts that
 must not need torch or the safetensors package import this)."""
 
 import json
@@ -26,3 +26,17 @@ def write_safetensors(path, tensors, metadata):
         f.write(text)
         for blob in blobs:
             f.write(blob)
+
+
+def read_safetensors(path):
+    """name -> float32 array of every tensor in the file (the header's `__metadata__` left out)."""
+    raw = open(path, "rb").read()
+    (n,) = struct.unpack("<Q", raw[:8])
+    header = json.loads(raw[8:8 + n])
+    out = {}
+    for name, info in header.items():
+        if name == "__metadata__":
+            continue
+        start, end = info["data_offsets"]
+        out[name] = np.frombuffer(raw[8 + n + start:8 + n + end], dtype=np.float32).reshape(info["shape"])
+    return out

@@ -13,25 +13,12 @@ scene's `gt/frame_TTT.safetensors` (velocity [z, y, x, 3], x fastest), both in w
 per frame on the same box (the grids must have the same resolution).
 """
 
-import json
-import struct
 import sys
 
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-
-def read(path):
-    raw = open(path, "rb").read()
-    (n,) = struct.unpack("<Q", raw[:8])
-    header = json.loads(raw[8:8 + n])
-    out = {}
-    for name, info in header.items():
-        if name == "__metadata__":
-            continue
-        start, end = info["data_offsets"]
-        out[name] = np.frombuffer(raw[8 + n + start:8 + n + end], dtype=np.float32).reshape(info["shape"])
-    return out
+from safetensors_f32 import read_safetensors as read
 
 
 def main(run, data, frames):
