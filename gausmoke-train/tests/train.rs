@@ -1064,7 +1064,7 @@ fn obstacles_of_the_data_set_are_solid_in_the_trained_velocity() {
     let penalty = TrainConfig {
         projection: ProjectionKind::Penalty,
         open_faces: Vec::new(),
-        ..config
+        ..config.clone()
     };
     let scene = Sequence::open(&data, &penalty).unwrap();
     let err = match Run::new(scene, penalty, device, &dir.path().join("penalty"), false) {
@@ -1072,6 +1072,29 @@ fn obstacles_of_the_data_set_are_solid_in_the_trained_velocity() {
         Err(e) => e.to_string(),
     };
     assert!(err.contains("obstacles") && err.contains("exact"), "{err}");
+
+    // An obstacle too small for the grid to see is refused, not silently dropped.
+    let info = data.join("info.json");
+    let text = std::fs::read_to_string(&info).unwrap();
+    let radius = SynthConfig::obstacle_plume().obstacle.unwrap().radius;
+    let tiny = text.replace(&format!("\"radius\": {radius}"), "\"radius\": 0.001");
+    assert_ne!(tiny, text, "the radius was not found in {text}");
+    std::fs::write(&info, tiny).unwrap();
+    let scene = Sequence::open(&data, &config).unwrap();
+    let err = match Run::new(
+        scene,
+        config.clone(),
+        device_by_name("flex").unwrap().autodiff(),
+        &dir.path().join("tiny"),
+        false,
+    ) {
+        Ok(_) => panic!("an obstacle covering no cell was accepted"),
+        Err(e) => e.to_string(),
+    };
+    assert!(
+        err.contains("obstacles") && err.contains("no cell"),
+        "{err}"
+    );
 }
 
 /// Static Gaussians on the ball scene: placed in the ball the data set describes, fitted
