@@ -4,8 +4,13 @@
 //! to the folder and, as in D-NeRF, given without the `.png` extension (a path that already
 //! names an existing file is accepted too). RGBA PNGs are composited over the background
 //! (black unless [`LoadOptions::background`] says otherwise, as 4D-GS does without
-//! `--white_background`). Every frame has its own pose and time; each split becomes one
-//! [`View`]. The format has no smoke box: [`Dataset::bbox`] is `None`.
+//! `--white_background`). In D-NeRF's own layout every frame has its own pose and time, and
+//! each split becomes one [`View`]. Blender-style multi-view sets (fixed cameras filmed
+//! together: several frames per time in one file) become one view per camera pose instead,
+//! named `{split}_{k:02}` in order of first appearance, and `frames` then selects time steps,
+//! not lines. The format has no smoke box; ours, `transforms_train.json` may give one as
+//! `aabb` (`[[min x, y, z], [max x, y, z]]`, as nerfstudio's) and solids as `obstacles` (as
+//! the PINF loader reads them); without `aabb` [`Dataset::bbox`] is `None`.
 
 use std::path::{Path, PathBuf};
 
@@ -19,13 +24,60 @@ use crate::dataset::{
 };
 use crate::error::{DataError, Result};
 use crate::image::read_png_over;
-use crate::json::{Node, read_json};
+use crate::json::{Node, read_aabb, read_json, read_obstacles};
 
 struct Item {
     field: String,
     image: PathBuf,
     time: f32,
     pose: Mat4,
+}
+
+/// The views of one split's `items`, as (name, indices into `items`) after `options`' frame
+/// selection: one named `split` when no two frames share a time (D-NeRF's layout), else one
+/// per camera pose (see the module's notes).
+fn split_views(
+    items: &[Item],
+    split: &str,
+    options: &LoadOptions,
+    origin: &str,
+) -> Result<Vec<(String, Vec<usize>)>> {
+    let mut times: Vec<f32> = items.iter().map(|it| it.time).collect();
+    times.sort_by(f32::total_cmp);
+    times.dedup();
+    if times.len() == items.len() {
+        let range = options.frame_range(items.len(), origin)?;
+        return Ok(vec![(split.to_string(), range.collect())]);
+    }
+    let range = options.frame_range(times.len(), &format!("the time steps of {origin}"))?;
+    let kept = &times[range];
+    let mut poses: Vec<[u32; 16]> = Vec::new();
+    let mut views: Vec<(String, Vec<usize>)> = Vec::new();
+    for (index, item) in items.iter().enumerate() {
+        let pose = item.pose.to_cols_array().map(f32::to_bits);
+        let k = match poses.iter().position(|p| *p == pose) {
+            Some(k) => k,
+            None => {
+                poses.push(pose);
+                views.push((format!("{split}_{:02}", poses.len() - 1), Vec::new()));
+                poses.len() - 1
+            }
+        };
+        if kept.iter().any(|t| t.to_bits() == item.time.to_bits()) {
+            views[k].1.push(index);
+        }
+    }
+    Ok(views)
+}
+
+/// Every frame item of the transforms file `root` (paths checked, images not read).
+fn read_items(root: Node<'_>, dir: &Path) -> Result<Vec<Item>> {
+    let frames_owned = root.get("frames")?;
+    let list = frames_owned.node().array()?;
+    if list.is_empty() {
+        return Err(frames_owned.node().err("a non-empty array of frames"));
+    }
+    list.iter().map(|f| read_item(f.node(), dir)).collect()
 }
 
 /// What [`load_dnerf`] would load from the transforms files and the first image's header,
@@ -45,16 +97,11 @@ pub fn plan_dnerf(dir: &Path, options: &LoadOptions) -> Result<Vec<PlannedView>>
         }
         let value = read_json(&json)?;
         let root = Node::root(&json, &value);
-        let frames_owned = root.get("frames")?;
-        let list = frames_owned.node().array()?;
-        let Some(first) = list.first() else {
-            return Err(frames_owned.node().err("a non-empty array of frames"));
-        };
-        let range = options.frame_range(list.len(), &format!("{stem}.json"))?;
+        let items = read_items(root, dir)?;
         let (width, height) = match (options.resolution, native) {
             (Some(size), _) | (None, Some(size)) => size,
             (None, None) => {
-                let image = read_item(first.node(), dir)?.image;
+                let image = items[0].image.clone();
                 let size =
                     ::image::image_dimensions(&image).map_err(|source| DataError::Image {
                         action: "read",
@@ -64,13 +111,16 @@ pub fn plan_dnerf(dir: &Path, options: &LoadOptions) -> Result<Vec<PlannedView>>
                 *native.insert(size)
             }
         };
-        planned.push(PlannedView {
-            name: stem.trim_start_matches("transforms_").to_string(),
-            split,
-            frames: range.len(),
-            width,
-            height,
-        });
+        let name = stem.trim_start_matches("transforms_");
+        for (name, indices) in split_views(&items, name, options, &format!("{stem}.json"))? {
+            planned.push(PlannedView {
+                name,
+                split,
+                frames: indices.len(),
+                width,
+                height,
+            });
+        }
     }
     Ok(planned)
 }
@@ -82,6 +132,7 @@ pub fn load_dnerf(dir: &Path, options: &LoadOptions) -> Result<Dataset> {
     let mut views = Vec::new();
     // Native size: the first frame of the first split; every frame must match it.
     let mut native: Option<(u32, u32, PathBuf)> = None;
+    let (mut bbox, mut obstacles) = (None, Vec::new());
     for (stem, split) in [
         ("transforms_train", Split::Train),
         ("transforms_val", Split::Val),
@@ -100,60 +151,59 @@ pub fn load_dnerf(dir: &Path, options: &LoadOptions) -> Result<Dataset> {
                 "a horizontal field of view in (0, pi) radians (got {fov})"
             )));
         }
-        let frames_owned = root.get("frames")?;
-        let list = frames_owned.node().array()?;
-        if list.is_empty() {
-            return Err(frames_owned.node().err("a non-empty array of frames"));
+        if split == Split::Train {
+            bbox = read_aabb(root)?;
+            obstacles = read_obstacles(root)?;
         }
-        let items = list
-            .iter()
-            .map(|f| read_item(f.node(), dir))
-            .collect::<Result<Vec<_>>>()?;
-        let range = options.frame_range(items.len(), &format!("{stem}.json"))?;
-        let selected = &items[range];
-        let images = selected
-            .par_iter()
-            .map(|it| read_png_over(&it.image, background))
-            .collect::<Result<Vec<_>>>()?;
-        let mut frames = Vec::with_capacity(images.len());
-        for (it, image) in selected.iter().zip(images) {
-            let (nw, nh, first) = native
-                .get_or_insert_with(|| (image.width(), image.height(), it.image.clone()))
-                .clone();
-            if (image.width(), image.height()) != (nw, nh) {
-                return Err(DataError::FrameSize {
-                    path: it.image.clone(),
-                    frame: frames.len(),
-                    found_width: image.width(),
-                    found_height: image.height(),
-                    expected_width: nw,
-                    expected_height: nh,
-                    origin: format!("the first frame, {}", first.display()),
+        let items = read_items(root, dir)?;
+        let name = stem.trim_start_matches("transforms_");
+        for (name, indices) in split_views(&items, name, options, &format!("{stem}.json"))? {
+            let selected: Vec<&Item> = indices.iter().map(|&i| &items[i]).collect();
+            let images = selected
+                .par_iter()
+                .map(|it| read_png_over(&it.image, background))
+                .collect::<Result<Vec<_>>>()?;
+            let mut frames = Vec::with_capacity(images.len());
+            for (it, image) in selected.iter().zip(images) {
+                let (nw, nh, first) = native
+                    .get_or_insert_with(|| (image.width(), image.height(), it.image.clone()))
+                    .clone();
+                if (image.width(), image.height()) != (nw, nh) {
+                    return Err(DataError::FrameSize {
+                        path: it.image.clone(),
+                        frame: frames.len(),
+                        found_width: image.width(),
+                        found_height: image.height(),
+                        expected_width: nw,
+                        expected_height: nh,
+                        origin: format!("the first frame, {}", first.display()),
+                    });
+                }
+                let target = options.resolution.unwrap_or((nw, nh));
+                let k =
+                    scale_intrinsics(Intrinsics::from_fov_x(fov as f32, nw, nh), (nw, nh), target);
+                let camera = Camera::new(target.0, target.1, k, it.pose).map_err(|source| {
+                    DataError::Camera {
+                        path: json.clone(),
+                        field: format!("{}.transform_matrix", it.field),
+                        source,
+                    }
+                })?;
+                let image = resize_to(image, target)?;
+                frames.push(Frame {
+                    time_index: 0,
+                    time: it.time,
+                    camera,
+                    image,
                 });
             }
-            let target = options.resolution.unwrap_or((nw, nh));
-            let k = scale_intrinsics(Intrinsics::from_fov_x(fov as f32, nw, nh), (nw, nh), target);
-            let camera = Camera::new(target.0, target.1, k, it.pose).map_err(|source| {
-                DataError::Camera {
-                    path: json.clone(),
-                    field: format!("{}.transform_matrix", it.field),
-                    source,
-                }
-            })?;
-            let image = resize_to(image, target)?;
-            frames.push(Frame {
-                time_index: 0,
-                time: it.time,
-                camera,
-                image,
+            views.push(View {
+                name,
+                split,
+                source: json.clone(),
+                frames,
             });
         }
-        views.push(View {
-            name: stem.trim_start_matches("transforms_").to_string(),
-            split,
-            source: json,
-            frames,
-        });
     }
     let all: Vec<f32> = views
         .iter()
@@ -173,9 +223,9 @@ pub fn load_dnerf(dir: &Path, options: &LoadOptions) -> Result<Dataset> {
         views,
         times,
         background,
-        bbox: None,
+        bbox,
         sim_to_world: None,
-        obstacles: Vec::new(),
+        obstacles,
     })
 }
 

@@ -3,9 +3,10 @@
 
 use std::path::{Path, PathBuf};
 
-use gausmoke_core::glam::Mat4;
+use gausmoke_core::glam::{Mat4, Vec3};
 use serde_json::Value;
 
+use crate::dataset::{Aabb, Obstacle};
 use crate::error::{DataError, Result, io_err};
 
 pub(crate) fn read_json(path: &Path) -> Result<Value> {
@@ -193,4 +194,51 @@ impl<'a> Node<'a> {
     pub fn file_buf(&self) -> PathBuf {
         self.file.to_path_buf()
     }
+}
+
+/// An optional `aabb` of `root`: `[[min x, y, z], [max x, y, z]]` in world units (nerfstudio's
+/// key; the D-NeRF loader reads it too).
+pub(crate) fn read_aabb(root: Node<'_>) -> Result<Option<Aabb>> {
+    let Some(owned) = root.get_opt("aabb")? else {
+        return Ok(None);
+    };
+    let node = owned.node();
+    let rows = node.array()?;
+    if rows.len() != 2 {
+        return Err(node.err("[[min x, y, z], [max x, y, z]]"));
+    }
+    let min = rows[0].node().f64_array::<3>()?;
+    let max = rows[1].node().f64_array::<3>()?;
+    let (min, max) = (
+        Vec3::new(min[0] as f32, min[1] as f32, min[2] as f32),
+        Vec3::new(max[0] as f32, max[1] as f32, max[2] as f32),
+    );
+    if !(min.cmplt(max).all()) {
+        return Err(node.err("a box whose min is below its max on every axis"));
+    }
+    Ok(Some(Aabb { min, max }))
+}
+
+/// `obstacles` (ours, optional): `[{"sphere": {"centre": [x, y, z], "radius": r}}, ...]` in
+/// world units.
+pub(crate) fn read_obstacles(root: Node<'_>) -> Result<Vec<Obstacle>> {
+    let Some(list) = root.get_opt("obstacles")? else {
+        return Ok(Vec::new());
+    };
+    let mut obstacles = Vec::new();
+    for item in list.node().array()? {
+        let item = item.node();
+        let sphere = item.get("sphere")?;
+        let sphere = sphere.node();
+        let centre = sphere.get("centre")?.node().f64_array::<3>()?;
+        let radius = sphere.get("radius")?.node().positive_f64()?;
+        if centre.iter().any(|v| !v.is_finite()) {
+            return Err(sphere.err("a finite centre"));
+        }
+        obstacles.push(Obstacle::Sphere {
+            centre: Vec3::new(centre[0] as f32, centre[1] as f32, centre[2] as f32),
+            radius: radius as f32,
+        });
+    }
+    Ok(obstacles)
 }

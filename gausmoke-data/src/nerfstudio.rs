@@ -24,7 +24,7 @@
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
-use gausmoke_core::glam::{Mat4, Vec3};
+use gausmoke_core::glam::Mat4;
 use gausmoke_core::{Camera, Intrinsics};
 use rayon::prelude::*;
 
@@ -34,7 +34,7 @@ use crate::dataset::{
 };
 use crate::error::{DataError, Result};
 use crate::image::read_png_over;
-use crate::json::{Node, read_json};
+use crate::json::{Node, read_aabb, read_json};
 
 const DISTORTION: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
 const INTRINSICS: [&str; 6] = ["fl_x", "fl_y", "cx", "cy", "w", "h"];
@@ -113,26 +113,7 @@ fn describe(dir: &Path) -> Result<Description> {
         listed("val_filenames")?,
         listed("test_filenames")?,
     );
-    let bbox = match root.get_opt("aabb")? {
-        None => None,
-        Some(owned) => {
-            let node = owned.node();
-            let rows = node.array()?;
-            if rows.len() != 2 {
-                return Err(node.err("[[min x, y, z], [max x, y, z]]"));
-            }
-            let min = rows[0].node().f64_array::<3>()?;
-            let max = rows[1].node().f64_array::<3>()?;
-            let (min, max) = (
-                Vec3::new(min[0] as f32, min[1] as f32, min[2] as f32),
-                Vec3::new(max[0] as f32, max[1] as f32, max[2] as f32),
-            );
-            if !(min.cmplt(max).all()) {
-                return Err(node.err("a box whose min is below its max on every axis"));
-            }
-            Some(Aabb { min, max })
-        }
-    };
+    let bbox = read_aabb(root)?;
     let frames_owned = root.get("frames")?;
     let list = frames_owned.node().array()?;
     if list.is_empty() {

@@ -22,12 +22,12 @@ use gausmoke_core::{Camera, Intrinsics};
 use rayon::prelude::*;
 
 use crate::dataset::{
-    Aabb, Dataset, Format, Frame, LoadOptions, Obstacle, PlannedView, Split, View, resize_to,
+    Aabb, Dataset, Format, Frame, LoadOptions, PlannedView, Split, View, resize_to,
     scale_intrinsics, time_indices,
 };
 use crate::error::{DataError, Result, io_err};
 use crate::image::read_png_over;
-use crate::json::{Node, read_json};
+use crate::json::{Node, read_json, read_obstacles};
 use crate::video;
 
 /// A camera entry of `info.json`, before its frames are read.
@@ -116,30 +116,6 @@ pub fn load_pinf(path: &Path, options: &LoadOptions) -> Result<Dataset> {
         sim_to_world: Some(sim_to_world),
         obstacles,
     })
-}
-
-/// `obstacles` (ours, optional): `[{"sphere": {"centre": [x, y, z], "radius": r}}, ...]` in
-/// world units.
-fn read_obstacles(root: Node<'_>) -> Result<Vec<Obstacle>> {
-    let Some(list) = root.get_opt("obstacles")? else {
-        return Ok(Vec::new());
-    };
-    let mut obstacles = Vec::new();
-    for item in list.node().array()? {
-        let item = item.node();
-        let sphere = item.get("sphere")?;
-        let sphere = sphere.node();
-        let centre = sphere.get("centre")?.node().f64_array::<3>()?;
-        let radius = sphere.get("radius")?.node().positive_f64()?;
-        if centre.iter().any(|v| !v.is_finite()) {
-            return Err(sphere.err("a finite centre"));
-        }
-        obstacles.push(Obstacle::Sphere {
-            centre: Vec3::new(centre[0] as f32, centre[1] as f32, centre[2] as f32),
-            radius: radius as f32,
-        });
-    }
-    Ok(obstacles)
 }
 
 /// The cameras of `train_videos`, `val_videos` and `test_videos`, at least one.
