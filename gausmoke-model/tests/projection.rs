@@ -25,6 +25,46 @@ fn divergence_rms(g: &GridSpec, u: &[f32]) -> f64 {
     (d.iter().map(|v| v * v).sum::<f64>() / d.len() as f64).sqrt()
 }
 
+/// The projection op on `device` (autodiff) applied to `random_field(cells, field_seed)`, and
+/// the gradient of `<w, Pi u>` with `w = random_field(cells, weight_seed)`, both on the host.
+fn op_and_gradient(
+    g: &GridSpec,
+    options: &ProjectionOptions,
+    device: &burn::tensor::Device,
+    field_seed: u64,
+    weight_seed: u64,
+) -> (Vec<f32>, Vec<f32>) {
+    let [nx, ny, nz] = g.resolution();
+    let cells = g.num_cells();
+    let field = |seed| {
+        Tensor::<4>::from_data(
+            TensorData::new(random_field(cells, seed), [nx, ny, nz, 3]),
+            device,
+        )
+    };
+    let u = field(field_seed).require_grad();
+    let projected = project_velocity(g, u.clone(), options.clone());
+    let forward = projected
+        .clone()
+        .into_data()
+        .try_into_vec_as::<f32>()
+        .unwrap();
+    let grads = (projected * field(weight_seed)).sum().backward();
+    let gradient = u
+        .grad(&grads)
+        .unwrap()
+        .into_data()
+        .try_into_vec_as::<f32>()
+        .unwrap();
+    (forward, gradient)
+}
+
+fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
+    a.iter()
+        .zip(b)
+        .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()))
+}
+
 #[test]
 fn projection_removes_divergence_and_is_idempotent() {
     let g = grid([20, 24, 16]);
@@ -125,26 +165,11 @@ fn backward_is_the_projection_of_the_gradient() {
             rel_tolerance: 1e-9,
             ..Default::default()
         };
-        let u = Tensor::<4>::from_data(TensorData::new(random_field(cells, 2), [8, 10, 6, 3]), &ad)
-            .require_grad();
-        let weights_host = random_field(cells, 3);
-        let weights =
-            Tensor::<4>::from_data(TensorData::new(weights_host.clone(), [8, 10, 6, 3]), &ad);
-        let loss = (project_velocity(&g, u.clone(), options.clone()) * weights).sum();
-        let grads = loss.backward();
-        let got = u
-            .grad(&grads)
-            .unwrap()
-            .into_data()
-            .try_into_vec_as::<f32>()
-            .unwrap();
+        let (_, got) = op_and_gradient(&g, &options, &ad, 2, 3);
         // d/du <w, Pi u> = Pi^T w = Pi w.
-        let mut expected = weights_host;
+        let mut expected = random_field(cells, 3);
         project_with_report(&g, &mut expected, &options);
-        let err = got
-            .iter()
-            .zip(&expected)
-            .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+        let err = max_abs_diff(&got, &expected);
         assert!(err < 1e-5, "gradient differs from Pi(w) by {err}");
         // And it is not the identity (the test would be vacuous otherwise).
         assert!(
@@ -543,38 +568,14 @@ mod obstacles {
             let solids = sphere_cells(&g, Vec3::new(0.5, 0.6, 0.4), 0.25);
             let options = options(&solids, &["y+"]);
             let cells = g.num_cells();
-            let field = random_field(cells, 11);
-            let u = Tensor::<4>::from_data(TensorData::new(field.clone(), [10, 12, 8, 3]), &ad)
-                .require_grad();
-            let weights_host = random_field(cells, 12);
-            let weights =
-                Tensor::<4>::from_data(TensorData::new(weights_host.clone(), [10, 12, 8, 3]), &ad);
-            let projected = project_velocity(&g, u.clone(), options.clone());
-            let forward = projected
-                .clone()
-                .into_data()
-                .try_into_vec_as::<f32>()
-                .unwrap();
-            let mut expected = field;
+            let (forward, got) = op_and_gradient(&g, &options, &ad, 11, 12);
+            let mut expected = random_field(cells, 11);
             project_with_report(&g, &mut expected, &options);
-            let err = forward
-                .iter()
-                .zip(&expected)
-                .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+            let err = max_abs_diff(&forward, &expected);
             assert!(err < 1e-5, "{name}: forward differs by {err}");
-            let grads = (projected * weights).sum().backward();
-            let got = u
-                .grad(&grads)
-                .unwrap()
-                .into_data()
-                .try_into_vec_as::<f32>()
-                .unwrap();
-            let mut expected = weights_host;
+            let mut expected = random_field(cells, 12);
             project_with_report(&g, &mut expected, &options);
-            let err = got
-                .iter()
-                .zip(&expected)
-                .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+            let err = max_abs_diff(&got, &expected);
             assert!(err < 1e-5, "{name}: gradient differs from Pi(w) by {err}");
             assert!(
                 (0..cells)
