@@ -17,7 +17,7 @@ pub mod penalty;
 pub mod projection;
 pub mod unet;
 
-pub use advect::{Advected, Integrator, advect};
+pub use advect::{Advected, Integrator, advect, transport_velocity};
 pub use density::{
     DensityBackend, DensityField, SplatOptions, density_and_gradient_grid, density_field,
     density_gradient_grid, density_grid,

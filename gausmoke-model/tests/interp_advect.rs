@@ -6,6 +6,7 @@ use gausmoke_core::SplitMix64;
 use gausmoke_core::glam::Vec3;
 use gausmoke_model::{
     GridError, GridSpec, Integrator, Interpolation, advect, grid_from_fn, sample_velocity,
+    transport_velocity,
 };
 use gausmoke_render::backends::cpu_devices;
 
@@ -242,6 +243,75 @@ fn centres_leaving_the_box_are_clamped_and_flagged() {
     );
     let flags = out.left_box.into_data().try_to_vec::<bool>().unwrap();
     assert_eq!(flags, vec![false, true]);
+}
+
+#[test]
+fn transporting_the_velocity_moves_its_pattern_downstream() {
+    for (_, device) in cpu_devices() {
+        let n = 16;
+        let grid = unit_grid(n);
+        let h = 1.0 / n as f32;
+        // A uniform stream along x carrying a shear: the y component, linear in x, must come
+        // out shifted downstream by the stream's distance per frame.
+        let (stream, shear, dt) = (1.5 * h, 0.2, 1.0);
+        let u = grid_from_fn(&grid, &device, |x| [stream, shear * x[0], 0.0]);
+        let carried = transport_velocity(&grid, &u, dt);
+        assert_eq!(carried.dims(), [n, n, n, 3]);
+        let values = carried.into_data().try_into_vec_as::<f32>().unwrap();
+        let centres = grid.cell_centres();
+        let mut interior = 0;
+        for (c, v) in centres.chunks_exact(3).zip(values.chunks_exact(3)) {
+            assert!(
+                (v[0] - stream).abs() < 1e-6,
+                "the stream itself is uniform: {v:?}"
+            );
+            assert!(v[2].abs() < 1e-6);
+            // Departure points inside the outermost cell centres: trilinear is exact there.
+            if c[0] - stream * dt >= 0.5 * h {
+                let expected = shear * (c[0] - stream * dt);
+                assert!(
+                    (v[1] - expected).abs() < 1e-5,
+                    "at {c:?}: {} against {expected}",
+                    v[1]
+                );
+                interior += 1;
+            }
+        }
+        assert_eq!(
+            interior,
+            n * n * (n - 2),
+            "cells with departure points inside"
+        );
+        // The pattern did move: a field carried by zero time is the field itself.
+        let still = transport_velocity(&grid, &u, 0.0);
+        let before = u.into_data().try_into_vec_as::<f32>().unwrap();
+        let after = still.into_data().try_into_vec_as::<f32>().unwrap();
+        let largest = before
+            .iter()
+            .zip(&after)
+            .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+        assert!(largest < 1e-6, "dt = 0 changed the field by {largest}");
+    }
+}
+
+#[test]
+fn transported_departure_points_stay_in_the_box() {
+    let device = cpu_devices()[0].1.clone();
+    let grid = unit_grid(8);
+    // Flow towards x+ in a field that grows towards x-: the departure points of cells near
+    // x- lie outside the box; they take the outermost cell's value, not an extrapolation
+    // beyond it.
+    let u = grid_from_fn(&grid, &device, |x| [0.5, 1.0 - x[0], 0.0]);
+    let carried = transport_velocity(&grid, &u, 1.0);
+    let values = carried.into_data().try_into_vec_as::<f32>().unwrap();
+    let largest = values
+        .chunks_exact(3)
+        .map(|v| v[1])
+        .fold(f32::MIN, f32::max);
+    assert!(
+        largest <= 1.0 - 0.5 / 8.0 + 1e-5,
+        "a value beyond the field's own ({largest})"
+    );
 }
 
 #[test]

@@ -227,6 +227,12 @@ pub struct TrainConfig {
     /// so nothing but the pictures pushes the speed up (hypothesis 3 of issue 18: the
     /// look-ahead's velocity overshoots).
     pub lambda_kinetic: f32,
+    /// Carry the previous frame's velocity along itself before Phi's increment (ours; `false`
+    /// = the paper's Eq. 9): `u^t = Pi(A(u^{t-1}) + Phi(A(u^{t-1}), sigma, t))` with `A`
+    /// semi-Lagrangian transport over `dt` (see `gausmoke_model::transport_velocity`), so
+    /// momentum moves with the flow instead of staying at the cell where it was fitted.
+    /// The look-ahead's predicted second step does not transport.
+    pub transport_velocity: bool,
     /// Time step of the velocity update and advection, in frames.
     pub dt: f32,
     /// Channels of the U-Net's first level.
@@ -334,6 +340,7 @@ impl Default for TrainConfig {
             lambda_lookahead: 0.0,
             lookahead_velocity: LookaheadVelocity::Held,
             lambda_kinetic: 0.0,
+            transport_velocity: false,
             dt: 1.0,
             unet_channels: 16,
             time_frequencies: 4,

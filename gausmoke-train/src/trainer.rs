@@ -32,6 +32,7 @@ use gausmoke_model::{
     ProjectionOptions, ProjectionReport, SolidCells, SplatOptions, UNetConfig, VelocityUNet,
     advect, advection_loss, density_and_gradient_grid, density_grid, divergence_loss_of,
     penalty_projection, project_direct, project_velocity, refine_loss, settle_deferred_solves,
+    transport_velocity,
 };
 use gausmoke_render::cpu::TILE_SIZE;
 use gausmoke_render::device_traffic::{ReadKind, Traffic, read_floats, read_floats_for};
@@ -578,7 +579,12 @@ impl Trainer {
         let lr_gaussians = config.lr_gaussians * factor;
         let time = t as f32 / (self.sequence.frames() - 1).max(1) as f32;
         let previous_means = self.state.gaussians.means.val().detach();
-        let previous_velocity = self.state.velocity.clone().detach();
+        let previous_velocity = if config.transport_velocity {
+            let _phase = phase!("velocity transport");
+            transport_velocity(&self.grid, &self.state.velocity.clone().detach(), config.dt)
+        } else {
+            self.state.velocity.clone().detach()
+        };
         let interpolation = self.interpolation();
         let splat = SplatOptions::default();
         let refine_iterations = if config.refinement {

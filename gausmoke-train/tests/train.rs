@@ -942,6 +942,70 @@ fn the_look_ahead_changes_the_velocity_and_both_carriers_train() {
 }
 
 #[test]
+fn the_velocity_is_carried_along_itself_before_phi_when_asked() {
+    use gausmoke_model::{ProjectionOptions, grid_from_fn, project_direct, transport_velocity};
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    // Phi's output layer starts at zero and a negligible learning rate (zero is refused)
+    // keeps it there, so frame 1's velocity is the projected previous one, carried along
+    // itself or not.
+    let config = TrainConfig {
+        frames: Some(2),
+        lr_velocity: 1e-20,
+        ..joint_terms_config()
+    };
+    let frame_one = |transport: bool, name: &str| {
+        let config = TrainConfig {
+            transport_velocity: transport,
+            ..config.clone()
+        };
+        let scene = Sequence::open(&data, &config).unwrap();
+        let device = device_by_name("flex").unwrap().autodiff();
+        let mut run = Run::new(scene, config, device, &dir.path().join(name), false)
+            .unwrap()
+            .quiet(true);
+        run.trainer.fit_first_frame().unwrap();
+        let grid = run.trainer.grid;
+        // A swirl about the box's vertical axis, over a cell per frame at the rim.
+        let centre = (grid.lo() + grid.hi()) * 0.5;
+        let omega = 2.5 * grid.cell_size().x / (grid.hi().x - grid.lo().x);
+        let swirl = grid_from_fn(&grid, &run.trainer.device, |x| {
+            [-omega * (x[2] - centre.z), 0.0, omega * (x[0] - centre.x)]
+        });
+        run.trainer.state.velocity = swirl.clone();
+        run.trainer.advance_to(1).unwrap();
+        let after = run.trainer.state.velocity.clone().into_data();
+        (grid, swirl, after.try_into_vec_as::<f32>().unwrap())
+    };
+    let (grid, swirl, carried) = frame_one(true, "carried");
+    let (_, _, held) = frame_one(false, "held");
+    let projected = |mut field: Vec<f32>| {
+        project_direct(&grid, &mut field, &ProjectionOptions::default());
+        field
+    };
+    let host = |t: burn::tensor::Tensor<4>| t.into_data().try_into_vec_as::<f32>().unwrap();
+    let largest_difference = |a: &[f32], b: &[f32]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max)
+    };
+    let expected_carried = projected(host(transport_velocity(&grid, &swirl, 1.0)));
+    let expected_held = projected(host(swirl));
+    let scale = expected_held.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    assert!(
+        largest_difference(&carried, &expected_carried) < 1e-4 * scale,
+        "with transport, frame 1 is not Pi(A(u^0))"
+    );
+    assert!(
+        largest_difference(&held, &expected_held) < 1e-4 * scale,
+        "without transport, frame 1 is not Pi(u^0)"
+    );
+    let apart = largest_difference(&expected_carried, &expected_held);
+    assert!(apart > 0.05 * scale, "the swirl barely moved ({apart})");
+}
+
+#[test]
 fn the_kinetic_prior_slows_the_velocity() {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
