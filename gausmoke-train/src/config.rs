@@ -233,6 +233,11 @@ pub struct TrainConfig {
     /// momentum moves with the flow instead of staying at the cell where it was fitted.
     /// The look-ahead's predicted second step does not transport.
     pub transport_velocity: bool,
+    /// Weight of an inertia prior in the joint iterations (ours; 0 = the paper's method): the
+    /// mean over the grid's cells of `|Phi's increment|^2`, in cells per frame, so the
+    /// velocity keeps what it had (carried along itself with `transport_velocity`) unless the
+    /// pictures ask for a change.
+    pub lambda_increment: f32,
     /// Time step of the velocity update and advection, in frames.
     pub dt: f32,
     /// Channels of the U-Net's first level.
@@ -341,6 +346,7 @@ impl Default for TrainConfig {
             lookahead_velocity: LookaheadVelocity::Held,
             lambda_kinetic: 0.0,
             transport_velocity: false,
+            lambda_increment: 0.0,
             dt: 1.0,
             unet_channels: 16,
             time_frequencies: 4,
@@ -528,6 +534,7 @@ impl TrainConfig {
             ("lambda_refine", self.lambda_refine),
             ("lambda_lookahead", self.lambda_lookahead),
             ("lambda_kinetic", self.lambda_kinetic),
+            ("lambda_increment", self.lambda_increment),
         ];
         for (name, value) in weights {
             if !(value.is_finite() && value >= 0.0) {

@@ -291,6 +291,17 @@ impl Trainer {
     }
 
     /// What the configured `Pi` does to `velocity` (for the frame's metrics).
+    /// The mean over the grid's cells of `|field|^2`, the field in cells per frame.
+    fn mean_square_in_cells(&self, field: Tensor<4>) -> Tensor<1> {
+        let cell = self.grid.cell_size();
+        let in_cells = Tensor::<1>::from_data(
+            TensorData::new(vec![1.0 / cell.x, 1.0 / cell.y, 1.0 / cell.z], [3]),
+            &self.device,
+        )
+        .reshape([1, 1, 1, 3]);
+        (field * in_cells).powi_scalar(2).sum_dim(3).mean()
+    }
+
     fn projection_report(&self, velocity: Tensor<4>) -> ProjectionReport {
         match self.config.projection {
             ProjectionKind::Exact => {
@@ -632,7 +643,7 @@ impl Trainer {
                     time,
                 )?
             };
-            let update = previous_velocity.clone() + delta;
+            let update = previous_velocity.clone() + delta.clone();
             let projected = self.project(update.clone());
             let moved = advect(
                 &self.grid,
@@ -692,17 +703,12 @@ impl Trainer {
                 loss = loss + lookahead * config.lambda_lookahead;
             }
             if config.lambda_kinetic > 0.0 {
-                let cell = self.grid.cell_size();
-                let in_cells = Tensor::<1>::from_data(
-                    TensorData::new(vec![1.0 / cell.x, 1.0 / cell.y, 1.0 / cell.z], [3]),
-                    &self.device,
-                )
-                .reshape([1, 1, 1, 3]);
-                let kinetic = (projected.clone() * in_cells)
-                    .powi_scalar(2)
-                    .sum_dim(3)
-                    .mean();
+                let kinetic = self.mean_square_in_cells(projected.clone());
                 loss = loss + kinetic * config.lambda_kinetic;
+            }
+            if config.lambda_increment > 0.0 {
+                let increment = self.mean_square_in_cells(delta);
+                loss = loss + increment * config.lambda_increment;
             }
             let mut physical = None;
             if let Some(gradient_previous) = gradient_previous {

@@ -32,6 +32,7 @@ const KEYS: &[(&str, bool)] = &[
     ("lambda_refine", true),
     ("lambda_lookahead", true),
     ("lambda_kinetic", true),
+    ("lambda_increment", true),
     ("dt", true),
     ("unet_channels", false),
     ("time_frequencies", true),

@@ -1006,7 +1006,7 @@ fn the_velocity_is_carried_along_itself_before_phi_when_asked() {
 }
 
 #[test]
-fn the_kinetic_prior_slows_the_velocity() {
+fn the_kinetic_and_inertia_priors_slow_the_velocity() {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
     let mean_square = |velocity: Vec<f32>| {
@@ -1018,20 +1018,31 @@ fn the_kinetic_prior_slows_the_velocity() {
         joint_terms_config(),
         "free",
     ));
-    let held = mean_square(velocity_after(
-        &data,
-        dir.path(),
-        TrainConfig {
-            lambda_kinetic: 10.0,
-            ..joint_terms_config()
-        },
-        "held",
-    ));
-    assert!(free > 0.0 && held.is_finite(), "{free} {held}");
-    assert!(
-        held < free,
-        "mean |u|^2: {held} with the prior, {free} without"
-    );
+    // The velocity starts at zero, so holding Phi's increments back slows it too.
+    let priors = [
+        (
+            "kinetic",
+            TrainConfig {
+                lambda_kinetic: 10.0,
+                ..joint_terms_config()
+            },
+        ),
+        (
+            "inertia",
+            TrainConfig {
+                lambda_increment: 10.0,
+                ..joint_terms_config()
+            },
+        ),
+    ];
+    for (name, config) in priors {
+        let held = mean_square(velocity_after(&data, dir.path(), config, name));
+        assert!(free > 0.0 && held.is_finite(), "{name}: {free} {held}");
+        assert!(
+            held < free,
+            "mean |u|^2: {held} with the {name} prior, {free} without"
+        );
+    }
 }
 
 /// A data set with an obstacle: its cells are solid in the trained velocity (no flow in
