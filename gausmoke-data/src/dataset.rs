@@ -30,7 +30,15 @@ pub enum Format {
 /// projection turns it into obstacle cells of its grid.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Obstacle {
-    Sphere { centre: Vec3, radius: f32 },
+    Sphere {
+        centre: Vec3,
+        radius: f32,
+    },
+    /// An axis-aligned box (a table, a wall, a chimney block).
+    Box {
+        min: Vec3,
+        max: Vec3,
+    },
 }
 
 impl Obstacle {
@@ -43,6 +51,11 @@ impl Obstacle {
     pub fn signed_distance(&self, p: Vec3) -> f32 {
         match *self {
             Obstacle::Sphere { centre, radius } => p.distance(centre) - radius,
+            Obstacle::Box { min, max } => {
+                // Per axis, how far outside the nearer face (negative inside).
+                let q = (p - 0.5 * (min + max)).abs() - 0.5 * (max - min);
+                q.max(Vec3::ZERO).length() + q.max_element().min(0.0)
+            }
         }
     }
 
@@ -54,6 +67,7 @@ impl Obstacle {
                 centre + Vec3::splat(radius),
                 4.0 / 3.0 * std::f32::consts::PI * radius.powi(3),
             ),
+            Obstacle::Box { min, max } => (min, max, (max - min).element_product()),
         }
     }
 
@@ -61,7 +75,36 @@ impl Obstacle {
     pub fn outward_normal(&self, p: Vec3) -> Vec3 {
         match *self {
             Obstacle::Sphere { centre, .. } => (p - centre).normalize_or(Vec3::Y),
+            Obstacle::Box { min, max } => {
+                let offset = p - 0.5 * (min + max);
+                let q = offset.abs() - 0.5 * (max - min);
+                if q.max_element() > 0.0 {
+                    // Outside: towards p from the nearest surface point.
+                    (q.max(Vec3::ZERO) * offset.signum()).normalize_or(Vec3::Y)
+                } else {
+                    // Inside: out through the nearest face.
+                    let axis = if q.x >= q.y && q.x >= q.z {
+                        Vec3::X
+                    } else if q.y >= q.z {
+                        Vec3::Y
+                    } else {
+                        Vec3::Z
+                    };
+                    axis * offset.dot(axis).signum()
+                }
+            }
         }
+    }
+
+    /// The point a hair outside the surface nearest `p`, for a `p` inside (else `p`).
+    pub fn pushed_out(&self, p: Vec3) -> Vec3 {
+        let depth = self.signed_distance(p);
+        if depth > 0.0 {
+            return p;
+        }
+        let (lo, hi, _) = self.bounds();
+        let hair = 5e-4 * (hi - lo).max_element();
+        p + self.outward_normal(p) * (hair - depth)
     }
 }
 
@@ -280,4 +323,57 @@ pub(crate) fn resize_to(image: Image, target: (u32, u32)) -> Result<Image> {
             option: "resolution",
             reason: format!("{}x{} is empty", target.0, target.1),
         })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Signed distance, outward normal and the pushed-out point of a box against the
+    /// distances worked out by hand.
+    #[test]
+    fn a_box_obstacle_knows_its_inside_and_its_faces() {
+        let cuboid = Obstacle::Box {
+            min: Vec3::new(-1.0, 0.0, -0.5),
+            max: Vec3::new(1.0, 1.0, 0.5),
+        };
+        let cases = [
+            // (point, signed distance, outward normal)
+            (Vec3::new(0.0, 0.5, 0.0), -0.5, Vec3::Y), // centre: nearest faces y and z tie
+            (Vec3::new(0.9, 0.5, 0.0), -0.1, Vec3::X),
+            (Vec3::new(0.0, 0.5, -0.45), -0.05, Vec3::NEG_Z),
+            (Vec3::new(0.0, 1.3, 0.0), 0.3, Vec3::Y),
+            (Vec3::new(-1.3, -0.4, 0.0), 0.5, Vec3::new(-0.6, -0.8, 0.0)),
+        ];
+        for (p, distance, normal) in cases {
+            assert!(
+                (cuboid.signed_distance(p) - distance).abs() < 1e-6,
+                "{p}: {}",
+                cuboid.signed_distance(p)
+            );
+            assert_eq!(cuboid.contains(p), distance <= 0.0);
+            if p != Vec3::new(0.0, 0.5, 0.0) {
+                assert!(
+                    cuboid.outward_normal(p).distance(normal) < 1e-6,
+                    "{p}: {}",
+                    cuboid.outward_normal(p)
+                );
+            }
+            let out = cuboid.pushed_out(p);
+            assert!(!cuboid.contains(out), "{p} -> {out}");
+            if distance <= 0.0 {
+                let hair = cuboid.signed_distance(out);
+                assert!(hair < 3e-3, "{p} -> {out} is {hair} from the surface");
+            } else {
+                assert_eq!(out, p, "a point outside stays");
+            }
+        }
+        assert_eq!(cuboid.bounds().2, 2.0);
+        let ball = Obstacle::Sphere {
+            centre: Vec3::ZERO,
+            radius: 0.5,
+        };
+        let out = ball.pushed_out(Vec3::new(0.1, 0.0, 0.0));
+        assert!(out.distance(Vec3::new(0.5005, 0.0, 0.0)) < 1e-6, "{out}");
+    }
 }

@@ -219,8 +219,8 @@ pub(crate) fn read_aabb(root: Node<'_>) -> Result<Option<Aabb>> {
     Ok(Some(Aabb { min, max }))
 }
 
-/// `obstacles` (ours, optional): `[{"sphere": {"centre": [x, y, z], "radius": r}}, ...]` in
-/// world units.
+/// `obstacles` (ours, optional): a list of `{"sphere": {"centre": [x, y, z], "radius": r}}`
+/// and `{"box": {"min": [x, y, z], "max": [x, y, z]}}`, in world units.
 pub(crate) fn read_obstacles(root: Node<'_>) -> Result<Vec<Obstacle>> {
     let Some(list) = root.get_opt("obstacles")? else {
         return Ok(Vec::new());
@@ -228,17 +228,29 @@ pub(crate) fn read_obstacles(root: Node<'_>) -> Result<Vec<Obstacle>> {
     let mut obstacles = Vec::new();
     for item in list.node().array()? {
         let item = item.node();
-        let sphere = item.get("sphere")?;
-        let sphere = sphere.node();
-        let centre = sphere.get("centre")?.node().f64_array::<3>()?;
-        let radius = sphere.get("radius")?.node().positive_f64()?;
-        if centre.iter().any(|v| !v.is_finite()) {
-            return Err(sphere.err("a finite centre"));
+        let finite = |node: Node<'_>, name: &str| -> Result<Vec3> {
+            let v = node.get(name)?.node().f64_array::<3>()?;
+            if v.iter().any(|x| !x.is_finite()) {
+                return Err(node.err(format!("a finite {name}")));
+            }
+            Ok(Vec3::new(v[0] as f32, v[1] as f32, v[2] as f32))
+        };
+        if let Some(sphere) = item.get_opt("sphere")? {
+            let sphere = sphere.node();
+            obstacles.push(Obstacle::Sphere {
+                centre: finite(sphere, "centre")?,
+                radius: sphere.get("radius")?.node().positive_f64()? as f32,
+            });
+        } else if let Some(cuboid) = item.get_opt("box")? {
+            let cuboid = cuboid.node();
+            let (min, max) = (finite(cuboid, "min")?, finite(cuboid, "max")?);
+            if !min.cmplt(max).all() {
+                return Err(cuboid.err("a box whose min is below its max on every axis"));
+            }
+            obstacles.push(Obstacle::Box { min, max });
+        } else {
+            return Err(item.err("a \"sphere\" or a \"box\""));
         }
-        obstacles.push(Obstacle::Sphere {
-            centre: Vec3::new(centre[0] as f32, centre[1] as f32, centre[2] as f32),
-            radius: radius as f32,
-        });
     }
     Ok(obstacles)
 }

@@ -1,5 +1,6 @@
 //! The synthetic generator writes the tiny preset; the PINF loader reads it back.
 
+use gausmoke_core::glam::Vec3;
 use gausmoke_data::synth::{self, Solver, SynthConfig};
 use gausmoke_data::{LoadOptions, Split, load_pinf};
 
@@ -276,6 +277,35 @@ fn obstacles_round_trip_through_the_pinf_loader() {
     );
     let info = out.join("info.json");
     let text = std::fs::read_to_string(&info).unwrap();
+    // A box beside the sphere, and a box turned inside out.
+    let with_box = |max: &str| {
+        let mut value: serde_json::Value = serde_json::from_str(&text).unwrap();
+        let cuboid: serde_json::Value = serde_json::from_str(&format!(
+            r#"{{"box": {{"min": [-0.1, 0.05, -0.1], "max": {max}}}}}"#
+        ))
+        .unwrap();
+        value["obstacles"].as_array_mut().unwrap().push(cuboid);
+        std::fs::write(&info, value.to_string()).unwrap();
+        load_pinf(&out, &LoadOptions::default())
+    };
+    let ds = with_box("[0.1, 0.15, 0.1]").unwrap();
+    assert_eq!(
+        ds.obstacles[1],
+        gausmoke_data::Obstacle::Box {
+            min: Vec3::new(-0.1, 0.05, -0.1),
+            max: Vec3::new(0.1, 0.15, 0.1)
+        }
+    );
+    let err = with_box("[0.1, 0.0, 0.1]").unwrap_err().to_string();
+    assert!(
+        err.contains("obstacles[1].box") && err.contains("min"),
+        "{err}"
+    );
+    std::fs::write(&info, text.replace("\"sphere\"", "\"ball\"")).unwrap();
+    let err = load_pinf(&out, &LoadOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("obstacles[0]") && err.contains("box"), "{err}");
     std::fs::write(&info, text.replace("\"radius\"", "\"raduis\"")).unwrap();
     let err = load_pinf(&out, &LoadOptions::default())
         .unwrap_err()

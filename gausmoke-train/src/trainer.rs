@@ -934,8 +934,9 @@ impl Trainer {
     }
 }
 
-/// `means` `[N, 3]` with every centre inside one of `obstacles` moved radially onto its
-/// surface (a hair outside), in tensor operations (no read).
+/// `means` `[N, 3]` with every centre inside one of `obstacles` moved onto its surface (a hair
+/// outside; radially for a sphere, through the nearest face for a box), in tensor operations
+/// (no read).
 fn outside_obstacles(means: Tensor<2>, obstacles: &[Obstacle]) -> Tensor<2> {
     let device = means.device();
     let [n, _] = means.dims();
@@ -952,6 +953,22 @@ fn outside_obstacles(means: Tensor<2>, obstacles: &[Obstacle]) -> Tensor<2> {
                 let inside = squared.clone().lower_elem(radius * radius).expand([n, 3]);
                 let distance = squared.sqrt().clamp_min(1e-12);
                 let surface = centre + offset / distance * (radius * 1.001);
+                means.mask_where(inside, surface)
+            }
+            Obstacle::Box { min, max } => {
+                let row = |v: Vec3| {
+                    Tensor::<2>::from_data(TensorData::new(v.to_array().to_vec(), [1, 3]), &device)
+                        .expand([n, 3])
+                };
+                let offset = means.clone() - row(0.5 * (min + max));
+                // Per axis, how far outside the nearer face (negative inside).
+                let q = offset.clone().abs() - row(0.5 * (max - min));
+                let deepest = q.clone().max_dim(1);
+                let inside = deepest.clone().lower_elem(0.0).expand([n, 3]);
+                // Out through the nearest face, a hair beyond it.
+                let nearest = q.clone().equal(deepest.expand([n, 3])).float();
+                let hair = 5e-4 * (max - min).max_element();
+                let surface = means.clone() + nearest * offset.sign() * (q.neg() + hair);
                 means.mask_where(inside, surface)
             }
         })
@@ -1074,5 +1091,65 @@ fn fresh_state(
         // 3DGS practice: a tiny epsilon, so rarely-seen Gaussians still move.
         gaussian_optim: AdamConfig::new().with_epsilon(1e-15).init(),
         phi_optim: AdamConfig::new().init(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::disallowed_methods)] // tests read tensors freely
+
+    use super::*;
+    use gausmoke_core::SplitMix64;
+    use gausmoke_render::backends::cpu_devices;
+
+    /// The tensor form that keeps smoke centres out of obstacles against its host twin,
+    /// `Obstacle::pushed_out`, for points in and around a sphere and a box.
+    #[test]
+    fn centres_inside_obstacles_are_pushed_out_like_the_host_twin() {
+        let obstacles = [
+            Obstacle::Sphere {
+                centre: Vec3::new(0.3, 0.5, 0.0),
+                radius: 0.2,
+            },
+            Obstacle::Box {
+                min: Vec3::new(-0.6, 0.1, -0.2),
+                max: Vec3::new(-0.1, 0.4, 0.3),
+            },
+        ];
+        let mut rng = SplitMix64::new(7);
+        let points: Vec<Vec3> = (0..2000)
+            .map(|_| {
+                Vec3::new(
+                    rng.range(-0.8, 0.8),
+                    rng.range(0.0, 0.8),
+                    rng.range(-0.4, 0.4),
+                )
+            })
+            .collect();
+        let expected: Vec<Vec3> = points
+            .iter()
+            .map(|&p| obstacles.iter().fold(p, |p, o| o.pushed_out(p)))
+            .collect();
+        let inside = points
+            .iter()
+            .filter(|p| obstacles.iter().any(|o| o.contains(**p)))
+            .count();
+        assert!(inside > 150, "only {inside} points inside");
+        for (_, device) in cpu_devices() {
+            let flat: Vec<f32> = points.iter().flat_map(|p| p.to_array()).collect();
+            let means = Tensor::<2>::from_data(TensorData::new(flat, [points.len(), 3]), &device);
+            let moved = outside_obstacles(means, &obstacles)
+                .into_data()
+                .try_into_vec_as::<f32>()
+                .unwrap();
+            for ((p, want), got) in points.iter().zip(&expected).zip(moved.chunks_exact(3)) {
+                let got = Vec3::from_slice(got);
+                assert!(
+                    got.distance(*want) < 1e-5,
+                    "{p} -> {got}, the host twin says {want}"
+                );
+                assert!(obstacles.iter().all(|o| !o.contains(got)), "{p} -> {got}");
+            }
+        }
     }
 }
