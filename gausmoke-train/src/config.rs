@@ -238,6 +238,10 @@ pub struct TrainConfig {
     /// velocity keeps what it had (carried along itself with `transport_velocity`) unless the
     /// pictures ask for a change.
     pub lambda_increment: f32,
+    /// Steps fitting Phi, after each frame's refinement, so that the frame's velocity carries
+    /// the previous centres to the refined ones (ours; 0 = the paper's method, where what the
+    /// refinement finds never reaches the velocity).
+    pub correction_iterations: usize,
     /// Time step of the velocity update and advection, in frames.
     pub dt: f32,
     /// Channels of the U-Net's first level.
@@ -347,6 +351,7 @@ impl Default for TrainConfig {
             lambda_kinetic: 0.0,
             transport_velocity: false,
             lambda_increment: 0.0,
+            correction_iterations: 0,
             dt: 1.0,
             unet_channels: 16,
             time_frequencies: 4,

@@ -1005,6 +1005,53 @@ fn the_velocity_is_carried_along_itself_before_phi_when_asked() {
     assert!(apart > 0.05 * scale, "the swirl barely moved ({apart})");
 }
 
+/// The correction steps run in the trainer's frame: the velocity then carries the previous
+/// centres closer to the refined ones (how well it fits a move it can make is the unit test
+/// beside `Trainer::correct_velocity`; on this scene most of the refinement's move is not).
+#[test]
+fn the_velocity_correction_follows_the_refinement() {
+    use gausmoke_model::{Integrator, Interpolation, advect};
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let miss = |correction_iterations: usize, name: &str| {
+        let config = TrainConfig {
+            frames: Some(2),
+            refine_iterations: 10,
+            correction_iterations,
+            lr_velocity: 0.01,
+            ..joint_terms_config()
+        };
+        let scene = Sequence::open(&data, &config).unwrap();
+        let device = device_by_name("flex").unwrap().autodiff();
+        let mut run = Run::new(scene, config.clone(), device, &dir.path().join(name), false)
+            .unwrap()
+            .quiet(true);
+        run.trainer.fit_first_frame().unwrap();
+        let before = run.trainer.state.gaussians.means.val().detach();
+        run.trainer.advance_to(1).unwrap();
+        let trainer = &run.trainer;
+        let carried = advect(
+            &trainer.grid,
+            &trainer.state.velocity,
+            &before,
+            config.dt,
+            Integrator::Euler,
+            Interpolation::default(),
+        )
+        .positions;
+        let refined = trainer.state.gaussians.means.val();
+        let squared = (carried - refined).powi_scalar(2).sum_dim(1).mean();
+        f64::from(squared.into_scalar::<f32>())
+    };
+    let without = miss(0, "without");
+    let with = miss(20, "with");
+    assert!(with.is_finite() && without > 0.0);
+    assert!(
+        with < without,
+        "mean squared miss of the refined centres: {with} with the correction, {without} without"
+    );
+}
+
 #[test]
 fn the_kinetic_and_inertia_priors_slow_the_velocity() {
     let dir = tempfile::tempdir().unwrap();
