@@ -40,16 +40,25 @@ fn mean_std(values: &[f64]) -> (f64, f64) {
     (mean, var.sqrt())
 }
 
-/// A record's variant label, naming its open box faces (from its configuration) where the
-/// label does not: a preset's faces are not in its label.
+/// A record's variant label, naming its open box faces and velocity transport (from its
+/// configuration) where the label does not: a preset's settings are not in its label.
 fn variant(record: &Value) -> String {
-    let label = record["variant"].as_str().unwrap_or("?");
-    let faces = open_faces(record);
-    if faces.is_empty() || label.contains("open_faces") {
-        label.to_string()
-    } else {
-        format!("{label}, open faces {}", faces.join(" "))
+    let mut label = record["variant"].as_str().unwrap_or("?").to_string();
+    if transported(record) && !label.contains("transport_velocity") {
+        label += ", velocity transported";
     }
+    let faces = open_faces(record);
+    if !faces.is_empty() && !label.contains("open_faces") {
+        label += &format!(", open faces {}", faces.join(" "));
+    }
+    label
+}
+
+/// Whether the run carried its velocity along itself (`transport_velocity`).
+fn transported(record: &Value) -> bool {
+    record["config"]["transport_velocity"]
+        .as_bool()
+        .unwrap_or(false)
 }
 
 /// The seed of a record's Gaussians' initialisation.
@@ -91,9 +100,9 @@ const SEED_METRICS: [SeedMetric; 4] = [
     },
 ];
 
-/// A group of runs: the box faces they leave open (a preset's faces are not in its keys) and
-/// the group name they were recorded under.
-type GroupKey<'a> = (Vec<&'a str>, &'a str);
+/// A group of runs: the box faces they leave open and whether they transport the velocity
+/// (a preset's settings are not in its keys), and the group name they were recorded under.
+type GroupKey<'a> = (Vec<&'a str>, bool, &'a str);
 
 fn open_faces(record: &Value) -> Vec<&str> {
     record["config"]["open_faces"]
@@ -103,12 +112,16 @@ fn open_faces(record: &Value) -> Vec<&str> {
 }
 
 /// Runs grouped by what they share apart from the seed (records written before groups existed
-/// are their own group; runs with other open faces are never in one group).
+/// are their own group; runs with other open faces or velocity transport are never in one
+/// group).
 fn seed_groups(records: &[Value]) -> std::collections::BTreeMap<GroupKey<'_>, Vec<&Value>> {
     let mut groups: std::collections::BTreeMap<GroupKey<'_>, Vec<&Value>> = Default::default();
     for r in records {
         let group = r["group"].as_str().or(r["key"].as_str()).unwrap_or("?");
-        groups.entry((open_faces(r), group)).or_default().push(r);
+        groups
+            .entry((open_faces(r), transported(r), group))
+            .or_default()
+            .push(r);
     }
     groups
 }
@@ -131,7 +144,7 @@ fn write_seed_summary(block: &mut String, records: &[Value]) -> Result<()> {
         "| group | variant | seeds | held-out PSNR (dB) | SSIM | velocity rel. error | velocity cosine | density rel. error | density correlation | mean abs div u (1/frame) |"
     )?;
     writeln!(block, "|---|---|---|---:|---:|---:|---:|---:|---:|---:|")?;
-    for ((_, group), runs) in &repeated {
+    for ((_, _, group), runs) in &repeated {
         let column = |name: &str, format: fn(f64) -> String| {
             let values: Vec<f64> = runs.iter().filter_map(|r| r[name].as_f64()).collect();
             if values.len() < 2 {
@@ -167,7 +180,7 @@ fn write_paired_ablations(
     groups: &std::collections::BTreeMap<GroupKey<'_>, Vec<&Value>>,
 ) -> Result<()> {
     let mut rows = Vec::new();
-    for ((faces, group), runs) in groups {
+    for ((faces, transport, group), runs) in groups {
         let Some(ablation) = Ablation::KNOWN
             .into_iter()
             .find(|a| group.ends_with(a.suffix()))
@@ -175,7 +188,7 @@ fn write_paired_ablations(
             continue;
         };
         let full_group = &group[..group.len() - ablation.suffix().len()];
-        let Some(full_runs) = groups.get(&(faces.clone(), full_group)) else {
+        let Some(full_runs) = groups.get(&(faces.clone(), *transport, full_group)) else {
             continue;
         };
         let pairs: Vec<(&Value, &Value)> = runs
@@ -526,7 +539,7 @@ mod tests {
     }
 
     #[test]
-    fn variants_name_open_faces_that_their_label_does_not() {
+    fn variants_name_open_faces_and_transport_that_their_label_does_not() {
         let record =
             |label: &str, faces: Value| json!({"variant": label, "config": {"open_faces": faces}});
         assert_eq!(
@@ -540,22 +553,43 @@ mod tests {
         );
         let tagged = r#"full method, open_faces=["y-","y+"]"#;
         assert_eq!(variant(&record(tagged, json!(["y-", "y+"]))), tagged);
+        let carried = json!({"variant": "full method",
+                             "config": {"open_faces": ["y+"], "transport_velocity": true}});
+        assert_eq!(
+            variant(&carried),
+            "full method, velocity transported, open faces y+"
+        );
+        let tagged = json!({"variant": "full method, transport_velocity=true",
+                            "config": {"transport_velocity": true}});
+        assert_eq!(variant(&tagged), "full method, transport_velocity=true");
     }
 
     #[test]
-    fn runs_with_other_open_faces_are_not_summarised_together() {
+    fn runs_with_other_open_faces_or_transport_are_not_summarised_together() {
         let record = |seed: u64, faces: Value| {
             json!({"key": format!("g-s{seed}"), "group": "g", "seed": seed, "variant": "full method",
                    "test_psnr": 30.0 + seed as f64, "config": {"open_faces": faces}})
         };
-        let records = vec![
+        let mut records = vec![
             record(1, json!([])),
             record(2, json!([])),
             record(3, json!(["y-", "y+"])),
             record(4, json!(["y-", "y+"])),
         ];
+        // Two more seeds of the open-faced preset with the velocity transported: their own group.
+        for seed in [5, 6] {
+            let mut carried = record(seed, json!(["y-", "y+"]));
+            carried["config"]["transport_velocity"] = json!(true);
+            records.push(carried);
+        }
         let mut block = String::new();
         write_seed_summary(&mut block, &records).unwrap();
+        assert!(
+            block.contains(
+                "| `g` | full method, velocity transported, open faces y- y+ | 5, 6 | 35.50 +- 0.71 |"
+            ),
+            "{block}"
+        );
         assert!(
             block.contains("| `g` | full method | 1, 2 | 31.50 +- 0.71 |"),
             "{block}"
