@@ -293,13 +293,27 @@ impl Trainer {
     /// What the configured `Pi` does to `velocity` (for the frame's metrics).
     /// The mean over the grid's cells of `|field|^2`, the field in cells per frame.
     fn mean_square_in_cells(&self, field: Tensor<4>) -> Tensor<1> {
+        let in_cells = self.cells_per_world_unit().reshape([1, 1, 1, 3]);
+        (field * in_cells).powi_scalar(2).sum_dim(3).mean()
+    }
+
+    /// `1 / cell size` per axis, `[3]`: world lengths to cell lengths.
+    fn cells_per_world_unit(&self) -> Tensor<1> {
         let cell = self.grid.cell_size();
-        let in_cells = Tensor::<1>::from_data(
+        Tensor::<1>::from_data(
             TensorData::new(vec![1.0 / cell.x, 1.0 / cell.y, 1.0 / cell.z], [3]),
             &self.device,
         )
-        .reshape([1, 1, 1, 3]);
-        (field * in_cells).powi_scalar(2).sum_dim(3).mean()
+    }
+
+    /// One optimizer step of Phi on the gradients of a loss.
+    fn step_phi(&mut self, grads: &mut Gradients, lr: f64) {
+        let phi_grads = GradientsParams::from_module(grads, &self.state.phi);
+        let phi = self.state.phi.clone();
+        self.state.phi = {
+            let _phase = phase!("optimizer");
+            self.state.phi_optim.step(lr, phi, phi_grads)
+        };
     }
 
     fn projection_report(&self, velocity: Tensor<4>) -> ProjectionReport {
@@ -752,12 +766,7 @@ impl Trainer {
                 let _phase = phase!("backward (all ops)");
                 loss.backward()
             };
-            let phi_grads = GradientsParams::from_module(&mut grads, &self.state.phi);
-            let phi = self.state.phi.clone();
-            self.state.phi = {
-                let _phase = phase!("optimizer");
-                self.state.phi_optim.step(lr_velocity, phi, phi_grads)
-            };
+            self.step_phi(&mut grads, lr_velocity);
             self.step_gaussians(
                 &mut grads,
                 Gaussians {
@@ -888,12 +897,7 @@ impl Trainer {
             kept[i] = 0.0;
         }
         let kept = Tensor::<1>::from_data(TensorData::new(kept, [n]), &self.device);
-        let cell = self.grid.cell_size();
-        let in_cells = Tensor::<1>::from_data(
-            TensorData::new(vec![1.0 / cell.x, 1.0 / cell.y, 1.0 / cell.z], [3]),
-            &self.device,
-        )
-        .reshape([1, 3]);
+        let in_cells = self.cells_per_world_unit().reshape([1, 3]);
         let mut last = (previous_velocity.clone(), previous_velocity.clone());
         for _ in 0..config.correction_iterations {
             let delta = {
@@ -923,12 +927,7 @@ impl Trainer {
                 let _phase = phase!("backward (all ops)");
                 loss.backward()
             };
-            let phi_grads = GradientsParams::from_module(&mut grads, &self.state.phi);
-            let phi = self.state.phi.clone();
-            self.state.phi = {
-                let _phase = phase!("optimizer");
-                self.state.phi_optim.step(lr_velocity, phi, phi_grads)
-            };
+            self.step_phi(&mut grads, lr_velocity);
         }
         Ok(last)
     }
