@@ -290,7 +290,6 @@ impl Trainer {
         }
     }
 
-    /// What the configured `Pi` does to `velocity` (for the frame's metrics).
     /// The mean over the grid's cells of `|field|^2`, the field in cells per frame.
     fn mean_square_in_cells(&self, field: Tensor<4>) -> Tensor<1> {
         let in_cells = self.cells_per_world_unit().reshape([1, 1, 1, 3]);
@@ -316,6 +315,7 @@ impl Trainer {
         };
     }
 
+    /// What the configured `Pi` does to `velocity` (for the frame's metrics).
     fn projection_report(&self, velocity: Tensor<4>) -> ProjectionReport {
         match self.config.projection {
             ProjectionKind::Exact => {
