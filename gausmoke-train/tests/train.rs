@@ -32,6 +32,14 @@ fn test_config() -> TrainConfig {
     }
 }
 
+/// The largest absolute difference between two arrays of the same length.
+fn largest_difference(a: &[f32], b: &[f32]) -> f32 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max)
+}
+
 fn tiny_scene(dir: &Path) -> PathBuf {
     let data = dir.join("data");
     generate(&SynthConfig::tiny(), &data).expect("the tiny scene generates");
@@ -312,11 +320,7 @@ fn a_killed_run_resumes_to_the_uninterrupted_result() {
         let (other_shape, other) = &b[name];
         assert_eq!(shape, other_shape, "{name}");
         let scale = values.iter().fold(1e-6f32, |m, v| m.max(v.abs()));
-        let worst = values
-            .iter()
-            .zip(other)
-            .map(|(x, y)| (x - y).abs())
-            .fold(0.0f32, f32::max);
+        let worst = largest_difference(values, other);
         assert!(
             worst <= 1e-5 * scale,
             "{name}: resumed differs by {worst} (scale {scale})"
@@ -929,11 +933,7 @@ fn the_look_ahead_changes_the_velocity_and_both_carriers_train() {
             &format!("{carrier:?}"),
         );
         assert!(with.iter().all(|v| v.is_finite()), "{carrier:?}");
-        let change = with
-            .iter()
-            .zip(&without)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0f32, f32::max);
+        let change = largest_difference(&with, &without);
         assert!(
             change > 0.0,
             "{carrier:?}: the look-ahead term changed nothing"
@@ -984,12 +984,6 @@ fn the_velocity_is_carried_along_itself_before_phi_when_asked() {
         field
     };
     let host = |t: burn::tensor::Tensor<4>| t.into_data().try_into_vec_as::<f32>().unwrap();
-    let largest_difference = |a: &[f32], b: &[f32]| {
-        a.iter()
-            .zip(b)
-            .map(|(x, y)| (x - y).abs())
-            .fold(0.0f32, f32::max)
-    };
     let expected_carried = projected(host(transport_velocity(&grid, &swirl, 1.0)));
     let expected_held = projected(host(swirl));
     let scale = expected_held.iter().fold(0.0f32, |m, v| m.max(v.abs()));
@@ -1331,10 +1325,7 @@ fn static_gaussians_fit_the_ball_and_resume() {
     assert_eq!(a.keys().collect::<Vec<_>>(), b.keys().collect::<Vec<_>>());
     for (name, (_, values)) in &a {
         let scale = values.iter().fold(1e-6f32, |m, v| m.max(v.abs()));
-        let worst = values
-            .iter()
-            .zip(&b[name].1)
-            .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+        let worst = largest_difference(values, &b[name].1);
         assert!(worst <= 1e-5 * scale, "{name}: resumed differs by {worst}");
     }
 }
