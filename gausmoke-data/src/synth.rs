@@ -20,13 +20,14 @@
 //! `T_{k+1} = T_k exp(-sigma_k ds)`, step `ds` = half a cell, pixel = `L + T * background`.
 //! PNGs store it in 8 bits, so loaded pixels match the marcher to 0.5/255.
 //!
-//! An optional spherical obstacle ([`SynthConfig::obstacle`]) is solid in the solver: its
-//! cells hold no velocity and no smoke, and the pressure solve treats their faces as walls.
-//! Unless [`SynthSphere::visible`], it is not drawn (the renders show only smoke), so what a
-//! reconstruction puts inside it is leaked smoke; a visible one is an opaque, lit sphere with a
-//! checker texture (8 x 4 tiles in longitude and latitude, albedo 0.35 and 0.75, light from
-//! `(0.3, 1, 0.5)` plus 0.3 ambient) in front of which the smoke is composited. `info.json`
-//! describes it under `obstacles` in world units.
+//! Optional solids ([`SynthConfig::solids`], spheres and axis-aligned boxes) are solid in the
+//! solver: their cells hold no velocity and no smoke, and the pressure solve treats their
+//! faces as walls. Unless [`SynthSolid::visible`], a solid is not drawn (the renders show only
+//! smoke), so what a reconstruction puts inside it is leaked smoke; a visible one is opaque,
+//! lit from `(0.3, 1, 0.5)` plus 0.3 ambient, and checkered in albedos 0.35 and 0.75 (a sphere
+//! in 8 x 4 tiles of longitude and latitude, a box in squares of [`BOX_TILE`] world units on
+//! each face), and the smoke in front of it is composited over it. `info.json` describes every
+//! solid under `obstacles` in world units.
 //!
 //! Nothing is partially written: the scene is built in a sibling `.partial` folder and
 //! renamed into place at the end; an existing non-empty output folder is refused.
@@ -39,8 +40,12 @@ use gausmoke_core::{Camera, SplitMix64};
 use rayon::prelude::*;
 use serde_json::json;
 
+use crate::dataset::Obstacle;
 use crate::error::{DataError, Result, io_err};
 use crate::image::Image;
+
+/// Side of a box's checker squares, in world units (six across the unit box).
+pub const BOX_TILE: f32 = 1.0 / 6.0;
 
 /// Scene and solver settings.
 #[derive(Debug, Clone, PartialEq)]
@@ -70,44 +75,84 @@ pub struct SynthConfig {
     pub arc_degrees: f32,
     /// Horizontal field of view, radians.
     pub fov_x: f32,
-    /// A solid sphere in the box (world units), or none.
-    pub obstacle: Option<SynthSphere>,
+    /// Solids in the box (world units).
+    pub solids: Vec<SynthSolid>,
     /// Linear RGB behind the box.
     pub background: [f32; 3],
 }
 
-/// A sphere in world units (see [`world_box`]).
+/// A solid in world units (see [`world_box`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SynthSphere {
-    pub centre: Vec3,
-    pub radius: f32,
-    /// Drawn as an opaque textured ball (else only its effect on the smoke shows).
+pub struct SynthSolid {
+    pub shape: Obstacle,
+    /// Drawn, opaque and textured (else only its effect on the smoke shows).
     pub visible: bool,
 }
 
-impl SynthSphere {
-    /// The ray parameter where `origin + t dir` (unit `dir`) first enters the sphere.
+impl SynthSolid {
+    /// The ray parameter where `origin + t dir` (unit `dir`, `origin` outside) first enters
+    /// the solid.
     fn hit(&self, origin: Vec3, dir: Vec3) -> Option<f32> {
-        let offset = origin - self.centre;
-        let b = offset.dot(dir);
-        let c = offset.length_squared() - self.radius * self.radius;
-        let discriminant = b * b - c;
-        (discriminant >= 0.0)
-            .then(|| -b - discriminant.sqrt())
-            .filter(|&t| t > 0.0)
+        let entry = match self.shape {
+            Obstacle::Sphere { centre, radius } => {
+                let offset = origin - centre;
+                let b = offset.dot(dir);
+                let c = offset.length_squared() - radius * radius;
+                let discriminant = b * b - c;
+                (discriminant >= 0.0).then(|| -b - discriminant.sqrt())
+            }
+            Obstacle::Box { min, max } => {
+                let (near, far) = slab_interval(origin, dir, min, max);
+                (near <= far).then_some(near)
+            }
+        };
+        entry.filter(|&t| t > 0.0)
     }
 
     /// The lit, textured colour of the surface point `p` (see the module's notes).
     fn shade(&self, p: Vec3) -> f32 {
-        let n = (p - self.centre) / self.radius;
-        let longitude = n.z.atan2(n.x);
-        let latitude = n.y.clamp(-1.0, 1.0).asin();
-        let tile = ((longitude / std::f32::consts::TAU * 8.0).floor()
-            + (latitude / std::f32::consts::PI * 4.0).floor()) as i32;
-        let albedo = if tile.rem_euclid(2) == 0 { 0.35 } else { 0.75 };
+        let n = self.shape.outward_normal(p);
+        let tile = match self.shape {
+            Obstacle::Sphere { .. } => {
+                let longitude = n.z.atan2(n.x);
+                let latitude = n.y.clamp(-1.0, 1.0).asin();
+                (longitude / std::f32::consts::TAU * 8.0).floor()
+                    + (latitude / std::f32::consts::PI * 4.0).floor()
+            }
+            Obstacle::Box { .. } => {
+                // The two coordinates along the face (the normal's axis left out).
+                let across = p / BOX_TILE;
+                let along = if n.x.abs() > 0.5 {
+                    (across.y, across.z)
+                } else if n.y.abs() > 0.5 {
+                    (across.x, across.z)
+                } else {
+                    (across.x, across.y)
+                };
+                along.0.floor() + along.1.floor()
+            }
+        };
+        let albedo = if (tile as i32).rem_euclid(2) == 0 {
+            0.35
+        } else {
+            0.75
+        };
         let light = Vec3::new(0.3, 1.0, 0.5).normalize();
         albedo * (0.3 + 0.7 * n.dot(light).max(0.0))
     }
+}
+
+/// Where the line `origin + t dir` enters and leaves the axis-aligned box `[lo, hi]` (it
+/// misses when the first exceeds the second).
+fn slab_interval(origin: Vec3, dir: Vec3, lo: Vec3, hi: Vec3) -> (f32, f32) {
+    let (mut near, mut far) = (f32::NEG_INFINITY, f32::INFINITY);
+    for a in 0..3 {
+        let inv = 1.0 / dir[a];
+        let (ta, tb) = ((lo[a] - origin[a]) * inv, (hi[a] - origin[a]) * inv);
+        near = near.max(ta.min(tb));
+        far = far.min(ta.max(tb));
+    }
+    (near, far)
 }
 
 impl SynthConfig {
@@ -132,7 +177,7 @@ impl SynthConfig {
             camera_distance: 2.0,
             arc_degrees: 120.0,
             fov_x: 0.75,
-            obstacle: None,
+            solids: Vec::new(),
             background: [0.0; 3],
         }
     }
@@ -174,11 +219,13 @@ impl SynthConfig {
     pub fn obstacle_plume() -> Self {
         Self {
             frames: 48,
-            obstacle: Some(SynthSphere {
-                centre: Vec3::new(0.04, 0.4, 0.0),
-                radius: 0.14,
+            solids: vec![SynthSolid {
+                shape: Obstacle::Sphere {
+                    centre: Vec3::new(0.04, 0.4, 0.0),
+                    radius: 0.14,
+                },
                 visible: false,
-            }),
+            }],
             ..Self::long_plume()
         }
     }
@@ -186,14 +233,46 @@ impl SynthConfig {
     /// The static-primitives test (issue 20): the obstacle plume with the sphere drawn as a
     /// textured ball, over a grey-blue background.
     pub fn ball_plume() -> Self {
-        let obstacle = Self::obstacle_plume().obstacle.map(|sphere| SynthSphere {
-            visible: true,
-            ..sphere
-        });
+        let obstacle = Self::obstacle_plume();
         Self {
-            obstacle,
+            solids: obstacle
+                .solids
+                .iter()
+                .map(|solid| SynthSolid {
+                    visible: true,
+                    ..*solid
+                })
+                .collect(),
             background: [0.12, 0.14, 0.18],
-            ..Self::obstacle_plume()
+            ..obstacle
+        }
+    }
+
+    /// Boxes and a textured backdrop (issue 20): the obstacle plume's settings with a block
+    /// in the plume's way, off its axis so most of the smoke passes on one side, and a wall
+    /// across the back of the box that every camera sees behind the smoke; both drawn
+    /// checkered, over the grey-blue background. Static primitives have to carry the wall's
+    /// texture, seen through varying smoke, for the smoke to be fitted where it passes in
+    /// front of it.
+    pub fn blocks_plume() -> Self {
+        Self {
+            solids: vec![
+                SynthSolid {
+                    shape: Obstacle::Box {
+                        min: Vec3::new(-0.04, 0.36, -0.12),
+                        max: Vec3::new(0.2, 0.46, 0.12),
+                    },
+                    visible: true,
+                },
+                SynthSolid {
+                    shape: Obstacle::Box {
+                        min: Vec3::new(-0.5, 0.0, -0.5),
+                        max: Vec3::new(0.5, 1.0, -0.42),
+                    },
+                    visible: true,
+                },
+            ],
+            ..Self::ball_plume()
         }
     }
 
@@ -227,16 +306,14 @@ impl SynthConfig {
         if self.background.iter().any(|v| !(0.0..=1.0).contains(v)) {
             return bad("background", "3 values in [0, 1]".into());
         }
-        if let Some(sphere) = self.obstacle {
-            let (lo, hi) = world_box();
-            let inside = (0..3).all(|a| {
-                sphere.centre[a] - sphere.radius >= lo[a]
-                    && sphere.centre[a] + sphere.radius <= hi[a]
-            });
-            if !(sphere.radius > 0.0 && sphere.centre.is_finite() && inside) {
+        let (lo, hi) = world_box();
+        for (k, solid) in self.solids.iter().enumerate() {
+            let (min, max, volume) = solid.shape.bounds();
+            let inside = (0..3).all(|a| min[a] >= lo[a] && max[a] <= hi[a]);
+            if !(volume > 0.0 && min.is_finite() && max.is_finite() && inside) {
                 return bad(
-                    "obstacle",
-                    "a sphere with a positive radius inside the box".into(),
+                    "solids",
+                    format!("solid {k} ({:?}): not a solid inside the box", solid.shape),
                 );
             }
         }
@@ -332,7 +409,7 @@ pub struct Solver {
     cfg: SynthConfig,
     pub density: Grid,
     pub velocity: [Grid; 3],
-    /// Per cell, whether the obstacle fills it (cell centre inside the sphere).
+    /// Per cell, whether a solid fills it (cell centre inside it).
     pub solid: Vec<bool>,
     rng: SplitMix64,
 }
@@ -344,14 +421,14 @@ impl Solver {
         let (lo, hi) = world_box();
         let cell = (hi - lo) / n as f32;
         let mut solid = vec![false; n * n * n];
-        if let Some(sphere) = cfg.obstacle {
+        if !cfg.solids.is_empty() {
             for z in 0..n {
                 for y in 0..n {
                     for x in 0..n {
                         let centre = lo
                             + cell * (Vec3::new(x as f32, y as f32, z as f32) + Vec3::splat(0.5));
                         solid[(z * n + y) * n + x] =
-                            centre.distance_squared(sphere.centre) <= sphere.radius * sphere.radius;
+                            cfg.solids.iter().any(|s| s.shape.contains(centre));
                     }
                 }
             }
@@ -672,7 +749,7 @@ pub fn render(
     camera: &Camera,
     density_scale: f32,
     background: [f32; 3],
-    ball: Option<&SynthSphere>,
+    solids: &[SynthSolid],
 ) -> Result<Image> {
     let (lo, hi) = world_box();
     let n = density.n as f32;
@@ -686,20 +763,18 @@ pub fn render(
         for i in 0..w {
             let d_cam = camera.ray_direction_camera(i as f32 + 0.5, j as f32 + 0.5);
             let dir = c2w.transform_vector3(d_cam).normalize();
-            let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
-            for a in 0..3 {
-                let inv = 1.0 / dir[a];
-                let (ta, tb) = ((lo[a] - origin[a]) * inv, (hi[a] - origin[a]) * inv);
-                t0 = t0.max(ta.min(tb));
-                t1 = t1.min(ta.max(tb));
-            }
+            let (t0, mut t1) = slab_interval(origin, dir, lo, hi);
+            let t0 = t0.max(0.0);
             let (mut light, mut trans) = (0.0f32, 1.0f32);
-            // A visible ball hides what lies behind it: march up to it, then show it.
-            let hit = ball.filter(|b| b.visible).and_then(|b| b.hit(origin, dir));
-            let behind = hit.map_or(background, |t| {
-                [ball.expect("hit").shade(origin + dir * t); 3]
-            });
-            if let Some(t) = hit {
+            // The nearest visible solid hides what lies behind it: march up to it, then show
+            // it.
+            let hit = solids
+                .iter()
+                .filter(|s| s.visible)
+                .filter_map(|s| s.hit(origin, dir).map(|t| (t, s)))
+                .min_by(|a, b| a.0.total_cmp(&b.0));
+            let behind = hit.map_or(background, |(t, solid)| [solid.shade(origin + dir * t); 3]);
+            if let Some((t, _)) = hit {
                 t1 = t1.min(t);
             }
             if t1 > t0 {
@@ -792,7 +867,7 @@ fn write_scene(cfg: &SynthConfig, dir: &Path) -> Result<SynthScene> {
                 cam,
                 cfg.density_scale,
                 background,
-                cfg.obstacle.as_ref(),
+                &cfg.solids,
             )?;
             img.save_png(&dir.join(&view_names[k]).join(format!("{t:03}.png")))?;
             frames[k].push(img);
@@ -834,9 +909,16 @@ fn write_scene(cfg: &SynthConfig, dir: &Path) -> Result<SynthScene> {
     std::mem::swap(&mut stored.x_axis, &mut stored.z_axis);
     let voxel_rows: Vec<Vec<f32>> = (0..4).map(|r| stored.row(r).to_array().to_vec()).collect();
     let obstacles: Vec<serde_json::Value> = cfg
-        .obstacle
+        .solids
         .iter()
-        .map(|s| json!({"sphere": {"centre": s.centre.to_array(), "radius": s.radius}}))
+        .map(|s| match s.shape {
+            Obstacle::Sphere { centre, radius } => {
+                json!({"sphere": {"centre": centre.to_array(), "radius": radius}})
+            }
+            Obstacle::Box { min, max } => {
+                json!({"box": {"min": min.to_array(), "max": max.to_array()}})
+            }
+        })
         .collect();
     let info = json!({
         "obstacles": obstacles,
@@ -892,4 +974,75 @@ fn write_gt(path: &Path, n: usize, density: &[f32], velocity: &[f32]) -> Result<
         ),
     ]);
     safetensors::serialize_to_file([("density", d), ("velocity", v)], Some(meta), path).map_err(err)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn blocks() -> (SynthSolid, SynthSolid) {
+        let solids = SynthConfig::blocks_plume().solids;
+        (solids[0], solids[1])
+    }
+
+    /// Entry points worked by hand: straight down -z onto the wall (face at z = -0.42), past
+    /// the block (y = 0.5 is above its top at 0.46), and onto the sphere (|x| = 0.04 off its
+    /// centre line, so it enters at z = sqrt(0.14^2 - 0.04^2)).
+    #[test]
+    fn rays_enter_boxes_and_spheres_where_worked_by_hand() {
+        let (block, wall) = blocks();
+        let down = Vec3::new(0.0, 0.0, -1.0);
+        let from = Vec3::new(0.05, 0.5, 2.0);
+        assert!(block.hit(from, down).is_none());
+        let t = wall.hit(from, down).unwrap();
+        assert!((t - 2.42).abs() < 1e-5, "{t}");
+        let through_block = Vec3::new(0.05, 0.4, 2.0);
+        let t = block.hit(through_block, down).unwrap();
+        assert!((t - 1.88).abs() < 1e-5, "{t}");
+        // Pointing away, or starting past it: no hit.
+        assert!(wall.hit(from, -down).is_none());
+        let sphere = SynthConfig::obstacle_plume().solids[0];
+        let t = sphere.hit(Vec3::new(0.0, 0.4, 2.0), down).unwrap();
+        let expected = 2.0 - (0.14f32 * 0.14 - 0.04 * 0.04).sqrt();
+        assert!((t - expected).abs() < 1e-5, "{t} against {expected}");
+    }
+
+    /// The wall's face (normal +z) is lit by `0.3 + 0.7 (n . l)` with `l = (0.3, 1, 0.5) /
+    /// |.|`, so its squares are 0.35 or 0.75 of 0.6023; squares alternate every sixth of a
+    /// unit, along x and along y.
+    #[test]
+    fn box_faces_are_checkered_in_squares_of_a_sixth() {
+        let (_, wall) = blocks();
+        let lit = 0.3 + 0.7 * 0.5 / 1.34f32.sqrt();
+        let at = |x: f32, y: f32| wall.shade(Vec3::new(x, y, -0.42));
+        // floor(0.05 * 6) + floor(0.5 * 6) = 3: odd, the light squares.
+        assert!((at(0.05, 0.5) - 0.75 * lit).abs() < 1e-6);
+        assert!((at(-0.1, 0.5) - 0.35 * lit).abs() < 1e-6);
+        assert!((at(0.05, 0.7) - 0.35 * lit).abs() < 1e-6);
+        assert!((at(0.2, 0.7) - 0.75 * lit).abs() < 1e-6);
+        // The top face of the block: normal +y, lit by 0.3 + 0.7 / |l|.
+        let (block, _) = blocks();
+        let top = block.shade(Vec3::new(0.05, 0.46, 0.05));
+        let lit_top = 0.3 + 0.7 / 1.34f32.sqrt();
+        assert!(
+            (top - 0.75 * lit_top).abs() < 1e-6 || (top - 0.35 * lit_top).abs() < 1e-6,
+            "{top}"
+        );
+    }
+
+    #[test]
+    fn solids_outside_the_box_are_refused_naming_the_setting() {
+        let config = SynthConfig {
+            solids: vec![SynthSolid {
+                shape: Obstacle::Box {
+                    min: Vec3::new(-0.6, 0.0, -0.5),
+                    max: Vec3::new(0.0, 0.1, 0.0),
+                },
+                visible: true,
+            }],
+            ..SynthConfig::tiny()
+        };
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains("solids") && err.contains("solid 0"), "{err}");
+    }
 }

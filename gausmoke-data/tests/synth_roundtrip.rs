@@ -189,10 +189,12 @@ fn long_plume_leaves_through_the_top() {
 #[test]
 fn obstacle_plume_flows_around_the_sphere() {
     let cfg = SynthConfig::obstacle_plume();
-    let sphere = cfg.obstacle.unwrap();
+    let gausmoke_data::Obstacle::Sphere { centre, radius } = cfg.solids[0].shape else {
+        panic!("the obstacle preset's solid is a sphere");
+    };
     let mut s = Solver::new(&cfg).unwrap();
     let mut free = Solver::new(&SynthConfig {
-        obstacle: None,
+        solids: Vec::new(),
         ..cfg.clone()
     })
     .unwrap();
@@ -200,7 +202,7 @@ fn obstacle_plume_flows_around_the_sphere() {
     let solid: Vec<usize> = (0..n * n * n).filter(|&i| s.solid[i]).collect();
     assert!(solid.len() > 100, "{} solid cells", solid.len());
     let (lo, hi) = synth::world_box();
-    let top_cell = ((sphere.centre.y + sphere.radius - lo.y) / (hi.y - lo.y) * n as f32) as usize;
+    let top_cell = ((centre.y + radius - lo.y) / (hi.y - lo.y) * n as f32) as usize;
     for frame in 0..30 {
         s.step_frame();
         free.step_frame();
@@ -229,8 +231,8 @@ fn obstacle_plume_flows_around_the_sphere() {
                     let p = lo
                         + cell
                             * (gausmoke_data::glam::Vec3::new(x as f32, y as f32, z as f32) + 0.5);
-                    let d = p - sphere.centre;
-                    let shell = d.length() - sphere.radius;
+                    let d = p - centre;
+                    let shell = d.length() - radius;
                     if !(0.0..2.0 * cell.x).contains(&shell) || d.y > 0.0 {
                         continue;
                     }
@@ -260,21 +262,14 @@ fn obstacle_plume_flows_around_the_sphere() {
 fn obstacles_round_trip_through_the_pinf_loader() {
     let cfg = SynthConfig {
         frames: 2,
-        obstacle: SynthConfig::obstacle_plume().obstacle,
+        solids: SynthConfig::obstacle_plume().solids,
         ..SynthConfig::tiny()
     };
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("ball");
     synth::generate(&cfg, &out).unwrap();
     let ds = load_pinf(&out, &LoadOptions::default()).unwrap();
-    let sphere = cfg.obstacle.unwrap();
-    assert_eq!(
-        ds.obstacles,
-        vec![gausmoke_data::Obstacle::Sphere {
-            centre: sphere.centre,
-            radius: sphere.radius
-        }]
-    );
+    assert_eq!(ds.obstacles, vec![cfg.solids[0].shape]);
     let info = out.join("info.json");
     let text = std::fs::read_to_string(&info).unwrap();
     // A box beside the sphere, and a box turned inside out.
@@ -327,4 +322,97 @@ fn obstacles_round_trip_through_the_pinf_loader() {
             .obstacles
             .is_empty()
     );
+}
+
+/// The blocks preset: no smoke and no velocity ever inside the block or the wall, the plume
+/// gets past the block, every camera sees the wall's two checker shades behind the smoke,
+/// and `info.json` describes both boxes for the loader.
+#[test]
+fn blocks_plume_keeps_out_of_its_boxes_and_shows_the_wall() {
+    let cfg = SynthConfig::blocks_plume();
+    let mut s = Solver::new(&cfg).unwrap();
+    let n = s.density.n;
+    let (lo, hi) = synth::world_box();
+    let cell = (hi - lo) / n as f32;
+    let centre = |i: usize| {
+        let (x, y, z) = (i % n, i / n % n, i / (n * n));
+        lo + cell * (Vec3::new(x as f32, y as f32, z as f32) + 0.5)
+    };
+    let solid: Vec<usize> = (0..n * n * n).filter(|&i| s.solid[i]).collect();
+    for (k, solid_k) in cfg.solids.iter().enumerate() {
+        let cells = solid.iter().filter(|&&i| solid_k.shape.contains(centre(i)));
+        assert!(cells.count() > 100, "solid {k} fills too few cells");
+    }
+    assert!(
+        solid
+            .iter()
+            .all(|&i| cfg.solids.iter().any(|b| b.shape.contains(centre(i))))
+    );
+    for frame in 0..24 {
+        s.step_frame();
+        for &i in &solid {
+            let values = [
+                s.density.data[i],
+                s.velocity[0].data[i],
+                s.velocity[1].data[i],
+                s.velocity[2].data[i],
+            ];
+            assert_eq!(values, [0.0; 4], "frame {frame}, cell {i}");
+        }
+    }
+    let above_block: f32 = (0..n * n * n)
+        .filter(|&i| centre(i).y > 0.5)
+        .map(|i| s.density.data[i])
+        .sum();
+    assert!(above_block > 1.0, "smoke above the block: {above_block}");
+
+    // Without smoke, each camera sees the wall's two shades and the background.
+    let lit = 0.3 + 0.7 * 0.5 / 1.34f32.sqrt();
+    let empty = synth::Grid {
+        n,
+        data: vec![0.0; n * n * n],
+    };
+    for camera in synth::cameras(&cfg).unwrap() {
+        let image = synth::render(
+            &empty,
+            &camera,
+            cfg.density_scale,
+            cfg.background,
+            &cfg.solids,
+        )
+        .unwrap();
+        let count = |value: f32| {
+            image
+                .data()
+                .chunks(3)
+                .filter(|p| p.iter().all(|c| (c - value).abs() < 1e-5))
+                .count()
+        };
+        let pixels = (image.width() * image.height()) as usize;
+        let (dark, light) = (count(0.35 * lit), count(0.75 * lit));
+        assert!(
+            dark > pixels / 20 && light > pixels / 20,
+            "{dark} dark and {light} light wall pixels of {pixels}"
+        );
+        let background = image
+            .data()
+            .chunks(3)
+            .filter(|p| **p == cfg.background)
+            .count();
+        assert!(background > pixels / 20, "{background} background pixels");
+    }
+
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("blocks");
+    synth::generate(
+        &SynthConfig {
+            frames: 1,
+            ..cfg.clone()
+        },
+        &out,
+    )
+    .unwrap();
+    let ds = load_pinf(&out, &LoadOptions::default()).unwrap();
+    let shapes: Vec<_> = cfg.solids.iter().map(|s| s.shape).collect();
+    assert_eq!(ds.obstacles, shapes);
 }

@@ -87,6 +87,9 @@ enum SynthPreset {
     /// The obstacle scene with the sphere drawn as a textured ball, over a grey-blue
     /// background.
     Ball,
+    /// The plume past a box, in front of a wall across the back of the box, both drawn
+    /// checkered over the grey-blue background (boxes in `info.json`).
+    Blocks,
 }
 
 /// `--device`: the backends compiled into this build.
@@ -251,6 +254,7 @@ fn run_command(cli: Cli) -> Result<()> {
                 SynthPreset::Scalarflow => SynthConfig::scalarflow(),
                 SynthPreset::Obstacle => SynthConfig::obstacle_plume(),
                 SynthPreset::Ball => SynthConfig::ball_plume(),
+                SynthPreset::Blocks => SynthConfig::blocks_plume(),
             };
             if let Some(seed) = seed {
                 config.seed = seed;

@@ -1097,7 +1097,7 @@ fn obstacles_of_the_data_set_are_solid_in_the_trained_velocity() {
     generate(
         &SynthConfig {
             frames: 3,
-            obstacle: SynthConfig::obstacle_plume().obstacle,
+            solids: SynthConfig::obstacle_plume().solids,
             ..SynthConfig::tiny()
         },
         &data,
@@ -1136,8 +1136,8 @@ fn obstacles_of_the_data_set_are_solid_in_the_trained_velocity() {
                 gausmoke_data::synth::world_box().1,
             )
             .unwrap();
-        let obstacle = SynthConfig::obstacle_plume().obstacle.unwrap();
-        let inside = grid.cells_where(|p| p.distance(obstacle.centre) <= obstacle.radius);
+        let obstacle = SynthConfig::obstacle_plume().solids[0].shape;
+        let inside = grid.cells_where(|p| obstacle.contains(p));
         assert!(inside.iter().filter(|&&s| s).count() > 20);
         if let Some(solids) = &solids {
             assert_eq!(solids.flags(), &inside[..]);
@@ -1155,9 +1155,7 @@ fn obstacles_of_the_data_set_are_solid_in_the_trained_velocity() {
         let centres_inside = arrays["means"]
             .1
             .chunks(3)
-            .filter(|m| {
-                gausmoke_data::glam::Vec3::from_slice(m).distance(obstacle.centre) < obstacle.radius
-            })
+            .filter(|m| obstacle.signed_distance(gausmoke_data::glam::Vec3::from_slice(m)) < 0.0)
             .count();
         if obstacles == Obstacles::Solid {
             assert_eq!(
@@ -1192,7 +1190,11 @@ fn obstacles_of_the_data_set_are_solid_in_the_trained_velocity() {
     // An obstacle too small for the grid to see is refused, not silently dropped.
     let info = data.join("info.json");
     let text = std::fs::read_to_string(&info).unwrap();
-    let radius = SynthConfig::obstacle_plume().obstacle.unwrap().radius;
+    let gausmoke_data::Obstacle::Sphere { radius, .. } =
+        SynthConfig::obstacle_plume().solids[0].shape
+    else {
+        panic!("the obstacle preset's solid is a sphere");
+    };
     let tiny = text.replace(&format!("\"radius\": {radius}"), "\"radius\": 0.001");
     assert_ne!(tiny, text, "the radius was not found in {text}");
     std::fs::write(&info, tiny).unwrap();
@@ -1288,10 +1290,13 @@ fn static_gaussians_fit_the_ball_and_resume() {
     assert!(straight.join("exports/statics_002.ply").is_file());
     // Placed in the ball the data set describes, never carried by the flow nor moved; their
     // looks still learn.
-    let ball = SynthConfig::ball_plume().obstacle.unwrap();
-    assert!(first["static_means"].1.chunks(3).all(|m| {
-        gausmoke_data::glam::Vec3::from_slice(m).distance(ball.centre) <= ball.radius
-    }));
+    let ball = SynthConfig::ball_plume().solids[0].shape;
+    assert!(
+        first["static_means"]
+            .1
+            .chunks(3)
+            .all(|m| ball.contains(gausmoke_data::glam::Vec3::from_slice(m)))
+    );
     assert_eq!(first["static_means"], last["static_means"]);
     assert_ne!(first["means"], last["means"]);
     assert_ne!(first["static_raw_densities"], last["static_raw_densities"]);

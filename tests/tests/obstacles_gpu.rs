@@ -80,11 +80,11 @@ fn the_ball_scene_trains_on_the_device() {
         velocity.iter().any(|&v| v != 0.0),
         "{backend}: no flow at all"
     );
-    let ball = scene.obstacle.unwrap();
+    let ball = scene.solids[0].shape;
     let means = read_floats(trainer.state.gaussians.means.val());
     let inside = means
         .chunks(3)
-        .filter(|m| gausmoke_data::glam::Vec3::from_slice(m).distance(ball.centre) < ball.radius)
+        .filter(|m| ball.signed_distance(gausmoke_data::glam::Vec3::from_slice(m)) < 0.0)
         .count();
     assert_eq!(inside, 0, "{backend}: smoke centres inside the obstacle");
 }

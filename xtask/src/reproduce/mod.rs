@@ -40,6 +40,9 @@ pub enum Target {
     /// The same plume past the sphere drawn as a textured ball over a grey-blue background
     /// (issue 20), with and without static primitives.
     Ball,
+    /// The same plume past a box, in front of a wall across the back of the box, both drawn
+    /// checkered (issue 20): static primitives and the solid condition each on and off.
+    Blocks,
 }
 
 #[derive(Debug, Args)]
@@ -213,6 +216,16 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
             static_gaussians: 7500,
             ..TrainConfig::default()
         },
+        // Half as many static Gaussians as smoke ones: the wall fills most of every view.
+        (Target::Blocks, true) => TrainConfig {
+            static_gaussians: 2000,
+            ..quick_synthetic_long()
+        },
+        (Target::Blocks, false) => TrainConfig {
+            open_faces: synthetic_open_faces(),
+            static_gaussians: 15000,
+            ..TrainConfig::default()
+        },
     };
     if let Some(frames) = args.frames {
         base.frames = Some(frames);
@@ -243,19 +256,22 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
     Ok(match args.target {
         Target::ScalarReal => vec![keyed("scalar-real", "", "full method", base)],
         Target::SyntheticLong => vec![keyed("synthetic-long", "", "full method", base)],
-        Target::Obstacle | Target::Ball => {
-            let (name, ablation) = match args.target {
-                Target::Obstacle => ("obstacle", Ablation::Solid),
-                _ => ("ball", Ablation::Statics),
+        Target::Obstacle | Target::Ball | Target::Blocks => {
+            let (name, ablations): (_, &[Ablation]) = match args.target {
+                Target::Obstacle => ("obstacle", &[Ablation::Solid]),
+                Target::Ball => ("ball", &[Ablation::Statics]),
+                _ => ("blocks", &[Ablation::Statics, Ablation::Solid]),
             };
             let mut list = vec![keyed(name, "", "full method", base.clone())];
             if !args.no_ablations {
-                list.push(keyed(
-                    name,
-                    ablation.suffix(),
-                    ablation.label(),
-                    ablation.apply(base),
-                ));
+                for ablation in ablations {
+                    list.push(keyed(
+                        name,
+                        ablation.suffix(),
+                        ablation.label(),
+                        ablation.apply(base.clone()),
+                    ));
+                }
             }
             list
         }
@@ -360,6 +376,7 @@ fn command_line(args: &ReproduceArgs) -> String {
             Target::SyntheticLong => "synthetic-long",
             Target::Obstacle => "obstacle",
             Target::Ball => "ball",
+            Target::Blocks => "blocks",
         }
     );
     if args.quick {
@@ -410,16 +427,32 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
     let data = match (args.target, &args.data) {
         (_, Some(path)) => path.clone(),
         (Target::ScalarReal, None) => root.join("../shared/datasets/scalar_real"),
-        (Target::Synthetic | Target::SyntheticLong | Target::Obstacle | Target::Ball, None) => {
+        (
+            Target::Synthetic
+            | Target::SyntheticLong
+            | Target::Obstacle
+            | Target::Ball
+            | Target::Blocks,
+            None,
+        ) => {
             let (preset, config) = match (args.target, args.quick) {
                 (Target::Synthetic, true) => ("tiny", SynthConfig::tiny()),
                 (Target::SyntheticLong, true) => ("long", SynthConfig::long_plume()),
                 (Target::Obstacle, true) => ("obstacle", SynthConfig::obstacle_plume()),
                 (Target::Ball, true) => ("ball", SynthConfig::ball_plume()),
+                (Target::Blocks, true) => ("blocks", SynthConfig::blocks_plume()),
+                (Target::Blocks, false) => (
+                    "blocks-scalarflow",
+                    SynthConfig {
+                        solids: SynthConfig::blocks_plume().solids,
+                        background: SynthConfig::blocks_plume().background,
+                        ..SynthConfig::scalarflow()
+                    },
+                ),
                 (Target::Ball, false) => (
                     "ball-scalarflow",
                     SynthConfig {
-                        obstacle: SynthConfig::ball_plume().obstacle,
+                        solids: SynthConfig::ball_plume().solids,
                         background: SynthConfig::ball_plume().background,
                         ..SynthConfig::scalarflow()
                     },
@@ -427,7 +460,7 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
                 (Target::Obstacle, false) => (
                     "obstacle-scalarflow",
                     SynthConfig {
-                        obstacle: SynthConfig::obstacle_plume().obstacle,
+                        solids: SynthConfig::obstacle_plume().solids,
                         ..SynthConfig::scalarflow()
                     },
                 ),
