@@ -70,6 +70,47 @@ impl Image {
         Image::from_vec(width, height, data)
     }
 
+    /// Writes an 8-bit straight-alpha RGBA PNG: this image's colours with `alpha` (one value
+    /// per pixel), both clamped to `[0, 1]` and rounded.
+    pub fn save_png_with_alpha(&self, alpha: &[f32], path: &Path) -> Result<()> {
+        assert_eq!(alpha.len(), self.data.len() / 3, "one alpha per pixel");
+        let bytes: Vec<u8> = self
+            .data
+            .chunks(3)
+            .zip(alpha)
+            .flat_map(|(rgb, &a)| [to_u8(rgb[0]), to_u8(rgb[1]), to_u8(rgb[2]), to_u8(a)])
+            .collect();
+        image::save_buffer(
+            path,
+            &bytes,
+            self.width,
+            self.height,
+            image::ExtendedColorType::Rgba8,
+        )
+        .map_err(|source| DataError::Image {
+            action: "write",
+            path: path.to_path_buf(),
+            source,
+        })
+    }
+
+    /// This image with straight `alpha` (one per pixel) composited over `background`, as
+    /// [`read_png_over`] does.
+    pub fn over(&self, alpha: &[f32], background: [f32; 3]) -> Image {
+        assert_eq!(alpha.len(), self.data.len() / 3, "one alpha per pixel");
+        let data = self
+            .data
+            .chunks(3)
+            .zip(alpha)
+            .flat_map(|(rgb, &a)| (0..3).map(move |c| rgb[c] * a + background[c] * (1.0 - a)))
+            .collect();
+        Image {
+            width: self.width,
+            height: self.height,
+            data,
+        }
+    }
+
     /// Writes an 8-bit RGB PNG (values clamped to `[0, 1]`, rounded).
     pub fn save_png(&self, path: &Path) -> Result<()> {
         let bytes: Vec<u8> = self.data.iter().map(|&v| to_u8(v)).collect();

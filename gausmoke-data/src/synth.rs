@@ -79,6 +79,20 @@ pub struct SynthConfig {
     pub solids: Vec<SynthSolid>,
     /// Linear RGB behind the box.
     pub background: [f32; 3],
+    pub layout: SynthLayout,
+}
+
+/// How a scene is written.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SynthLayout {
+    /// PINF / HyFluid: `info.json` and a folder of RGB frames per camera.
+    Pinf,
+    /// Blender-style multi-view D-NeRF: `transforms_train.json` (with our `aabb` and
+    /// `obstacles`) and `transforms_test.json` (the middle camera), one line per camera and
+    /// time (`time` from 0 to 1), straight-alpha RGBA frames whose transparent background is
+    /// [`SynthConfig::background`] only once composited (the D-NeRF loader composites over
+    /// black unless told otherwise).
+    Blender,
 }
 
 /// A solid in world units (see [`world_box`]).
@@ -179,6 +193,7 @@ impl SynthConfig {
             fov_x: 0.75,
             solids: Vec::new(),
             background: [0.0; 3],
+            layout: SynthLayout::Pinf,
         }
     }
 
@@ -276,12 +291,35 @@ impl SynthConfig {
         }
     }
 
+    /// The blocks scene as a Blender-style multi-view set (issue 20, the paper's synthetic
+    /// scenes: "fewer than 15 viewpoints and more than 120 frames at a resolution of
+    /// 800x800"): a 64^3 solver grid, 12 cameras 15 degrees apart on the half ring in front
+    /// of the wall (the middle one held out), 120 frames at 800x800, D-NeRF files.
+    pub fn blender_blocks() -> Self {
+        Self {
+            views: 12,
+            width: 800,
+            height: 800,
+            arc_degrees: 165.0,
+            layout: SynthLayout::Blender,
+            solids: Self::blocks_plume().solids,
+            background: Self::blocks_plume().background,
+            ..Self::scalarflow()
+        }
+    }
+
     fn validate(&self) -> Result<()> {
         let bad = |option: &'static str, reason: String| Err(DataError::Options { option, reason });
         if !(4..=512).contains(&self.grid) {
             return bad(
                 "grid",
                 format!("{} cells per axis, expected 4..=512", self.grid),
+            );
+        }
+        if self.layout == SynthLayout::Blender && self.views < 2 {
+            return bad(
+                "views",
+                "the Blender layout holds one camera out: at least 2".into(),
             );
         }
         if self.views == 0 || self.frames == 0 || self.substeps == 0 {
@@ -743,7 +781,8 @@ fn advect(field: &Grid, vel: &[Grid; 3], dt: f32) -> Grid {
     out
 }
 
-/// Beer-Lambert emission-absorption ray marcher over a density grid filling the world box.
+/// Beer-Lambert emission-absorption ray marcher over a density grid filling the world box:
+/// the picture over `background`.
 pub fn render(
     density: &Grid,
     camera: &Camera,
@@ -751,6 +790,55 @@ pub fn render(
     background: [f32; 3],
     solids: &[SynthSolid],
 ) -> Result<Image> {
+    let (light, reach) = march(density, camera, density_scale, solids)?;
+    let data = light
+        .data()
+        .chunks(3)
+        .zip(&reach)
+        .flat_map(|(rgb, &t)| (0..3).map(move |c| rgb[c] + t * background[c]))
+        .collect();
+    image_of(camera, data)
+}
+
+/// [`render`] as straight-alpha RGBA, as Blender writes a transparent background: alpha is
+/// the share of the background a pixel hides (1 wherever a visible solid is hit), the colour
+/// what lies in front of the background divided by it, so that compositing over
+/// `background` gives [`render`]'s picture.
+pub fn render_rgba(
+    density: &Grid,
+    camera: &Camera,
+    density_scale: f32,
+    solids: &[SynthSolid],
+) -> Result<(Image, Vec<f32>)> {
+    let (light, reach) = march(density, camera, density_scale, solids)?;
+    let alpha: Vec<f32> = reach.iter().map(|t| 1.0 - t).collect();
+    let data = light
+        .data()
+        .chunks(3)
+        .zip(&alpha)
+        .flat_map(|(rgb, &a)| {
+            (0..3).map(move |c| if a > 0.0 { (rgb[c] / a).min(1.0) } else { 0.0 })
+        })
+        .collect();
+    Ok((image_of(camera, data)?, alpha))
+}
+
+fn image_of(camera: &Camera, data: Vec<f32>) -> Result<Image> {
+    Image::from_vec(camera.width(), camera.height(), data).ok_or_else(|| DataError::Options {
+        option: "camera",
+        reason: "empty image".into(),
+    })
+}
+
+/// The marcher: per pixel, the light in front of the background (smoke emission, and the
+/// nearest visible solid's shade seen through the smoke) and the transmittance to the
+/// background (0 where a visible solid is hit).
+fn march(
+    density: &Grid,
+    camera: &Camera,
+    density_scale: f32,
+    solids: &[SynthSolid],
+) -> Result<(Image, Vec<f32>)> {
     let (lo, hi) = world_box();
     let n = density.n as f32;
     let cell = (hi - lo) / n;
@@ -759,45 +847,48 @@ pub fn render(
     let c2w = camera.camera_to_world();
     let origin = camera.position();
     let mut data = vec![0.0f32; w * h * 3];
-    data.par_chunks_mut(w * 3).enumerate().for_each(|(j, row)| {
-        for i in 0..w {
-            let d_cam = camera.ray_direction_camera(i as f32 + 0.5, j as f32 + 0.5);
-            let dir = c2w.transform_vector3(d_cam).normalize();
-            let (t0, mut t1) = slab_interval(origin, dir, lo, hi);
-            let t0 = t0.max(0.0);
-            let (mut light, mut trans) = (0.0f32, 1.0f32);
-            // The nearest visible solid hides what lies behind it: march up to it, then show
-            // it.
-            let hit = solids
-                .iter()
-                .filter(|s| s.visible)
-                .filter_map(|s| s.hit(origin, dir).map(|t| (t, s)))
-                .min_by(|a, b| a.0.total_cmp(&b.0));
-            let behind = hit.map_or(background, |(t, solid)| [solid.shade(origin + dir * t); 3]);
-            if let Some((t, _)) = hit {
-                t1 = t1.min(t);
-            }
-            if t1 > t0 {
-                let steps = ((t1 - t0) / ds).ceil() as usize;
-                let step = (t1 - t0) / steps.max(1) as f32;
-                for k in 0..steps {
-                    let p = origin + dir * (t0 + (k as f32 + 0.5) * step);
-                    let g = (p - lo) / cell - Vec3::splat(0.5);
-                    let sigma = density_scale * density.sample(g).max(0.0);
-                    let a = 1.0 - (-sigma * step).exp();
-                    light += trans * a;
-                    trans *= 1.0 - a;
+    let mut reach = vec![0.0f32; w * h];
+    data.par_chunks_mut(w * 3)
+        .zip(reach.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(j, (row, row_reach))| {
+            for i in 0..w {
+                let d_cam = camera.ray_direction_camera(i as f32 + 0.5, j as f32 + 0.5);
+                let dir = c2w.transform_vector3(d_cam).normalize();
+                let (t0, mut t1) = slab_interval(origin, dir, lo, hi);
+                let t0 = t0.max(0.0);
+                let (mut light, mut trans) = (0.0f32, 1.0f32);
+                // The nearest visible solid hides what lies behind it: march up to it, then
+                // show it.
+                let hit = solids
+                    .iter()
+                    .filter(|s| s.visible)
+                    .filter_map(|s| s.hit(origin, dir).map(|t| (t, s)))
+                    .min_by(|a, b| a.0.total_cmp(&b.0));
+                if let Some((t, _)) = hit {
+                    t1 = t1.min(t);
                 }
+                if t1 > t0 {
+                    let steps = ((t1 - t0) / ds).ceil() as usize;
+                    let step = (t1 - t0) / steps.max(1) as f32;
+                    for k in 0..steps {
+                        let p = origin + dir * (t0 + (k as f32 + 0.5) * step);
+                        let g = (p - lo) / cell - Vec3::splat(0.5);
+                        let sigma = density_scale * density.sample(g).max(0.0);
+                        let a = 1.0 - (-sigma * step).exp();
+                        light += trans * a;
+                        trans *= 1.0 - a;
+                    }
+                }
+                let (shade, to_background) = match hit {
+                    Some((t, solid)) => (trans * solid.shade(origin + dir * t), 0.0),
+                    None => (0.0, trans),
+                };
+                row[i * 3..i * 3 + 3].fill(light + shade);
+                row_reach[i] = to_background;
             }
-            for c in 0..3 {
-                row[i * 3 + c] = light + trans * behind[c];
-            }
-        }
-    });
-    Image::from_vec(w as u32, h as u32, data).ok_or_else(|| DataError::Options {
-        option: "camera",
-        reason: "empty image".into(),
-    })
+        });
+    Ok((image_of(camera, data)?, reach))
 }
 
 /// What [`generate`] wrote.
@@ -805,7 +896,8 @@ pub fn render(
 pub struct SynthScene {
     pub dir: PathBuf,
     pub cameras: Vec<Camera>,
-    /// Rendered frames `[view][frame]` as f32 before PNG quantisation.
+    /// Rendered frames `[view][frame]` as f32 before PNG quantisation (in the Blender
+    /// layout, composited over the configuration's background).
     pub frames: Vec<Vec<Image>>,
     /// Mean |div u| after projection, per frame.
     pub divergence: Vec<f32>,
@@ -848,11 +940,22 @@ pub fn generate(cfg: &SynthConfig, out: &Path) -> Result<SynthScene> {
 
 fn write_scene(cfg: &SynthConfig, dir: &Path) -> Result<SynthScene> {
     let cams = cameras(cfg)?;
-    let background = cfg.background;
+    let middle = cfg.views / 2;
     std::fs::create_dir_all(dir.join("gt")).map_err(io_err(dir))?;
-    let view_names: Vec<String> = (0..cfg.views).map(|k| format!("view{k:02}")).collect();
-    for v in &view_names {
-        std::fs::create_dir_all(dir.join(v)).map_err(io_err(dir.join(v)))?;
+    // Where each view's frame t goes, without the extension.
+    let (folders, stems): (Vec<String>, Vec<String>) = match cfg.layout {
+        SynthLayout::Pinf => (0..cfg.views)
+            .map(|k| (format!("view{k:02}"), format!("view{k:02}/")))
+            .unzip(),
+        SynthLayout::Blender => (0..cfg.views)
+            .map(|k| {
+                let split = if k == middle { "test" } else { "train" };
+                (split.to_string(), format!("{split}/view{k:02}_"))
+            })
+            .unzip(),
+    };
+    for folder in &folders {
+        std::fs::create_dir_all(dir.join(folder)).map_err(io_err(dir.join(folder)))?;
     }
     let mut solver = Solver::new(cfg)?;
     let mut frames: Vec<Vec<Image>> = vec![Vec::new(); cfg.views];
@@ -862,15 +965,27 @@ fn write_scene(cfg: &SynthConfig, dir: &Path) -> Result<SynthScene> {
         solver.step_frame();
         divergence.push(solver.mean_abs_divergence());
         for (k, cam) in cams.iter().enumerate() {
-            let img = render(
-                &solver.density,
-                cam,
-                cfg.density_scale,
-                background,
-                &cfg.solids,
-            )?;
-            img.save_png(&dir.join(&view_names[k]).join(format!("{t:03}.png")))?;
-            frames[k].push(img);
+            let path = dir.join(format!("{}{t:03}.png", stems[k]));
+            let picture = match cfg.layout {
+                SynthLayout::Pinf => {
+                    let picture = render(
+                        &solver.density,
+                        cam,
+                        cfg.density_scale,
+                        cfg.background,
+                        &cfg.solids,
+                    )?;
+                    picture.save_png(&path)?;
+                    picture
+                }
+                SynthLayout::Blender => {
+                    let (colour, alpha) =
+                        render_rgba(&solver.density, cam, cfg.density_scale, &cfg.solids)?;
+                    colour.save_png_with_alpha(&alpha, &path)?;
+                    colour.over(&alpha, cfg.background)
+                }
+            };
+            frames[k].push(picture);
         }
         // Ground truth: density, and velocity in world units per frame.
         let n = cfg.grid;
@@ -887,27 +1002,10 @@ fn write_scene(cfg: &SynthConfig, dir: &Path) -> Result<SynthScene> {
             &vel,
         )?;
     }
-    let middle = cfg.views / 2;
-    let entry = |k: usize| {
+    let pose = |k: usize| -> Vec<Vec<f32>> {
         let m = cams[k].camera_to_world();
-        let rows: Vec<Vec<f32>> = (0..4).map(|r| m.row(r).to_array().to_vec()).collect();
-        json!({
-            "file_name": view_names[k],
-            "frame_rate": 30,
-            "frame_num": cfg.frames,
-            "camera_angle_x": cfg.fov_x,
-            "camera_hw": [cfg.height, cfg.width],
-            "transform_matrix": rows,
-        })
+        (0..4).map(|r| m.row(r).to_array().to_vec()).collect()
     };
-    let train: Vec<_> = (0..cfg.views).filter(|&k| k != middle).map(entry).collect();
-    // PINF swaps columns 0 and 2 of voxel_matrix on load; store the swapped form of
-    // [I | (-0.5, 0, -0.5)].
-    let (lo, _) = world_box();
-    let sim_to_world = Mat4::from_translation(lo);
-    let mut stored = sim_to_world;
-    std::mem::swap(&mut stored.x_axis, &mut stored.z_axis);
-    let voxel_rows: Vec<Vec<f32>> = (0..4).map(|r| stored.row(r).to_array().to_vec()).collect();
     let obstacles: Vec<serde_json::Value> = cfg
         .solids
         .iter()
@@ -920,33 +1018,97 @@ fn write_scene(cfg: &SynthConfig, dir: &Path) -> Result<SynthScene> {
             }
         })
         .collect();
-    let info = json!({
-        "obstacles": obstacles,
-        "train_videos": train,
-        "test_videos": [entry(middle)],
-        "frame_bkg_color": background,
-        "voxel_scale": [1.0, 1.0, 1.0],
-        "voxel_matrix": voxel_rows,
-        "synth": {
-            "generator": "gausmoke-data synth",
-            "grid": cfg.grid,
-            "seed": cfg.seed,
-            "substeps": cfg.substeps,
-            "jacobi_iterations": cfg.jacobi_iterations,
-            "vorticity": cfg.vorticity,
-            "buoyancy": cfg.buoyancy,
-            "inflow_speed": cfg.inflow_speed,
-            "noise": cfg.noise,
-            "density_scale": cfg.density_scale,
-            "ground_truth": "gt/frame_TTT.safetensors: density [n,n,n], velocity [n,n,n,3] (world units per frame), [z][y][x] x fastest, cell centres at (i+0.5)/n of the box"
-        }
+    let synth = json!({
+        "generator": "gausmoke-data synth",
+        "grid": cfg.grid,
+        "seed": cfg.seed,
+        "substeps": cfg.substeps,
+        "jacobi_iterations": cfg.jacobi_iterations,
+        "vorticity": cfg.vorticity,
+        "buoyancy": cfg.buoyancy,
+        "inflow_speed": cfg.inflow_speed,
+        "noise": cfg.noise,
+        "density_scale": cfg.density_scale,
+        "background": cfg.background,
+        "ground_truth": "gt/frame_TTT.safetensors: density [n,n,n], velocity [n,n,n,3] (world units per frame), [z][y][x] x fastest, cell centres at (i+0.5)/n of the box"
     });
-    let info_path = dir.join("info.json");
-    let text = serde_json::to_string_pretty(&info).map_err(|source| DataError::Json {
-        path: info_path.clone(),
-        source,
-    })?;
-    std::fs::write(&info_path, text).map_err(io_err(&info_path))?;
+    let files: Vec<(PathBuf, serde_json::Value)> = match cfg.layout {
+        SynthLayout::Pinf => {
+            let entry = |k: usize| {
+                json!({
+                    "file_name": folders[k],
+                    "frame_rate": 30,
+                    "frame_num": cfg.frames,
+                    "camera_angle_x": cfg.fov_x,
+                    "camera_hw": [cfg.height, cfg.width],
+                    "transform_matrix": pose(k),
+                })
+            };
+            let train: Vec<_> = (0..cfg.views).filter(|&k| k != middle).map(entry).collect();
+            // PINF swaps columns 0 and 2 of voxel_matrix on load; store the swapped form of
+            // [I | (-0.5, 0, -0.5)].
+            let (lo, _) = world_box();
+            let mut stored = Mat4::from_translation(lo);
+            std::mem::swap(&mut stored.x_axis, &mut stored.z_axis);
+            let voxel_rows: Vec<Vec<f32>> =
+                (0..4).map(|r| stored.row(r).to_array().to_vec()).collect();
+            vec![(
+                dir.join("info.json"),
+                json!({
+                    "obstacles": obstacles,
+                    "train_videos": train,
+                    "test_videos": [entry(middle)],
+                    "frame_bkg_color": cfg.background,
+                    "voxel_scale": [1.0, 1.0, 1.0],
+                    "voxel_matrix": voxel_rows,
+                    "synth": synth,
+                }),
+            )]
+        }
+        SynthLayout::Blender => {
+            let last = (cfg.frames - 1).max(1) as f32;
+            let entries = |test: bool| -> Vec<serde_json::Value> {
+                (0..cfg.frames)
+                    .flat_map(|t| {
+                        (0..cfg.views)
+                            .filter(move |&k| (k == middle) == test)
+                            .map(move |k| (t, k))
+                    })
+                    .map(|(t, k)| {
+                        json!({
+                            "file_path": format!("./{}{t:03}", stems[k]),
+                            "time": t as f32 / last,
+                            "transform_matrix": pose(k),
+                        })
+                    })
+                    .collect()
+            };
+            let (lo, hi) = world_box();
+            vec![
+                (
+                    dir.join("transforms_train.json"),
+                    json!({
+                        "camera_angle_x": cfg.fov_x,
+                        "aabb": [lo.to_array(), hi.to_array()],
+                        "obstacles": obstacles,
+                        "synth": synth,
+                        "frames": entries(false),
+                    }),
+                ),
+                (
+                    dir.join("transforms_test.json"),
+                    json!({"camera_angle_x": cfg.fov_x, "frames": entries(true)}),
+                ),
+            ]
+        }
+    };
+    for (path, value) in files {
+        let text = serde_json::to_string_pretty(&value).map_err(|source| DataError::Json {
+            path: path.clone(),
+            source,
+        })?;
+        std::fs::write(&path, text).map_err(io_err(&path))?;
+    }
     Ok(SynthScene {
         dir: dir.to_path_buf(),
         cameras: cams,

@@ -208,10 +208,12 @@ impl Sequence {
             }
         }
         let ground_truth = path.join("gt");
-        let density_scale = std::fs::read_to_string(path.join("info.json"))
-            .ok()
-            .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
-            .and_then(|info| info["synth"]["density_scale"].as_f64())
+        // Our generator's scale, in either layout's main file.
+        let density_scale = ["info.json", "transforms_train.json"]
+            .iter()
+            .filter_map(|name| std::fs::read_to_string(path.join(name)).ok())
+            .filter_map(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
+            .find_map(|info| info["synth"]["density_scale"].as_f64())
             .map(|s| s as f32);
         let test = gather(&test_names);
         for suspect in implausible_pictures(&train, &test) {

@@ -43,6 +43,9 @@ pub enum Target {
     /// The same plume past a box, in front of a wall across the back of the box, both drawn
     /// checkered (issue 20): static primitives and the solid condition each on and off.
     Blocks,
+    /// The blocks scene as a Blender-style multi-view D-NeRF set: 12 cameras round the box at
+    /// 800x800, 120 frames (`--quick`: 12 frames, trained at 100x100), static primitives.
+    Blender,
 }
 
 #[derive(Debug, Args)]
@@ -226,6 +229,17 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
             static_gaussians: 15000,
             ..TrainConfig::default()
         },
+        // Eleven training views, each loaded from 800x800 down to 100x100.
+        (Target::Blender, true) => TrainConfig {
+            static_gaussians: 2000,
+            image_size: Some([100, 100]),
+            ..quick_synthetic_long()
+        },
+        (Target::Blender, false) => TrainConfig {
+            open_faces: synthetic_open_faces(),
+            static_gaussians: 15000,
+            ..TrainConfig::default()
+        },
     };
     if let Some(frames) = args.frames {
         base.frames = Some(frames);
@@ -256,6 +270,7 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
     Ok(match args.target {
         Target::ScalarReal => vec![keyed("scalar-real", "", "full method", base)],
         Target::SyntheticLong => vec![keyed("synthetic-long", "", "full method", base)],
+        Target::Blender => vec![keyed("blender", "", "full method", base)],
         Target::Obstacle | Target::Ball | Target::Blocks => {
             let (name, ablations): (_, &[Ablation]) = match args.target {
                 Target::Obstacle => ("obstacle", &[Ablation::Solid]),
@@ -377,6 +392,7 @@ fn command_line(args: &ReproduceArgs) -> String {
             Target::Obstacle => "obstacle",
             Target::Ball => "ball",
             Target::Blocks => "blocks",
+            Target::Blender => "blender",
         }
     );
     if args.quick {
@@ -419,6 +435,11 @@ fn command_line(args: &ReproduceArgs) -> String {
     line
 }
 
+/// Whether `dir` holds a PINF (`info.json`) or D-NeRF (`transforms_train.json`) data set.
+fn is_data_set(dir: &Path) -> bool {
+    dir.join("info.json").is_file() || dir.join("transforms_train.json").is_file()
+}
+
 pub fn run(args: ReproduceArgs) -> Result<()> {
     if cfg!(debug_assertions) {
         eprintln!("warning: a debug build; use `cargo run --release -p xtask -- reproduce ...`");
@@ -432,7 +453,8 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             | Target::SyntheticLong
             | Target::Obstacle
             | Target::Ball
-            | Target::Blocks,
+            | Target::Blocks
+            | Target::Blender,
             None,
         ) => {
             let (preset, config) = match (args.target, args.quick) {
@@ -441,6 +463,14 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
                 (Target::Obstacle, true) => ("obstacle", SynthConfig::obstacle_plume()),
                 (Target::Ball, true) => ("ball", SynthConfig::ball_plume()),
                 (Target::Blocks, true) => ("blocks", SynthConfig::blocks_plume()),
+                (Target::Blender, true) => (
+                    "blender-blocks-f12",
+                    SynthConfig {
+                        frames: 12,
+                        ..SynthConfig::blender_blocks()
+                    },
+                ),
+                (Target::Blender, false) => ("blender-blocks", SynthConfig::blender_blocks()),
                 (Target::Blocks, false) => (
                     "blocks-scalarflow",
                     SynthConfig {
@@ -467,7 +497,7 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
                 _ => ("scalarflow", SynthConfig::scalarflow()),
             };
             let path = args.out.join(format!("data-synthetic-{preset}"));
-            if !path.join("info.json").is_file() {
+            if !is_data_set(&path) {
                 eprintln!(
                     "generating the `{preset}` synthetic scene in {}",
                     path.display()
@@ -477,9 +507,9 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             path
         }
     };
-    if !data.join("info.json").is_file() {
+    if !is_data_set(&data) {
         bail!(
-            "{}: no info.json (is this the data set folder?)",
+            "{}: neither info.json nor transforms_train.json (is this the data set folder?)",
             data.display()
         );
     }
