@@ -62,4 +62,31 @@ fn goldens_exercise_what_they_claim() {
     let bg = Golden::load("render_non_square_background");
     assert_eq!(bg.shape("rgb"), &[52, 30, 3]);
     assert!(bg.get("grad_background").iter().any(|&g| g.abs() > 1e-3));
+
+    // Issue 20's mixed scene: 120 smoke Gaussians, then 80 static ones (an opaque ball and a
+    // wall) that hide what lies behind them, and both kinds reached by the gradients.
+    let mixed = Golden::load("render_mixed_static_smoke");
+    assert_eq!(mixed.shape("means"), &[200, 3]);
+    let t = mixed.get("transmittance");
+    assert!(
+        t.iter().any(|&v| v < 1e-3),
+        "the statics are opaque somewhere"
+    );
+    assert!(
+        t.iter().filter(|&&v| (0.05..0.95).contains(&v)).count() > t.len() / 10,
+        "the smoke is translucent over a tenth of the image"
+    );
+    let densities = mixed.get("grad_raw_densities");
+    let colors = mixed.get("grad_colors");
+    for (kind, rows) in [("smoke", 0..120), ("static", 120..200)] {
+        let reached = |g: &[f32], width: usize| {
+            rows.clone()
+                .filter(|&r| g[r * width..(r + 1) * width].iter().any(|v| v.abs() > 1e-4))
+                .count()
+        };
+        assert!(
+            reached(densities, 1) > rows.len() / 4 && reached(colors, 3) > rows.len() / 4,
+            "{kind} Gaussians' density and colour gradients"
+        );
+    }
 }

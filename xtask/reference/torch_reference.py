@@ -284,6 +284,49 @@ def cases():
         rng.uniform(np.log(0.1), np.log(0.3), size=(n, 3)),
         rng.uniform(2.0, 8.0, size=n), rng.uniform(0.0, 1.0, size=(n, 3)), [0.0, 0.0, 0.0],
     ), options=splat))
+    # Issue 20's mixed scene, composited as the trainer does: the smoke Gaussians first, the
+    # static ones after them, one depth-sorted pass. Translucent grey smoke around and in
+    # front of an opaque ball and a flat, opaque two-tone wall behind, over a grey-blue
+    # background.
+    smoke, ball, wall = 120, 40, 40
+    ball_dirs = rng.normal(size=(ball, 3))
+    ball_dirs /= np.linalg.norm(ball_dirs, axis=1, keepdims=True)
+    wall_xy = np.stack([rng.uniform(-0.6, 0.6, wall), rng.uniform(-0.2, 0.8, wall)], 1)
+    grey = rng.uniform(0.6, 1.0, size=(smoke, 1)) * np.ones((1, 3))
+    tone = np.where((np.floor(wall_xy[:, 0] / 0.3) + np.floor(wall_xy[:, 1] / 0.3)) % 2 == 0,
+                    0.2, 0.45)
+    out.append(case(
+        "mixed_static_smoke",
+        f"{smoke} translucent smoke Gaussians, then {ball + wall} static ones: an opaque ball "
+        "inside the smoke and a flat two-tone wall behind it (issue 20)",
+        camera(48, 40, look_at((0.4, 0.6, 3.2), (0.0, 0.2, 0.0)), fov_x=0.9),
+        np.concatenate([
+            rng.uniform([-0.6, -0.2, -0.4], [0.6, 0.8, 0.6], size=(smoke, 3)),
+            np.array([0.05, 0.3, 0.0]) + ball_dirs * rng.uniform(0.0, 0.2, size=(ball, 1)),
+            np.concatenate([wall_xy, np.full((wall, 1), -0.5)], 1),
+        ]),
+        np.concatenate([
+            random_quats(rng, smoke + ball),
+            np.tile([[1.0, 0.0, 0.0, 0.0]], (wall, 1)),
+        ]),
+        np.concatenate([
+            rng.uniform(np.log(0.05), np.log(0.2), size=(smoke, 3)),
+            rng.uniform(np.log(0.04), np.log(0.09), size=(ball, 3)),
+            np.log(np.concatenate([rng.uniform(0.1, 0.15, size=(wall, 2)),
+                                   np.full((wall, 1), 0.01)], 1)),
+        ]),
+        np.concatenate([
+            rng.uniform(-2.0, 1.0, size=smoke),
+            rng.uniform(4.0, 7.0, size=ball),
+            rng.uniform(3.0, 6.0, size=wall),
+        ]),
+        np.concatenate([
+            grey,
+            rng.uniform(0.2, 0.8, size=(ball, 3)),
+            tone[:, None] * np.ones((1, 3)),
+        ]),
+        [0.12, 0.14, 0.18],
+    ))
     return out
 
 
