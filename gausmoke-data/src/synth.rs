@@ -905,6 +905,16 @@ pub struct SynthScene {
 
 /// Simulates, renders and writes a scene into `out` (which must not exist or be empty).
 pub fn generate(cfg: &SynthConfig, out: &Path) -> Result<SynthScene> {
+    generate_with_progress(cfg, out, |_| {})
+}
+
+/// [`generate`], calling `frame_done(t)` after each frame is written (for a progress bar:
+/// an 800x800 preset takes minutes).
+pub fn generate_with_progress(
+    cfg: &SynthConfig,
+    out: &Path,
+    frame_done: impl FnMut(usize),
+) -> Result<SynthScene> {
     cfg.validate()?;
     if out.exists() {
         let mut entries = std::fs::read_dir(out).map_err(io_err(out))?;
@@ -924,7 +934,7 @@ pub fn generate(cfg: &SynthConfig, out: &Path) -> Result<SynthScene> {
     if partial.exists() {
         std::fs::remove_dir_all(&partial).map_err(io_err(&partial))?;
     }
-    let result = write_scene(cfg, &partial);
+    let result = write_scene(cfg, &partial, frame_done);
     match result {
         Ok(mut scene) => {
             std::fs::rename(&partial, out).map_err(io_err(out))?;
@@ -938,7 +948,11 @@ pub fn generate(cfg: &SynthConfig, out: &Path) -> Result<SynthScene> {
     }
 }
 
-fn write_scene(cfg: &SynthConfig, dir: &Path) -> Result<SynthScene> {
+fn write_scene(
+    cfg: &SynthConfig,
+    dir: &Path,
+    mut frame_done: impl FnMut(usize),
+) -> Result<SynthScene> {
     let cams = cameras(cfg)?;
     let middle = cfg.views / 2;
     std::fs::create_dir_all(dir.join("gt")).map_err(io_err(dir))?;
@@ -1001,6 +1015,7 @@ fn write_scene(cfg: &SynthConfig, dir: &Path) -> Result<SynthScene> {
             &solver.density.data,
             &vel,
         )?;
+        frame_done(t);
     }
     let pose = |k: usize| -> Vec<Vec<f32>> {
         let m = cams[k].camera_to_world();

@@ -275,7 +275,16 @@ fn run_command(cli: Cli) -> Result<()> {
                 config.frames = frames;
             }
             let start = Instant::now();
-            let scene = synth::generate(&config, &out)?;
+            let bar = indicatif::ProgressBar::new(config.frames as u64);
+            bar.set_style(
+                indicatif::ProgressStyle::with_template(
+                    "simulating and rendering [{bar:40}] {pos}/{len} frames, eta {eta}",
+                )
+                .expect("valid template")
+                .progress_chars("=> "),
+            );
+            let scene = synth::generate_with_progress(&config, &out, |_| bar.inc(1))?;
+            bar.finish_and_clear();
             println!(
                 "wrote {} ({} views x {} frames at {}x{}, grid {}^3, ground truth in gt/) in {:.1} s",
                 scene.dir.display(),
