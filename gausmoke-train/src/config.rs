@@ -238,6 +238,12 @@ pub struct TrainConfig {
     /// velocity keeps what it had (carried along itself with `transport_velocity`) unless the
     /// pictures ask for a change.
     pub lambda_increment: f32,
+    /// Leave buoyancy out of the inertia prior (ours; `false` = all of the increment counts):
+    /// before `lambda_increment` weighs Phi's increment, the part of its upward component
+    /// that is proportional to the density (`b sigma`, with `b` the least-squares fit over
+    /// the grid at each iteration) is taken out, so the velocity may accelerate where there
+    /// is smoke, as buoyancy does, at no cost, while any other change still pays.
+    pub buoyancy_free_increment: bool,
     /// Steps fitting Phi, after each frame's refinement, so that the frame's velocity carries
     /// the previous centres to the refined ones (ours; 0 = the paper's method, where what the
     /// refinement finds never reaches the velocity).
@@ -351,6 +357,7 @@ impl Default for TrainConfig {
             lambda_kinetic: 0.0,
             transport_velocity: false,
             lambda_increment: 0.0,
+            buoyancy_free_increment: false,
             correction_iterations: 0,
             dt: 1.0,
             unet_channels: 16,
@@ -546,6 +553,13 @@ impl TrainConfig {
                 return bad(format!("{name} must be >= 0, got {value}"));
             }
         }
+        if self.buoyancy_free_increment && self.lambda_increment == 0.0 {
+            return bad(
+                "buoyancy_free_increment changes the inertia prior, which is off: set \
+                 lambda_increment > 0 too"
+                    .into(),
+            );
+        }
         if !(0.0..=1.0).contains(&self.respawn_fraction) {
             return bad(format!(
                 "respawn_fraction must be in [0, 1], got {}",
@@ -716,6 +730,13 @@ mod tests {
         .validate()
         .unwrap_err();
         assert!(err.to_string().contains("grid_resolution"), "{err}");
+        let err = TrainConfig {
+            buoyancy_free_increment: true,
+            ..TrainConfig::default()
+        }
+        .validate()
+        .unwrap_err();
+        assert!(err.to_string().contains("lambda_increment"), "{err}");
     }
 
     #[test]

@@ -721,7 +721,12 @@ impl Trainer {
                 loss = loss + kinetic * config.lambda_kinetic;
             }
             if config.lambda_increment > 0.0 {
-                let increment = self.mean_square_in_cells(delta);
+                let counted = if config.buoyancy_free_increment {
+                    without_buoyancy(delta, sigma_previous.clone().detach())
+                } else {
+                    delta
+                };
+                let increment = self.mean_square_in_cells(counted);
                 loss = loss + increment * config.lambda_increment;
             }
             let mut physical = None;
@@ -1090,6 +1095,25 @@ pub(crate) fn solid_cells(
     Ok(Some(solids))
 }
 
+/// `increment` `[nx, ny, nz, 3]` less its buoyancy-like part: `b sigma` taken from the upward
+/// (y) component, with `b = <increment_y, sigma> / <sigma, sigma>` the least-squares fit over
+/// the grid (0 where there is no density), so what is left is what buoyancy cannot explain.
+fn without_buoyancy(increment: Tensor<4>, sigma: Tensor<3>) -> Tensor<4> {
+    let [nx, ny, nz, _] = increment.dims();
+    let sigma = sigma.reshape([nx, ny, nz, 1]);
+    let upward = increment.clone().slice([0..nx, 0..ny, 0..nz, 1..2]);
+    let b = (upward * sigma.clone()).sum() / (sigma.clone().powi_scalar(2).sum() + 1e-12);
+    let buoyancy = Tensor::cat(
+        vec![
+            sigma.zeros_like(),
+            sigma.clone() * b.reshape([1, 1, 1, 1]),
+            sigma.zeros_like(),
+        ],
+        3,
+    );
+    increment - buoyancy
+}
+
 /// The static Gaussians before their fit: inside the obstacles the data set describes, if any
 /// (where the solids are), else spread through the box like the smoke's.
 fn static_gaussians_at_start(
@@ -1263,6 +1287,48 @@ mod tests {
 
     /// The tensor form that keeps smoke centres out of obstacles against its host twin,
     /// `Obstacle::pushed_out`, for points in and around a sphere and a box.
+    /// Buoyancy is what a multiple of the density in the upward component explains: such an
+    /// increment leaves nothing, a sideways one is untouched, and of a mix only the part
+    /// orthogonal to the density stays (worked by hand on a 2x2x1 grid).
+    #[test]
+    fn the_buoyancy_free_increment_leaves_what_density_cannot_explain() {
+        let (_, device) = cpu_devices().into_iter().next().unwrap();
+        let sigma = Tensor::<3>::from_data(
+            TensorData::new(vec![1.0f32, 2.0, 0.0, 3.0], [2, 2, 1]),
+            &device,
+        );
+        let field = |values: Vec<f32>| {
+            Tensor::<4>::from_data(TensorData::new(values, [2, 2, 1, 3]), &device)
+        };
+        let read = |t: Tensor<4>| t.into_data().try_into_vec_as::<f32>().unwrap();
+        // Upward 0.5 sigma: all buoyancy.
+        let buoyant = field(vec![
+            0.0, 0.5, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.5, 0.0,
+        ]);
+        let left = read(without_buoyancy(buoyant, sigma.clone()));
+        assert!(left.iter().all(|v| v.abs() < 1e-6), "{left:?}");
+        // Sideways: untouched.
+        let sideways = vec![1.0, 0.0, -2.0, 0.5, 0.0, 0.0, 0.0, 0.0, 3.0, -1.0, 0.0, 0.0];
+        assert_eq!(
+            read(without_buoyancy(field(sideways.clone()), sigma.clone())),
+            sideways
+        );
+        // Upward 1 everywhere: b = (1 + 2 + 3) / (1 + 4 + 9) = 3/7, leaving 1 - 3/7 sigma.
+        let uniform = field(vec![
+            0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0,
+        ]);
+        let left = read(without_buoyancy(uniform, sigma));
+        let b = 3.0 / 7.0;
+        let expected = [1.0 - b, 1.0 - 2.0 * b, 1.0, 1.0 - 3.0 * b];
+        for (cell, want) in expected.iter().enumerate() {
+            assert!(
+                (left[3 * cell + 1] - want).abs() < 1e-6,
+                "cell {cell}: {left:?}"
+            );
+            assert_eq!([left[3 * cell], left[3 * cell + 2]], [0.0, 0.0]);
+        }
+    }
+
     #[test]
     fn centres_inside_obstacles_are_pushed_out_like_the_host_twin() {
         let obstacles = [

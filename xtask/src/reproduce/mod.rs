@@ -103,6 +103,12 @@ pub struct ReproduceArgs {
     /// `0,30,60,90,119`). Written to `<out>/<key>-independent/frame_TTT`.
     #[arg(long, value_delimiter = ',', value_name = "FRAMES")]
     independent: Vec<usize>,
+    /// Train with the configuration recorded in `<docs>/results/<KEY>.json` instead of the
+    /// preset's: re-running a record made before the preset changed, as it was configured
+    /// (settings the record predates take their defaults, which are the behaviour it ran
+    /// with). The command must name the same run (key) as the record; no --set.
+    #[arg(long, value_name = "KEY")]
+    config_of: Option<String>,
 }
 
 fn quick_scalar_real() -> TrainConfig {
@@ -166,6 +172,7 @@ fn scalar_real_open_faces() -> Vec<String> {
 
 /// One training run of the reproduction: a key for file names, a label for tables, and the
 /// group of runs it repeats with another seed.
+#[derive(Debug)]
 struct Variant {
     key: String,
     group: String,
@@ -416,6 +423,9 @@ fn command_line(args: &ReproduceArgs) -> String {
     if let Some(tag) = &args.tag {
         line += &format!(" --tag {}", shell_quoted(tag));
     }
+    if let Some(key) = &args.config_of {
+        line += &format!(" --config-of {}", shell_quoted(key));
+    }
     if args.no_ablations {
         line += " --no-ablations";
     }
@@ -433,6 +443,50 @@ fn command_line(args: &ReproduceArgs) -> String {
         line += &format!(" --independent {}", frames.join(","));
     }
     line
+}
+
+/// The one run `variants` names, configured as the record `key` in `results_dir` says (see
+/// `--config-of`).
+fn recorded_variant(
+    variants: Vec<Variant>,
+    key: &str,
+    results_dir: &Path,
+    args: &ReproduceArgs,
+) -> Result<Variant> {
+    if !args.overrides.is_empty() {
+        bail!("--config-of takes the whole configuration from the record: no --set");
+    }
+    let [variant] = <[Variant; 1]>::try_from(variants).map_err(|all| {
+        anyhow::anyhow!(
+            "--config-of re-runs one record, and this command names {} runs (add \
+             --no-ablations)",
+            all.len()
+        )
+    })?;
+    if variant.key != key {
+        bail!(
+            "--config-of {key}: this command names the run `{}`, not that record's",
+            variant.key
+        );
+    }
+    let path = results_dir.join(format!("{key}.json"));
+    let record: Value = serde_json::from_str(
+        &std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?,
+    )
+    .with_context(|| format!("parsing {}", path.display()))?;
+    let config: TrainConfig = serde_json::from_value(record["config"].clone())
+        .with_context(|| format!("{}: the field `config`", path.display()))?;
+    config
+        .validate()
+        .with_context(|| format!("{}: the recorded configuration", path.display()))?;
+    let label = record["variant"]
+        .as_str()
+        .map_or(variant.label, str::to_string);
+    Ok(Variant {
+        label,
+        config,
+        ..variant
+    })
 }
 
 /// Whether `dir` holds a PINF (`info.json`) or D-NeRF (`transforms_train.json`) data set.
@@ -525,7 +579,11 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
         resume: args.resume,
         lpips_weights: lpips_weights.as_deref(),
     };
-    for variant in variants(&args)? {
+    let mut variants = variants(&args)?;
+    if let Some(key) = &args.config_of {
+        variants = vec![recorded_variant(variants, key, &results_dir, &args)?];
+    }
+    for variant in variants {
         let run_dir = args.out.join(&variant.key);
         eprintln!(
             "== {} ({}) -> {}",
@@ -669,6 +727,7 @@ mod tests {
             tag: None,
             docs: None,
             independent: vec![0, 36, 71],
+            config_of: None,
         };
         let list = variants(&args).unwrap();
         assert_eq!(list.len(), 1, "no ablations on the long plume");
@@ -687,6 +746,68 @@ mod tests {
             "{}",
             command_line(&args)
         );
+    }
+
+    /// `--config-of` trains the named run with the configuration its record holds (a
+    /// setting the record predates takes its default), and refuses a record of another run,
+    /// overrides, or a command naming several runs.
+    #[test]
+    fn a_record_is_re_run_with_its_recorded_configuration() {
+        let dir = tempfile::tempdir().unwrap();
+        let args = |config_of: &str, target: Target, overrides: Vec<String>| ReproduceArgs {
+            target,
+            quick: true,
+            device: "flex".into(),
+            out: PathBuf::from("runs"),
+            data: None,
+            frames: None,
+            resume: false,
+            no_ablations: false,
+            lpips_weights: None,
+            seed: Some(3),
+            respawn: None,
+            tag: (!overrides.is_empty()).then(|| "x".to_string()),
+            overrides,
+            docs: None,
+            independent: Vec::new(),
+            config_of: Some(config_of.to_string()),
+        };
+        let recorded = TrainConfig {
+            open_faces: Vec::new(),
+            gaussians: 1234,
+            seed: 3,
+            ..quick_synthetic_long()
+        };
+        let mut config = serde_json::to_value(&recorded).unwrap();
+        // A record older than the inertia prior.
+        config.as_object_mut().unwrap().remove("lambda_increment");
+        let record = json!({"config": config, "variant": "full method, closed walls"});
+        let key = "synthetic-long-quick-s3";
+        std::fs::write(dir.path().join(format!("{key}.json")), record.to_string()).unwrap();
+        let named = |a: &ReproduceArgs| {
+            let asked = a.config_of.as_deref().unwrap();
+            recorded_variant(variants(a).unwrap(), asked, dir.path(), a)
+        };
+
+        let variant = named(&args(key, Target::SyntheticLong, Vec::new())).unwrap();
+        assert_eq!(variant.key, key);
+        assert_eq!(variant.config, recorded);
+        assert_eq!(variant.label, "full method, closed walls");
+        assert!(
+            command_line(&args(key, Target::SyntheticLong, Vec::new())).ends_with(
+                "reproduce synthetic-long --quick --seed 3 --config-of synthetic-long-quick-s3"
+            )
+        );
+
+        let other = args("synthetic-long-quick-s4", Target::SyntheticLong, Vec::new());
+        let err = named(&other).unwrap_err().to_string();
+        assert!(err.contains("synthetic-long-quick-s3"), "{err}");
+        let with_set = args(key, Target::SyntheticLong, vec!["lambda_div=1".into()]);
+        let err = named(&with_set).unwrap_err().to_string();
+        assert!(err.contains("--set"), "{err}");
+        let several = args(key, Target::Obstacle, Vec::new());
+        let err = named(&several).unwrap_err().to_string();
+        assert!(err.contains("--no-ablations"), "{err}");
     }
 
     /// The slice of `reproduce scalar-real --quick` that CI runs: two frames of the real
@@ -715,6 +836,7 @@ mod tests {
             tag: None,
             docs: Some(docs.clone()),
             independent: vec![0, 1],
+            config_of: None,
         };
         run(args).unwrap();
 
