@@ -1,33 +1,60 @@
 """Independent check of eval's obstacle leakage, and how deep it sits (issue 20).
 
-For each run folder of the `obstacle`/`ball` scenes, reads every `frames/frame_TTT.safetensors`
-(numpy only, no Rust code) and prints the mean over frames of the share of the smoke density in
-grid cells whose centre lies inside the scenes' sphere (eval's `obstacle_density_fraction`),
-and of the share in cells more than one cell deep inside it, beside those cells' share of the
-volume.
+For each run folder of a scene with obstacles (`obstacle`, `ball`, `blocks`), reads every
+`frames/frame_TTT.safetensors` (numpy only, no Rust code) and prints the mean over frames of
+the share of the smoke density in grid cells whose centre lies inside an obstacle (eval's
+`obstacle_density_fraction`), and of the share in cells more than one cell deep inside one,
+beside those cells' share of the volume. The obstacles (spheres and boxes) and the box are
+read from the data set the run names in `run.json` (`info.json` or `transforms_train.json`).
 
     python xtask/reference/obstacle_leakage.py RUN [RUN ...]
 """
 import glob
+import json
+import os
 import sys
 
 import numpy as np
 
 from safetensors_f32 import read_safetensors
 
-# The `synth obstacle` / `synth ball` scenes: box and sphere in world units.
-LO, HI = np.array([-0.5, 0.0, -0.5]), np.array([0.5, 1.0, 0.5])
-CENTRE, RADIUS = np.array([0.04, 0.4, 0.0]), 0.14
+def scene(run):
+    """The run's smoke box and its data set's obstacles, as signed-distance functions."""
+    meta = json.load(open(f"{run}/run.json"))
+    lo, hi = np.array(meta["box_lo"]), np.array(meta["box_hi"])
+    for name in ("info.json", "transforms_train.json"):
+        path = os.path.join(meta["data"], name)
+        if os.path.exists(path):
+            obstacles = json.load(open(path)).get("obstacles", [])
+            break
+    else:
+        sys.exit(f"{meta['data']}: neither info.json nor transforms_train.json")
+    fields = []
+    for item in obstacles:
+        if "sphere" in item:
+            centre, radius = np.array(item["sphere"]["centre"]), item["sphere"]["radius"]
+            fields.append(lambda p, c=centre, r=radius: np.linalg.norm(p - c, axis=-1) - r)
+        else:
+            bmin, bmax = np.array(item["box"]["min"]), np.array(item["box"]["max"])
+
+            def box(p, bmin=bmin, bmax=bmax):
+                q = np.abs(p - 0.5 * (bmin + bmax)) - 0.5 * (bmax - bmin)
+                return np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(q.max(-1), 0)
+
+            fields.append(box)
+    return lo, hi, fields
 
 
 def leakage(run):
+    lo, hi, fields = scene(run)
     rows = []
     for path in sorted(glob.glob(f"{run}/frames/frame_*.safetensors")):
         density = read_safetensors(path)["density"].clip(0)
         shape = np.array(density.shape)
-        cell = (HI - LO) / shape
+        cell = (hi - lo) / shape
         index = np.stack(np.meshgrid(*[np.arange(k) for k in shape], indexing="ij"), -1)
-        distance = np.linalg.norm(LO + (index + 0.5) * cell - CENTRE, axis=-1) - RADIUS
+        centres = lo + (index + 0.5) * cell
+        distance = np.min([f(centres) for f in fields], axis=0)
         inside, deep = distance <= 0, distance <= -cell.max()
         total = density.sum()
         rows.append((density[inside].sum() / total, density[deep].sum() / total, inside.mean(), deep.mean()))
