@@ -80,18 +80,7 @@ impl Image {
             .zip(alpha)
             .flat_map(|(rgb, &a)| [to_u8(rgb[0]), to_u8(rgb[1]), to_u8(rgb[2]), to_u8(a)])
             .collect();
-        image::save_buffer(
-            path,
-            &bytes,
-            self.width,
-            self.height,
-            image::ExtendedColorType::Rgba8,
-        )
-        .map_err(|source| DataError::Image {
-            action: "write",
-            path: path.to_path_buf(),
-            source,
-        })
+        self.write_png(path, &bytes, image::ExtendedColorType::Rgba8)
     }
 
     /// This image with straight `alpha` (one per pixel) composited over `background`, as
@@ -114,17 +103,17 @@ impl Image {
     /// Writes an 8-bit RGB PNG (values clamped to `[0, 1]`, rounded).
     pub fn save_png(&self, path: &Path) -> Result<()> {
         let bytes: Vec<u8> = self.data.iter().map(|&v| to_u8(v)).collect();
-        image::save_buffer(
-            path,
-            &bytes,
-            self.width,
-            self.height,
-            image::ExtendedColorType::Rgb8,
-        )
-        .map_err(|source| DataError::Image {
-            action: "write",
-            path: path.to_path_buf(),
-            source,
+        self.write_png(path, &bytes, image::ExtendedColorType::Rgb8)
+    }
+
+    /// Writes `bytes`, this image's pixels in `layout`, as an 8-bit PNG.
+    fn write_png(&self, path: &Path, bytes: &[u8], layout: image::ExtendedColorType) -> Result<()> {
+        image::save_buffer(path, bytes, self.width, self.height, layout).map_err(|source| {
+            DataError::Image {
+                action: "write",
+                path: path.to_path_buf(),
+                source,
+            }
         })
     }
 }

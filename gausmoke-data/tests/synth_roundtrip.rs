@@ -183,6 +183,19 @@ fn long_plume_leaves_through_the_top() {
     assert!(mass(&s) > halfway, "{} -> {}", halfway, mass(&s));
 }
 
+/// No smoke and no velocity in the `solid` cells of `s` after `frame`.
+fn assert_nothing_in(s: &Solver, solid: &[usize], frame: usize) {
+    for &i in solid {
+        let values = [
+            s.density.data[i],
+            s.velocity[0].data[i],
+            s.velocity[1].data[i],
+            s.velocity[2].data[i],
+        ];
+        assert_eq!(values, [0.0; 4], "frame {frame}, cell {i}");
+    }
+}
+
 /// The obstacle preset: no smoke and no velocity ever inside the sphere, the plume gets past
 /// it (smoke above it, sideways flow beside it), and where the free plume rises through the
 /// sphere's place the obstacle's stands still.
@@ -206,15 +219,7 @@ fn obstacle_plume_flows_around_the_sphere() {
     for frame in 0..30 {
         s.step_frame();
         free.step_frame();
-        for &i in &solid {
-            let values = [
-                s.density.data[i],
-                s.velocity[0].data[i],
-                s.velocity[1].data[i],
-                s.velocity[2].data[i],
-            ];
-            assert_eq!(values, [0.0; 4], "frame {frame}, cell {i}");
-        }
+        assert_nothing_in(&s, &solid, frame);
     }
     let above: f32 = (top_cell + 1..n)
         .flat_map(|y| (0..n * n).map(move |zx| (zx / n * n + y) * n + zx % n))
@@ -350,15 +355,7 @@ fn blocks_plume_keeps_out_of_its_boxes_and_shows_the_wall() {
     );
     for frame in 0..24 {
         s.step_frame();
-        for &i in &solid {
-            let values = [
-                s.density.data[i],
-                s.velocity[0].data[i],
-                s.velocity[1].data[i],
-                s.velocity[2].data[i],
-            ];
-            assert_eq!(values, [0.0; 4], "frame {frame}, cell {i}");
-        }
+        assert_nothing_in(&s, &solid, frame);
     }
     let above_block: f32 = (0..n * n * n)
         .filter(|&i| centre(i).y > 0.5)
