@@ -251,39 +251,29 @@ impl Solver {
         let mut p = vec![0.0f32; n * n * n];
         let mut next = vec![0.0f32; n * n * n];
         let solid = &self.solid;
-        // A neighbour inside the obstacle mirrors the cell (zero gradient, as at the walls).
-        let solid_at = |x: isize, y: isize, z: isize| -> bool {
-            x >= 0
-                && y >= 0
-                && z >= 0
-                && x < n as isize
-                && y < n as isize
-                && z < n as isize
-                && solid[(z as usize * n + y as usize) * n + x as usize]
-        };
-        for _ in 0..self.cfg.jacobi_iterations {
-            let pr = &p;
-            let get = |x: isize, y: isize, z: isize, xc: usize, yc: usize, zc: usize| -> f32 {
-                // Zero-gradient at walls and floor, p = 0 above the open top.
+        // The pressure at cell (x, y, z) as the stencil of cell (xc, yc, zc) sees it:
+        // zero-gradient at the walls, the floor and a neighbour inside an obstacle (the cell's
+        // own value), p = 0 above the open top.
+        let pressure_at =
+            |p: &[f32], x: isize, y: isize, z: isize, xc: usize, yc: usize, zc: usize| -> f32 {
+                let inside = |v: isize| (0..n as isize).contains(&v);
                 if y >= n as isize {
                     return 0.0;
                 }
-                if solid_at(x, y, z) {
-                    return pr[(zc * n + yc) * n + xc];
+                if inside(x)
+                    && inside(y)
+                    && inside(z)
+                    && solid[(z as usize * n + y as usize) * n + x as usize]
+                {
+                    return p[(zc * n + yc) * n + xc];
                 }
-                let cx = if x < 0 || x >= n as isize {
-                    xc
-                } else {
-                    x as usize
-                };
+                let cx = if inside(x) { x as usize } else { xc };
                 let cy = if y < 0 { yc } else { y as usize };
-                let cz = if z < 0 || z >= n as isize {
-                    zc
-                } else {
-                    z as usize
-                };
-                pr[(cz * n + cy) * n + cx]
+                let cz = if inside(z) { z as usize } else { zc };
+                p[(cz * n + cy) * n + cx]
             };
+        for _ in 0..self.cfg.jacobi_iterations {
+            let get = |x, y, z, xc, yc, zc| pressure_at(&p, x, y, z, xc, yc, zc);
             next.par_chunks_mut(n * n)
                 .enumerate()
                 .for_each(|(z, slab)| {
@@ -305,26 +295,7 @@ impl Solver {
                 });
             std::mem::swap(&mut p, &mut next);
         }
-        let pg = |x: isize, y: isize, z: isize, xc: usize, yc: usize, zc: usize| -> f32 {
-            if y >= n as isize {
-                return 0.0;
-            }
-            if solid_at(x, y, z) {
-                return p[(zc * n + yc) * n + xc];
-            }
-            let cx = if x < 0 || x >= n as isize {
-                xc
-            } else {
-                x as usize
-            };
-            let cy = if y < 0 { yc } else { y as usize };
-            let cz = if z < 0 || z >= n as isize {
-                zc
-            } else {
-                z as usize
-            };
-            p[(cz * n + cy) * n + cx]
-        };
+        let pg = |x, y, z, xc, yc, zc| pressure_at(&p, x, y, z, xc, yc, zc);
         for z in 0..n {
             for y in 0..n {
                 for x in 0..n {
