@@ -158,6 +158,14 @@ fn quick_synthetic_long() -> TrainConfig {
     }
 }
 
+/// The paper's settings on the synthetic scenes, whose smoke leaves through the box's top.
+fn full_synthetic_long() -> TrainConfig {
+    TrainConfig {
+        open_faces: synthetic_open_faces(),
+        ..TrainConfig::default()
+    }
+}
+
 /// The synthetic solver's boundary: solid floor and sides, open top (`gausmoke_data::synth`).
 fn synthetic_open_faces() -> Vec<String> {
     vec!["y+".into()]
@@ -206,35 +214,21 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
         (Target::ScalarReal, false) => paper_scalar_real(),
         (Target::Synthetic, true) => TrainConfig::quick_demo(),
         (Target::Synthetic, false) => TrainConfig::default(),
-        (Target::SyntheticLong, true) => quick_synthetic_long(),
-        (Target::SyntheticLong, false) => TrainConfig {
-            open_faces: synthetic_open_faces(),
-            ..TrainConfig::default()
-        },
-        (Target::Obstacle, true) => quick_synthetic_long(),
-        (Target::Obstacle, false) => TrainConfig {
-            open_faces: synthetic_open_faces(),
-            ..TrainConfig::default()
-        },
+        (Target::SyntheticLong | Target::Obstacle, true) => quick_synthetic_long(),
+        (Target::SyntheticLong | Target::Obstacle, false) => full_synthetic_long(),
         // A quarter as many static Gaussians as smoke ones.
         (Target::Ball, true) => TrainConfig {
             static_gaussians: 1000,
             ..quick_synthetic_long()
         },
         (Target::Ball, false) => TrainConfig {
-            open_faces: synthetic_open_faces(),
             static_gaussians: 7500,
-            ..TrainConfig::default()
+            ..full_synthetic_long()
         },
         // Half as many static Gaussians as smoke ones: the wall fills most of every view.
         (Target::Blocks, true) => TrainConfig {
             static_gaussians: 2000,
             ..quick_synthetic_long()
-        },
-        (Target::Blocks, false) => TrainConfig {
-            open_faces: synthetic_open_faces(),
-            static_gaussians: 15000,
-            ..TrainConfig::default()
         },
         // Eleven training views, each loaded from 800x800 down to 100x100.
         (Target::Blender, true) => TrainConfig {
@@ -242,10 +236,9 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
             image_size: Some([100, 100]),
             ..quick_synthetic_long()
         },
-        (Target::Blender, false) => TrainConfig {
-            open_faces: synthetic_open_faces(),
+        (Target::Blocks | Target::Blender, false) => TrainConfig {
             static_gaussians: 15000,
-            ..TrainConfig::default()
+            ..full_synthetic_long()
         },
     };
     if let Some(frames) = args.frames {
@@ -489,9 +482,12 @@ fn recorded_variant(
     })
 }
 
-/// Whether `dir` holds a PINF (`info.json`) or D-NeRF (`transforms_train.json`) data set.
+/// Whether `dir` holds a data set `Sequence::open` reads: PINF (`info.json`), D-NeRF
+/// (`transforms_train.json`) or nerfstudio (`transforms.json`).
 fn is_data_set(dir: &Path) -> bool {
-    dir.join("info.json").is_file() || dir.join("transforms_train.json").is_file()
+    dir.join("info.json").is_file()
+        || dir.join("transforms_train.json").is_file()
+        || gausmoke_data::is_nerfstudio(dir)
 }
 
 pub fn run(args: ReproduceArgs) -> Result<()> {
@@ -563,7 +559,8 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
     };
     if !is_data_set(&data) {
         bail!(
-            "{}: neither info.json nor transforms_train.json (is this the data set folder?)",
+            "{}: neither info.json, transforms_train.json nor transforms.json (is this the \
+             data set folder?)",
             data.display()
         );
     }
