@@ -292,6 +292,11 @@ pub struct TrainConfig {
     /// its largest value: new smoke appears beside smoke, not in the empty parts of the
     /// training views' visual hull. 0 lets every cell receive them.
     pub respawn_near_smoke: f32,
+    /// `[x0, y0, z0, x1, y1, z1]`, fractions of the smoke box (its low corner, then its high
+    /// one): recycled Gaussians go only to cells whose centre lies in this box, such as the
+    /// inflow where a source feeds the plume, so that new smoke enters where it does and is
+    /// not placed anywhere in the training views' visual hull. Unset admits the whole box.
+    pub respawn_region: Option<[f32; 6]>,
     /// Seed of the Gaussians' initialisation.
     pub seed: u64,
     /// Write renders, exports and velocity slices every this many frames (1 = all).
@@ -376,6 +381,7 @@ impl Default for TrainConfig {
             respawn_fraction: 0.0,
             respawn_threshold: 0.05,
             respawn_near_smoke: 0.0,
+            respawn_region: None,
             seed: 2026,
             output_every: 1,
             log_every: 10,
@@ -578,6 +584,24 @@ impl TrainConfig {
                 self.respawn_threshold
             ));
         }
+        if let Some(region) = self.respawn_region {
+            let inside = region
+                .iter()
+                .all(|v| v.is_finite() && (0.0..=1.0).contains(v));
+            if !inside || (0..3).any(|axis| region[axis] >= region[axis + 3]) {
+                return bad(format!(
+                    "respawn_region must be [x0, y0, z0, x1, y1, z1] with 0 <= lo < hi <= 1 \
+                     on each axis (fractions of the smoke box), got {region:?}"
+                ));
+            }
+            if self.respawn_fraction == 0.0 {
+                return bad(
+                    "respawn_region places recycled Gaussians, which are off: set \
+                     respawn_fraction > 0 too"
+                        .into(),
+                );
+            }
+        }
         if !(self.tile_list_headroom.is_finite() && self.tile_list_headroom >= 1.0) {
             return bad(format!(
                 "tile_list_headroom must be >= 1, got {}",
@@ -737,6 +761,22 @@ mod tests {
         .validate()
         .unwrap_err();
         assert!(err.to_string().contains("lambda_increment"), "{err}");
+        let region = |value: &str, fraction: &str| {
+            TrainConfig::default()
+                .with_overrides(&[
+                    format!("respawn_region={value}"),
+                    format!("respawn_fraction={fraction}"),
+                ])
+                .and_then(|config| config.validate().map(|()| config))
+        };
+        let config = region("[0.3, 0, 0.3, 0.7, 0.15, 0.7]", "0.02").unwrap();
+        assert_eq!(config.respawn_region, Some([0.3, 0.0, 0.3, 0.7, 0.15, 0.7]));
+        for bad in ["[0.3, 0, 0.3, 0.2, 0.15, 0.7]", "[0, 0, 0, 1, 1, 1.5]"] {
+            let err = region(bad, "0.02").unwrap_err();
+            assert!(err.to_string().contains("respawn_region"), "{bad}: {err}");
+        }
+        let err = region("[0.3, 0, 0.3, 0.7, 0.15, 0.7]", "0").unwrap_err();
+        assert!(err.to_string().contains("respawn_fraction"), "{err}");
     }
 
     #[test]

@@ -20,7 +20,9 @@
 //!   (mean over channels, clamped at 0). A point missing from the reconstruction in every
 //!   view is a visual-hull argument for smoke there. Cells above `respawn_threshold` are
 //!   drawn without replacement with probability proportional to the score and jittered
-//!   within the cell.
+//!   within the cell. Two optional limits: cells next to carried smoke only
+//!   (`respawn_near_smoke`), and cells inside a box the user names (`respawn_region`, such
+//!   as the inflow where a source feeds the plume, where the views pin the depth down).
 //! - **What they start as.** Isotropic, the initialisation's size, the mean colour of the
 //!   visible Gaussians, and a density whose opacity through the centre supplies half of the
 //!   cell's deficit (half, because neighbouring recycled Gaussians overlap along rays).
@@ -81,6 +83,9 @@ pub struct RespawnOptions {
     /// Cells must lie within one cell of density at least this fraction of the largest
     /// (`respawn_near_smoke`); 0 admits every cell.
     pub near_smoke: f32,
+    /// World-space box `[lo, hi]` the cell centres must lie in (`respawn_region`: where smoke
+    /// enters); `None` admits every cell.
+    pub region: Option<[Vec3; 2]>,
 }
 
 /// What [`respawn`] did, for the frame report.
@@ -250,6 +255,15 @@ pub fn respawn(
             }
         }
     }
+    if let Some([lo, hi]) = options.region {
+        let [_, ny, nz] = lattice.resolution;
+        for (cell, score) in scores.iter_mut().enumerate() {
+            let centre = lattice.cell_centre([cell / (ny * nz), (cell / nz) % ny, cell % nz]);
+            if centre.cmplt(lo).any() || centre.cmpgt(hi).any() {
+                *score = 0.0;
+            }
+        }
+    }
     let mut cells: Vec<(usize, f32)> = scores
         .iter()
         .enumerate()
@@ -396,6 +410,7 @@ mod tests {
             background: [0.0; 3],
             seed: 7,
             near_smoke: 0.0,
+            region: None,
         }
     }
 
@@ -491,6 +506,58 @@ mod tests {
         // Density only in a far corner: the deficit there is not next to smoke.
         let mut g = gaussians(100);
         let report = respawn(&mut g, &views, &lattice(), &options, &density_at([7, 0, 0]));
+        assert!(report.indices.is_empty(), "{report:?}");
+    }
+
+    #[test]
+    fn a_region_admits_only_the_cells_inside_it() {
+        // Two missing spots, one low (where a source would be) and one high.
+        let cameras = cameras();
+        let low = Vec3::new(0.5, 0.1, 0.5);
+        let high = Vec3::new(0.3, 0.7, 0.6);
+        let observed: Vec<Vec<f32>> = cameras
+            .iter()
+            .map(|c| {
+                let a = spot_image(c, low, 4.0);
+                let b = spot_image(c, high, 4.0);
+                a.iter().zip(&b).map(|(a, b)| a.max(*b)).collect()
+            })
+            .collect();
+        let rendered = vec![0.0; 64 * 64 * 3];
+        let views = deficit_views(&cameras, &observed, &rendered);
+        let bottom = RespawnOptions {
+            region: Some([Vec3::new(0.25, 0.0, 0.25), Vec3::new(0.75, 0.25, 0.75)]),
+            ..options(0.05)
+        };
+        let mut g = gaussians(100);
+        let report = respawn(&mut g, &views, &lattice(), &bottom, &[]);
+        assert_eq!(report.indices.len(), 5);
+        for &index in &report.indices {
+            let p = Vec3::from_slice(&g.means[3 * index..3 * index + 3]);
+            assert!(
+                (p - low).length() < 0.25,
+                "recycled Gaussian {index} at {p:?}, the low spot at {low:?}"
+            );
+        }
+        // Without the region both spots receive some.
+        let mut g = gaussians(100);
+        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[]);
+        let highs = report
+            .indices
+            .iter()
+            .filter(|&&i| (Vec3::from_slice(&g.means[3 * i..3 * i + 3]) - high).length() < 0.25)
+            .count();
+        assert!(
+            highs > 0 && highs < report.indices.len(),
+            "{highs} of {report:?}"
+        );
+        // A region that holds neither spot receives nothing.
+        let corner = RespawnOptions {
+            region: Some([Vec3::new(0.8, 0.8, 0.0), Vec3::ONE]),
+            ..options(0.05)
+        };
+        let mut g = gaussians(100);
+        let report = respawn(&mut g, &views, &lattice(), &corner, &[]);
         assert!(report.indices.is_empty(), "{report:?}");
     }
 

@@ -966,6 +966,13 @@ impl Trainer {
             // A per-frame stream, so a resumed run draws what an uninterrupted one did.
             seed: self.config.seed ^ (t as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
             near_smoke: self.config.respawn_near_smoke,
+            region: self.config.respawn_region.map(|r| {
+                let (lo, extent) = (self.grid.lo(), extent);
+                [
+                    lo + extent * Vec3::new(r[0], r[1], r[2]),
+                    lo + extent * Vec3::new(r[3], r[4], r[5]),
+                ]
+            }),
         };
         let density = if options.near_smoke > 0.0 {
             self.density_host()
