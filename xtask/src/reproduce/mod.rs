@@ -324,6 +324,41 @@ fn peak_memory_mib() -> Option<f64> {
     Some(kib / 1024.0)
 }
 
+/// The record this run folder wrote before, if any (the same key and `run`).
+fn previous_record(path: &Path, run_dir: &Path) -> Option<Value> {
+    let record: Value = serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()?;
+    (record["run"].as_str() == Some(&*run_dir.display().to_string())).then_some(record)
+}
+
+/// Wall time and peak memory for a record. This process measured only its own session, so
+/// a resumed run adds the earlier sessions from the run's previous record, or records
+/// neither (null) where there is none, rather than a session's part as the whole.
+fn session_totals(
+    previous: Option<Value>,
+    resumed: bool,
+    wall_seconds: f64,
+    peak_memory: Option<f64>,
+) -> (Value, Value) {
+    if !resumed {
+        return (json!(wall_seconds), json!(peak_memory));
+    }
+    let Some(previous) = previous else {
+        eprintln!(
+            "warning: resumed without this run's earlier record: its wall time and peak \
+             memory are recorded as unknown"
+        );
+        return (Value::Null, Value::Null);
+    };
+    let wall = previous["wall_seconds_with_outputs"]
+        .as_f64()
+        .map(|before| before + wall_seconds);
+    let peak = previous["peak_memory_mib"]
+        .as_f64()
+        .zip(peak_memory)
+        .map(|(a, b)| a.max(b));
+    (json!(wall), json!(peak))
+}
+
 /// The CPU, and for GPU devices the NVIDIA adapter and driver where `nvidia-smi` exists.
 fn machine(device: &str) -> String {
     let cpu = std::fs::read_to_string("/proc/cpuinfo")
@@ -601,6 +636,7 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             &run_dir,
             args.resume,
         )?;
+        let resumed = trainer.frame.is_some();
         trainer.run()?;
         let wall_seconds = start.elapsed().as_secs_f64();
         let gaussians = trainer.trainer.state.gaussians.len();
@@ -629,6 +665,13 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
         let frames_bytes: u64 = std::fs::read_dir(run_dir.join("frames"))
             .map(|dir| dir.flatten().map(|e| file_size(&e.path())).sum())
             .unwrap_or(0);
+        let path = results_dir.join(format!("{}.json", variant.key));
+        let (wall_seconds, peak_memory) = session_totals(
+            resumed.then(|| previous_record(&path, &run_dir)).flatten(),
+            resumed,
+            wall_seconds,
+            peak_memory_mib(),
+        );
         let record = json!({
             "key": variant.key,
             "group": variant.group,
@@ -671,19 +714,17 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             "training_seconds": metrics["training_seconds"],
             "wall_seconds_with_outputs": wall_seconds,
             "phase_seconds": metrics["phase_seconds"],
-            "peak_memory_mib": peak_memory_mib(),
+            "peak_memory_mib": peak_memory,
             "state_bytes_per_frame": file_size(&last_frame),
             "state_bytes_all_frames": frames_bytes,
             "run": run_dir.display().to_string(),
         });
-        let path = results_dir.join(format!("{}.json", variant.key));
         std::fs::write(&path, serde_json::to_string_pretty(&record)?)?;
         eprintln!(
-            "   PSNR {:?} SSIM {:?} |div u| {:.3e} in {:.0} s; wrote {}",
+            "   PSNR {:?} SSIM {:?} |div u| {:.3e}; wrote {}",
             report.test_psnr_mean,
             report.test_ssim_mean,
             report.mean_abs_divergence,
-            wall_seconds,
             path.display()
         );
     }
@@ -693,6 +734,20 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_resumed_record_keeps_the_earlier_sessions_wall_time_and_peak_memory() {
+        let fresh = session_totals(None, false, 12.5, Some(80.0));
+        assert_eq!(fresh, (json!(12.5), json!(80.0)));
+        let earlier = json!({"wall_seconds_with_outputs": 500.0, "peak_memory_mib": 130.0});
+        let resumed = session_totals(Some(earlier), true, 0.5, Some(75.0));
+        assert_eq!(resumed, (json!(500.5), json!(130.0)));
+        // Resumed with no earlier record: unknown, not this session's part.
+        assert_eq!(
+            session_totals(None, true, 0.5, Some(75.0)),
+            (Value::Null, Value::Null)
+        );
+    }
 
     #[test]
     fn recorded_settings_are_single_shell_words() {
