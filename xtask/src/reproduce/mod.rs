@@ -761,10 +761,10 @@ mod tests {
         assert_eq!(shell_quoted(""), "''");
     }
 
-    #[test]
-    fn the_long_synthetic_plume_trains_all_frames_with_an_open_top() {
-        let args = ReproduceArgs {
-            target: Target::SyntheticLong,
+    /// `reproduce TARGET --quick` on flex with nothing else set, as the tests start from.
+    fn quick_args(target: Target) -> ReproduceArgs {
+        ReproduceArgs {
+            target,
             quick: true,
             device: "flex".into(),
             out: PathBuf::from("runs"),
@@ -773,13 +773,22 @@ mod tests {
             resume: false,
             no_ablations: false,
             lpips_weights: None,
-            seed: Some(3),
+            seed: None,
             respawn: None,
             overrides: Vec::new(),
             tag: None,
             docs: None,
-            independent: vec![0, 36, 71],
+            independent: Vec::new(),
             config_of: None,
+        }
+    }
+
+    #[test]
+    fn the_long_synthetic_plume_trains_all_frames_with_an_open_top() {
+        let args = ReproduceArgs {
+            seed: Some(3),
+            independent: vec![0, 36, 71],
+            ..quick_args(Target::SyntheticLong)
         };
         let list = variants(&args).unwrap();
         assert_eq!(list.len(), 1, "no ablations on the long plume");
@@ -807,22 +816,11 @@ mod tests {
     fn a_record_is_re_run_with_its_recorded_configuration() {
         let dir = tempfile::tempdir().unwrap();
         let args = |config_of: &str, target: Target, overrides: Vec<String>| ReproduceArgs {
-            target,
-            quick: true,
-            device: "flex".into(),
-            out: PathBuf::from("runs"),
-            data: None,
-            frames: None,
-            resume: false,
-            no_ablations: false,
-            lpips_weights: None,
             seed: Some(3),
-            respawn: None,
             tag: (!overrides.is_empty()).then(|| "x".to_string()),
             overrides,
-            docs: None,
-            independent: Vec::new(),
             config_of: Some(config_of.to_string()),
+            ..quick_args(target)
         };
         let recorded = TrainConfig {
             open_faces: Vec::new(),
@@ -873,22 +871,12 @@ mod tests {
         std::fs::create_dir_all(&docs).unwrap();
         std::fs::copy(root.join("docs/RESULTS.md"), docs.join("RESULTS.md")).unwrap();
         let args = ReproduceArgs {
-            target: Target::ScalarReal,
-            quick: true,
-            device: "flex".into(),
             out: dir.path().join("runs"),
             data: Some(root.join("../shared/datasets/scalar_real")),
             frames: Some(2),
-            resume: false,
-            no_ablations: false,
-            lpips_weights: None,
-            seed: None,
-            respawn: None,
-            overrides: Vec::new(),
-            tag: None,
             docs: Some(docs.clone()),
             independent: vec![0, 1],
-            config_of: None,
+            ..quick_args(Target::ScalarReal)
         };
         run(args).unwrap();
 
