@@ -967,7 +967,7 @@ impl Trainer {
             seed: self.config.seed ^ (t as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
             near_smoke: self.config.respawn_near_smoke,
             region: self.config.respawn_region.map(|r| {
-                let (lo, extent) = (self.grid.lo(), extent);
+                let lo = self.grid.lo();
                 [
                     lo + extent * Vec3::new(r[0], r[1], r[2]),
                     lo + extent * Vec3::new(r[3], r[4], r[5]),
