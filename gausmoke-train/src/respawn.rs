@@ -68,6 +68,16 @@ impl SpawnLattice {
     fn cell_centre(&self, [i, j, k]: [usize; 3]) -> Vec3 {
         self.lo + self.cell_size() * Vec3::new(i as f32 + 0.5, j as f32 + 0.5, k as f32 + 0.5)
     }
+
+    /// The world-space box `[lo, hi]` of `[x0, y0, z0, x1, y1, z1]` given as fractions of
+    /// this lattice's box (`respawn_region`).
+    pub fn region_from_fractions(&self, r: [f32; 6]) -> [Vec3; 2] {
+        let extent = self.hi - self.lo;
+        [
+            self.lo + extent * Vec3::new(r[0], r[1], r[2]),
+            self.lo + extent * Vec3::new(r[3], r[4], r[5]),
+        ]
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -559,6 +569,23 @@ mod tests {
         let mut g = gaussians(100);
         let report = respawn(&mut g, &views, &lattice(), &corner, &[]);
         assert!(report.indices.is_empty(), "{report:?}");
+    }
+
+    #[test]
+    fn a_region_in_fractions_of_the_box_is_placed_in_the_world() {
+        let lattice = SpawnLattice {
+            lo: Vec3::new(-1.0, 0.0, 2.0),
+            hi: Vec3::new(1.0, 4.0, 3.0),
+            resolution: [8, 8, 8],
+        };
+        assert_eq!(
+            lattice.region_from_fractions([0.0, 0.0, 0.0, 1.0, 1.0, 1.0]),
+            [lattice.lo, lattice.hi]
+        );
+        assert_eq!(
+            lattice.region_from_fractions([0.25, 0.0, 0.5, 0.75, 0.125, 1.0]),
+            [Vec3::new(-0.5, 0.0, 2.5), Vec3::new(0.5, 0.5, 3.0)]
+        );
     }
 
     #[test]

@@ -956,7 +956,12 @@ impl Trainer {
             })
             .collect();
         let mut host = self.state.gaussians.to_host();
-        let extent = self.grid.hi() - self.grid.lo();
+        let lattice = SpawnLattice {
+            lo: self.grid.lo(),
+            hi: self.grid.hi(),
+            resolution: self.grid.resolution(),
+        };
+        let extent = lattice.hi - lattice.lo;
         let options = RespawnOptions {
             fraction: self.config.respawn_fraction,
             threshold: self.config.respawn_threshold,
@@ -966,23 +971,15 @@ impl Trainer {
             // A per-frame stream, so a resumed run draws what an uninterrupted one did.
             seed: self.config.seed ^ (t as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
             near_smoke: self.config.respawn_near_smoke,
-            region: self.config.respawn_region.map(|r| {
-                let lo = self.grid.lo();
-                [
-                    lo + extent * Vec3::new(r[0], r[1], r[2]),
-                    lo + extent * Vec3::new(r[3], r[4], r[5]),
-                ]
-            }),
+            region: self
+                .config
+                .respawn_region
+                .map(|fractions| lattice.region_from_fractions(fractions)),
         };
         let density = if options.near_smoke > 0.0 {
             self.density_host()
         } else {
             Vec::new()
-        };
-        let lattice = SpawnLattice {
-            lo: self.grid.lo(),
-            hi: self.grid.hi(),
-            resolution: self.grid.resolution(),
         };
         let report = respawn(&mut host, &views, &lattice, &options, &density);
         if !report.indices.is_empty() {
