@@ -40,18 +40,54 @@ fn mean_std(values: &[f64]) -> (f64, f64) {
     (mean, var.sqrt())
 }
 
-/// A record's variant label, naming its open box faces and velocity transport (from its
-/// configuration) where the label does not: a preset's settings are not in its label.
+/// A record's variant label, naming the settings of [`preset_settings`] where the label does
+/// not: a preset's settings are not in its label.
 fn variant(record: &Value) -> String {
     let mut label = record["variant"].as_str().unwrap_or("?").to_string();
-    if transported(record) && !label.contains("transport_velocity") {
-        label += ", velocity transported";
-    }
-    let faces = open_faces(record);
-    if !faces.is_empty() && !label.contains("open_faces") {
-        label += &format!(", open faces {}", faces.join(" "));
+    for (setting, named) in preset_settings(record) {
+        if !label.contains(setting) {
+            label += &format!(", {named}");
+        }
     }
     label
+}
+
+/// The settings of ours that set one preset's runs apart from another's, from a record's
+/// configuration: each as its configuration key and as a table names it.
+fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
+    let config = &record["config"];
+    // Records keep the configuration's f32 values; printed as f32 they read as written.
+    let weight = |key: &str| config[key].as_f64().filter(|&w| w > 0.0).map(|w| w as f32);
+    let mut settings = Vec::new();
+    if transported(record) {
+        settings.push(("transport_velocity", "velocity transported".to_string()));
+    }
+    if let Some(w) = weight("lambda_lookahead") {
+        let along = match config["lookahead_velocity"].as_str() {
+            Some("predicted") => " along Phi's prediction",
+            _ => "",
+        };
+        settings.push(("lambda_lookahead", format!("look-ahead {w}{along}")));
+    }
+    if let Some(w) = weight("lambda_increment") {
+        settings.push(("lambda_increment", format!("inertia prior {w}")));
+    }
+    if let Some(region) = config["respawn_region"].as_array() {
+        let corners: Vec<String> = region
+            .iter()
+            .filter_map(Value::as_f64)
+            .map(|v| (v as f32).to_string())
+            .collect();
+        settings.push((
+            "respawn_region",
+            format!("recycled into [{}]", corners.join(", ")),
+        ));
+    }
+    let faces = open_faces(record);
+    if !faces.is_empty() {
+        settings.push(("open_faces", format!("open faces {}", faces.join(" "))));
+    }
+    settings
 }
 
 /// Whether the run carried its velocity along itself (`transport_velocity`).
@@ -59,6 +95,14 @@ fn transported(record: &Value) -> bool {
     record["config"]["transport_velocity"]
         .as_bool()
         .unwrap_or(false)
+}
+
+/// The box faces the run left open.
+fn open_faces(record: &Value) -> Vec<&str> {
+    record["config"]["open_faces"]
+        .as_array()
+        .map(|faces| faces.iter().filter_map(Value::as_str).collect())
+        .unwrap_or_default()
 }
 
 /// The seed of a record's Gaussians' initialisation.
@@ -100,26 +144,20 @@ const SEED_METRICS: [SeedMetric; 4] = [
     },
 ];
 
-/// A group of runs: the box faces they leave open and whether they transport the velocity
-/// (a preset's settings are not in its keys), and the group name they were recorded under.
-type GroupKey<'a> = (Vec<&'a str>, bool, &'a str);
-
-fn open_faces(record: &Value) -> Vec<&str> {
-    record["config"]["open_faces"]
-        .as_array()
-        .map(|faces| faces.iter().filter_map(Value::as_str).collect())
-        .unwrap_or_default()
-}
+/// A group of runs: the settings of ours that set presets apart ([`preset_settings`], not in
+/// a preset's keys), and the group name they were recorded under.
+type GroupKey<'a> = (Vec<String>, &'a str);
 
 /// Runs grouped by what they share apart from the seed (records written before groups existed
-/// are their own group; runs with other open faces or velocity transport are never in one
+/// are their own group; runs whose presets differ in [`preset_settings`] are never in one
 /// group).
 fn seed_groups(records: &[Value]) -> std::collections::BTreeMap<GroupKey<'_>, Vec<&Value>> {
     let mut groups: std::collections::BTreeMap<GroupKey<'_>, Vec<&Value>> = Default::default();
     for r in records {
         let group = r["group"].as_str().or(r["key"].as_str()).unwrap_or("?");
+        let settings = preset_settings(r).into_iter().map(|(_, named)| named);
         groups
-            .entry((open_faces(r), transported(r), group))
+            .entry((settings.collect(), group))
             .or_default()
             .push(r);
     }
@@ -144,7 +182,7 @@ fn write_seed_summary(block: &mut String, records: &[Value]) -> Result<()> {
         "| group | variant | seeds | held-out PSNR (dB) | SSIM | velocity rel. error | velocity cosine | density rel. error | density correlation | mean abs div u (1/frame) |"
     )?;
     writeln!(block, "|---|---|---|---:|---:|---:|---:|---:|---:|---:|")?;
-    for ((_, _, group), runs) in &repeated {
+    for ((_, group), runs) in &repeated {
         let column = |name: &str, format: fn(f64) -> String| {
             let values: Vec<f64> = runs.iter().filter_map(|r| r[name].as_f64()).collect();
             if values.len() < 2 {
@@ -180,7 +218,7 @@ fn write_paired_ablations(
     groups: &std::collections::BTreeMap<GroupKey<'_>, Vec<&Value>>,
 ) -> Result<()> {
     let mut rows = Vec::new();
-    for ((faces, transport, group), runs) in groups {
+    for ((settings, group), runs) in groups {
         let Some(ablation) = Ablation::KNOWN
             .into_iter()
             .find(|a| group.ends_with(a.suffix()))
@@ -188,7 +226,7 @@ fn write_paired_ablations(
             continue;
         };
         let full_group = &group[..group.len() - ablation.suffix().len()];
-        let Some(full_runs) = groups.get(&(faces.clone(), *transport, full_group)) else {
+        let Some(full_runs) = groups.get(&(settings.clone(), full_group)) else {
             continue;
         };
         let pairs: Vec<(&Value, &Value)> = runs
@@ -539,7 +577,7 @@ mod tests {
     }
 
     #[test]
-    fn variants_name_open_faces_and_transport_that_their_label_does_not() {
+    fn variants_name_the_preset_settings_that_their_label_does_not() {
         let record =
             |label: &str, faces: Value| json!({"variant": label, "config": {"open_faces": faces}});
         assert_eq!(
@@ -562,10 +600,24 @@ mod tests {
         let tagged = json!({"variant": "full method, transport_velocity=true",
                             "config": {"transport_velocity": true}});
         assert_eq!(variant(&tagged), "full method, transport_velocity=true");
+        // The quick presets' update, as its records store it (f32 values widened to f64).
+        let ours = json!({"variant": "full method, respawn 0.02",
+                          "config": {"open_faces": ["y+"], "transport_velocity": true,
+                                     "lambda_lookahead": 1.0, "lookahead_velocity": "predicted",
+                                     "lambda_increment": 0.009999999776482582,
+                                     "respawn_region": [0.3499999940395355, 0.0, 0.3499999940395355,
+                                                        0.6499999761581421, 0.15000000596046448,
+                                                        0.6499999761581421]}});
+        assert_eq!(
+            variant(&ours),
+            "full method, respawn 0.02, velocity transported, look-ahead 1 along Phi's \
+             prediction, inertia prior 0.01, recycled into [0.35, 0, 0.35, 0.65, 0.15, 0.65], \
+             open faces y+"
+        );
     }
 
     #[test]
-    fn runs_with_other_open_faces_or_transport_are_not_summarised_together() {
+    fn runs_whose_presets_differ_are_not_summarised_together() {
         let record = |seed: u64, faces: Value| {
             json!({"key": format!("g-s{seed}"), "group": "g", "seed": seed, "variant": "full method",
                    "test_psnr": 30.0 + seed as f64, "config": {"open_faces": faces}})
@@ -582,8 +634,21 @@ mod tests {
             carried["config"]["transport_velocity"] = json!(true);
             records.push(carried);
         }
+        // And two with the look-ahead on top: a preset changed under the same keys.
+        for seed in [7, 8] {
+            let mut ahead = record(seed, json!(["y-", "y+"]));
+            ahead["config"]["transport_velocity"] = json!(true);
+            ahead["config"]["lambda_lookahead"] = json!(1.0);
+            records.push(ahead);
+        }
         let mut block = String::new();
         write_seed_summary(&mut block, &records).unwrap();
+        assert!(
+            block.contains(
+                "| `g` | full method, velocity transported, look-ahead 1, open faces y- y+ | 7, 8 | 37.50 +- 0.71 |"
+            ),
+            "{block}"
+        );
         assert!(
             block.contains(
                 "| `g` | full method, velocity transported, open faces y- y+ | 5, 6 | 35.50 +- 0.71 |"
