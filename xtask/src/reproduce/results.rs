@@ -144,9 +144,9 @@ const SEED_METRICS: [SeedMetric; 4] = [
     },
 ];
 
-/// A group of runs: the settings of ours that set presets apart ([`preset_settings`], not in
-/// a preset's keys), and the group name they were recorded under.
-type GroupKey<'a> = (Vec<String>, &'a str);
+/// A group of runs: the group name they were recorded under, and the settings of ours that
+/// set presets apart ([`preset_settings`], not in a preset's keys).
+type GroupKey<'a> = (&'a str, Vec<String>);
 
 /// Runs grouped by what they share apart from the seed (records written before groups existed
 /// are their own group; runs whose presets differ in [`preset_settings`] are never in one
@@ -157,7 +157,7 @@ fn seed_groups(records: &[Value]) -> std::collections::BTreeMap<GroupKey<'_>, Ve
         let group = r["group"].as_str().or(r["key"].as_str()).unwrap_or("?");
         let settings = preset_settings(r).into_iter().map(|(_, named)| named);
         groups
-            .entry((settings.collect(), group))
+            .entry((group, settings.collect()))
             .or_default()
             .push(r);
     }
@@ -182,7 +182,7 @@ fn write_seed_summary(block: &mut String, records: &[Value]) -> Result<()> {
         "| group | variant | seeds | held-out PSNR (dB) | SSIM | velocity rel. error | velocity cosine | density rel. error | density correlation | mean abs div u (1/frame) |"
     )?;
     writeln!(block, "|---|---|---|---:|---:|---:|---:|---:|---:|---:|")?;
-    for ((_, group), runs) in &repeated {
+    for ((group, _), runs) in &repeated {
         let column = |name: &str, format: fn(f64) -> String| {
             let values: Vec<f64> = runs.iter().filter_map(|r| r[name].as_f64()).collect();
             if values.len() < 2 {
@@ -218,7 +218,7 @@ fn write_paired_ablations(
     groups: &std::collections::BTreeMap<GroupKey<'_>, Vec<&Value>>,
 ) -> Result<()> {
     let mut rows = Vec::new();
-    for ((settings, group), runs) in groups {
+    for ((group, settings), runs) in groups {
         let Some(ablation) = Ablation::KNOWN
             .into_iter()
             .find(|a| group.ends_with(a.suffix()))
@@ -226,7 +226,7 @@ fn write_paired_ablations(
             continue;
         };
         let full_group = &group[..group.len() - ablation.suffix().len()];
-        let Some(full_runs) = groups.get(&(settings.clone(), full_group)) else {
+        let Some(full_runs) = groups.get(&(full_group, settings.clone())) else {
             continue;
         };
         let pairs: Vec<(&Value, &Value)> = runs
