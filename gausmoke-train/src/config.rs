@@ -222,6 +222,11 @@ pub struct TrainConfig {
     pub lambda_lookahead: f32,
     /// The velocity of the look-ahead's second step: `"held"` or `"predicted"`.
     pub lookahead_velocity: LookaheadVelocity,
+    /// How many frames past t the look-ahead carries the Gaussians (each step by the
+    /// velocity `lookahead_velocity` names, rendered against that frame's training views with
+    /// weight `lambda_lookahead`), so that frame t's velocity is fitted to this many more
+    /// frames' pictures; steps past the last frame are dropped. 1 by default.
+    pub lookahead_frames: usize,
     /// Weight of a kinetic-energy prior in the joint iterations (ours; 0 = the paper's
     /// method): the mean over the grid's cells of `|u^t|^2`, the velocity in cells per frame,
     /// so nothing but the pictures pushes the speed up (hypothesis 3 of issue 18: the
@@ -359,6 +364,7 @@ impl Default for TrainConfig {
             lambda_refine: 0.01,
             lambda_lookahead: 0.0,
             lookahead_velocity: LookaheadVelocity::Held,
+            lookahead_frames: 1,
             lambda_kinetic: 0.0,
             transport_velocity: false,
             lambda_increment: 0.0,
@@ -617,6 +623,12 @@ impl TrainConfig {
                 "lr_decay_every, output_every, log_every and unet_channels must be >= 1".into(),
             );
         }
+        if self.lookahead_frames == 0 {
+            return bad(
+                "lookahead_frames must be >= 1 (lambda_lookahead = 0 turns the look-ahead off)"
+                    .into(),
+            );
+        }
         if let Some([w, h]) = self.image_size
             && (w == 0 || h == 0)
         {
@@ -777,6 +789,13 @@ mod tests {
         }
         let err = region("[0.3, 0, 0.3, 0.7, 0.15, 0.7]", "0").unwrap_err();
         assert!(err.to_string().contains("respawn_fraction"), "{err}");
+        let err = TrainConfig {
+            lookahead_frames: 0,
+            ..TrainConfig::default()
+        }
+        .validate()
+        .unwrap_err();
+        assert!(err.to_string().contains("lookahead_frames"), "{err}");
     }
 
     #[test]

@@ -619,16 +619,22 @@ impl Trainer {
         };
         let bar = self.progress(t, config.advect_iterations + refine_iterations);
         let mut losses = Vec::with_capacity(config.advect_iterations + refine_iterations);
-        // The next frame's training views, for the look-ahead term.
-        let ahead: Option<(Vec<Observation>, Vec<Tensor<3>>)> =
-            (config.lambda_lookahead > 0.0 && t + 1 < self.sequence.frames()).then(|| {
-                let views = self.sequence.train[t + 1].clone();
+        // The next frames' training views, for the look-ahead terms.
+        let ahead_frames = if config.lambda_lookahead > 0.0 {
+            config.lookahead_frames.min(self.sequence.frames() - 1 - t)
+        } else {
+            0
+        };
+        let ahead: Vec<(Vec<Observation>, Vec<Tensor<3>>)> = (t + 1..=t + ahead_frames)
+            .map(|frame| {
+                let views = self.sequence.train[frame].clone();
                 let targets = views
                     .iter()
                     .map(|o| image_tensor(o, &self.device))
                     .collect();
                 (views, targets)
-            });
+            })
+            .collect();
 
         // K joint iterations (Algorithm 1, lines 3-9).
         let mut velocity = previous_velocity.clone();
@@ -637,7 +643,10 @@ impl Trainer {
         let mut clamped = 0;
         let mut log = StepLog::new(config.log_every);
         let mut lists = ListCapacities::new(config.tile_list_headroom);
-        let mut ahead_lists = ListCapacities::new(config.tile_list_headroom);
+        let mut ahead_lists: Vec<ListCapacities> = ahead
+            .iter()
+            .map(|_| ListCapacities::new(config.tile_list_headroom))
+            .collect();
         let start = Traffic::now();
         for iteration in 0..config.advect_iterations {
             let previous = self.state.gaussians.tensors_at(previous_means.clone());
@@ -676,42 +685,45 @@ impl Trainer {
             )?;
             let mut checks = vec![check];
             let mut loss = render.clone();
-            if let Some((views, ahead_targets)) = &ahead {
-                // One frame further; only the velocity learns here.
-                let carrier = match config.lookahead_velocity {
-                    LookaheadVelocity::Held => projected.clone(),
-                    LookaheadVelocity::Predicted => {
-                        let sigma = density_grid(&next, &self.grid, splat.cutoff).detach();
-                        let frames = (self.sequence.frames() - 1).max(1) as f32;
-                        let delta = self.state.phi.forward(
-                            projected.clone(),
-                            sigma,
-                            (t + 1) as f32 / frames,
-                        )?;
-                        self.project(projected.clone() + delta)
-                    }
-                };
-                let further = advect(
+            // Frames further on; only the velocity learns here.
+            let mut carrier = projected.clone();
+            let mut carried_means = moved.positions.clone();
+            let mut carried_to = next.clone();
+            for (step, ((views, ahead_targets), lists)) in
+                ahead.iter().zip(ahead_lists.iter_mut()).enumerate()
+            {
+                if config.lookahead_velocity == LookaheadVelocity::Predicted {
+                    let sigma = density_grid(&carried_to, &self.grid, splat.cutoff).detach();
+                    let frames = (self.sequence.frames() - 1).max(1) as f32;
+                    let delta = self.state.phi.forward(
+                        carrier.clone(),
+                        sigma,
+                        (t + 1 + step) as f32 / frames,
+                    )?;
+                    carrier = self.project(carrier + delta);
+                }
+                carried_means = advect(
                     &self.grid,
                     &carrier,
-                    &moved.positions,
+                    &carried_means,
                     config.dt,
                     self.integrator(),
                     interpolation,
-                );
+                )
+                .positions;
                 let live = self.state.gaussians.tensors();
-                let carried = Gaussians {
-                    means: further.positions,
+                carried_to = Gaussians {
+                    means: carried_means.clone(),
                     rotations: live.rotations.detach(),
                     log_scales: live.log_scales.detach(),
                     raw_densities: live.raw_densities.detach(),
                     colors: live.colors.detach(),
                 };
                 let (lookahead, check) = self.render_loss(
-                    &self.scene(carried, false),
+                    &self.scene(carried_to.clone(), false),
                     views,
                     ahead_targets,
-                    &mut ahead_lists,
+                    lists,
                 )?;
                 checks.push(check);
                 loss = loss + lookahead * config.lambda_lookahead;
@@ -790,7 +802,7 @@ impl Trainer {
                     clamped = count as usize;
                 }
                 lists.expire();
-                ahead_lists.expire();
+                ahead_lists.iter_mut().for_each(ListCapacities::expire);
             }
             bar.inc(1);
         }

@@ -32,6 +32,7 @@ const KEYS: &[(&str, bool)] = &[
     ("lambda_adv", true),
     ("lambda_refine", true),
     ("lambda_lookahead", true),
+    ("lookahead_frames", true),
     ("lambda_kinetic", true),
     ("lambda_increment", true),
     ("dt", true),

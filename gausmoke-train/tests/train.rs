@@ -939,6 +939,29 @@ fn the_look_ahead_changes_the_velocity_and_both_carriers_train() {
             "{carrier:?}: the look-ahead term changed nothing"
         );
     }
+    // Two frames ahead: frame 1's velocity also answers to frame 3's views. Frame 2 has one
+    // frame left, so over three frames the two settings would train alike.
+    let four = TrainConfig {
+        frames: Some(4),
+        lambda_lookahead: 1.0,
+        lookahead_velocity: LookaheadVelocity::Predicted,
+        ..base
+    };
+    let one = velocity_after(&data, dir.path(), four.clone(), "one-ahead");
+    let two = velocity_after(
+        &data,
+        dir.path(),
+        TrainConfig {
+            lookahead_frames: 2,
+            ..four
+        },
+        "two-ahead",
+    );
+    assert!(two.iter().all(|v| v.is_finite()));
+    assert!(
+        largest_difference(&two, &one) > 0.0,
+        "a second look-ahead frame changed nothing"
+    );
 }
 
 #[test]
