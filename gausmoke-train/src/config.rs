@@ -216,9 +216,10 @@ pub struct TrainConfig {
     pub lambda_refine: f32,
     /// Weight of a look-ahead render term in the joint iterations (ours; 0 = the paper's
     /// method): the Gaussians carried to frame t are carried on by the same velocity to
-    /// frame t+1 and rendered against frame t+1's training views, so the velocity of frame t
-    /// must also explain the next frame's pictures (their attributes are held fixed in that
-    /// term: it trains the velocity only). Not applied at the last frame.
+    /// frame t+1 (and on: `lookahead_frames`) and rendered against those frames' training
+    /// views, so the velocity of frame t must also explain the next frames' pictures (their
+    /// attributes are held fixed in that term: it trains the velocity only). Not applied at
+    /// the last frame.
     pub lambda_lookahead: f32,
     /// The velocity of the look-ahead's second step: `"held"` or `"predicted"`.
     pub lookahead_velocity: LookaheadVelocity,

@@ -7,10 +7,10 @@
 //!   `L_render + lambda_div L_div + lambda_adv L_adv`; Adam steps on Phi and on the Gaussians'
 //!   shape, density and colour (the centres are the advected ones, so `p^{t-1}` stays).
 //!   With `lambda_lookahead > 0` (ours, off by default) the loss also renders the centres
-//!   carried one frame further by the same `u^t` against frame t+1's views, the other
-//!   attributes held fixed, so `u^t` is fitted to two frames' pictures; the second step
-//!   moves them along `u^t` again or (`lookahead_velocity = "predicted"`) along Phi's
-//!   projected prediction for frame t+1 from their density there. With `lambda_kinetic > 0`
+//!   carried one frame further (`lookahead_frames`: or more) against frame t+1's views, the
+//!   other attributes held fixed, so `u^t` is fitted to several frames' pictures; each
+//!   further step moves them along `u^t` again or (`lookahead_velocity = "predicted"`)
+//!   along Phi's projected prediction for that frame from their density there. With `lambda_kinetic > 0`
 //!   (ours, off by default) it also penalises the mean `|u^t|^2` in cells per frame.
 //! * Then K' refinement iterations (lines 11-13): the centres become free parameters tied to
 //!   the advected ones by `lambda_refine L_refine`, with `L_render`.
