@@ -760,20 +760,34 @@ mod tests {
             .with_overrides(&["lamda_div=0.5".into()])
             .unwrap_err();
         assert!(err.to_string().contains("lamda_div"), "{err}");
-        let err = TrainConfig {
-            grid_resolution: 30,
-            ..TrainConfig::default()
+        // Each invalid configuration is refused naming the setting to change.
+        let invalid = [
+            (
+                TrainConfig {
+                    grid_resolution: 30,
+                    ..TrainConfig::default()
+                },
+                "grid_resolution",
+            ),
+            (
+                TrainConfig {
+                    buoyancy_free_increment: true,
+                    ..TrainConfig::default()
+                },
+                "lambda_increment",
+            ),
+            (
+                TrainConfig {
+                    lookahead_frames: 0,
+                    ..TrainConfig::default()
+                },
+                "lookahead_frames",
+            ),
+        ];
+        for (config, named) in invalid {
+            let err = config.validate().unwrap_err();
+            assert!(err.to_string().contains(named), "{err}");
         }
-        .validate()
-        .unwrap_err();
-        assert!(err.to_string().contains("grid_resolution"), "{err}");
-        let err = TrainConfig {
-            buoyancy_free_increment: true,
-            ..TrainConfig::default()
-        }
-        .validate()
-        .unwrap_err();
-        assert!(err.to_string().contains("lambda_increment"), "{err}");
         let region = |value: &str, fraction: &str| {
             TrainConfig::default()
                 .with_overrides(&[
@@ -790,13 +804,6 @@ mod tests {
         }
         let err = region("[0.3, 0, 0.3, 0.7, 0.15, 0.7]", "0").unwrap_err();
         assert!(err.to_string().contains("respawn_fraction"), "{err}");
-        let err = TrainConfig {
-            lookahead_frames: 0,
-            ..TrainConfig::default()
-        }
-        .validate()
-        .unwrap_err();
-        assert!(err.to_string().contains("lookahead_frames"), "{err}");
     }
 
     #[test]
