@@ -10,8 +10,9 @@
 //!   carried one frame further (`lookahead_frames`: or more) against frame t+1's views, the
 //!   other attributes held fixed, so `u^t` is fitted to several frames' pictures; each
 //!   further step moves them along `u^t` again or (`lookahead_velocity = "predicted"`)
-//!   along Phi's projected prediction for that frame from their density there. With `lambda_kinetic > 0`
-//!   (ours, off by default) it also penalises the mean `|u^t|^2` in cells per frame.
+//!   along Phi's projected prediction for that frame from their density there. With
+//!   `lambda_kinetic > 0` (ours, off by default) it also penalises the mean `|u^t|^2` in
+//!   cells per frame.
 //! * Then K' refinement iterations (lines 11-13): the centres become free parameters tied to
 //!   the advected ones by `lambda_refine L_refine`, with `L_render`.
 //!
@@ -687,13 +688,12 @@ impl Trainer {
             let mut loss = render.clone();
             // Frames further on; only the velocity learns here.
             let mut carrier = projected.clone();
-            let mut carried_means = moved.positions.clone();
-            let mut carried_to = next.clone();
+            let mut carried = next.clone();
             for (step, ((views, ahead_targets), lists)) in
                 ahead.iter().zip(ahead_lists.iter_mut()).enumerate()
             {
                 if config.lookahead_velocity == LookaheadVelocity::Predicted {
-                    let sigma = density_grid(&carried_to, &self.grid, splat.cutoff).detach();
+                    let sigma = density_grid(&carried, &self.grid, splat.cutoff).detach();
                     let frames = (self.sequence.frames() - 1).max(1) as f32;
                     let delta = self.state.phi.forward(
                         carrier.clone(),
@@ -702,25 +702,25 @@ impl Trainer {
                     )?;
                     carrier = self.project(carrier + delta);
                 }
-                carried_means = advect(
+                let means = advect(
                     &self.grid,
                     &carrier,
-                    &carried_means,
+                    &carried.means,
                     config.dt,
                     self.integrator(),
                     interpolation,
                 )
                 .positions;
                 let live = self.state.gaussians.tensors();
-                carried_to = Gaussians {
-                    means: carried_means.clone(),
+                carried = Gaussians {
+                    means,
                     rotations: live.rotations.detach(),
                     log_scales: live.log_scales.detach(),
                     raw_densities: live.raw_densities.detach(),
                     colors: live.colors.detach(),
                 };
                 let (lookahead, check) = self.render_loss(
-                    &self.scene(carried_to.clone(), false),
+                    &self.scene(carried.clone(), false),
                     views,
                     ahead_targets,
                     lists,
