@@ -78,14 +78,15 @@ pub enum PlyAxes {
     YDown,
 }
 
-/// Which velocity carries the Gaussians from frame t+1's look-ahead step (see
-/// `lambda_lookahead`).
+/// Which velocity carries the Gaussians on from frame t+1 in the look-ahead (see
+/// `lambda_lookahead` and `lookahead_frames`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum LookaheadVelocity {
-    /// Frame t's velocity, held for a second frame.
+    /// Frame t's velocity, held for the frames further on.
     Held,
-    /// The velocity Phi predicts for frame t+1 from the carried Gaussians' density, projected.
+    /// The velocity Phi predicts for each further frame from the carried Gaussians' density
+    /// there, projected.
     Predicted,
 }
 
@@ -221,7 +222,7 @@ pub struct TrainConfig {
     /// attributes are held fixed in that term: it trains the velocity only). Not applied at
     /// the last frame.
     pub lambda_lookahead: f32,
-    /// The velocity of the look-ahead's second step: `"held"` or `"predicted"`.
+    /// The velocity of each look-ahead step past frame t: `"held"` or `"predicted"`.
     pub lookahead_velocity: LookaheadVelocity,
     /// How many frames past t the look-ahead carries the Gaussians (each step by the
     /// velocity `lookahead_velocity` names, rendered against that frame's training views with
