@@ -1,7 +1,10 @@
 //! The U-Net's 3D convolutions as one custom op with a hand-written backward pass: on the CPU
-//! backends by im2col and matrix products ([`host`]), on the cube backends burn's own. The
-//! parameters stay burn's `Conv3d` / `ConvTranspose3d` modules; only the arithmetic changes.
+//! backends by im2col and matrix products ([`host`]), on the cube backends burn's forward
+//! convolutions and a backward pass from burn's dense ops ([`cube`]). The parameters stay
+//! burn's `Conv3d` / `ConvTranspose3d` modules; only the arithmetic changes.
 
+#[cfg(feature = "cube")]
+mod cube;
 pub mod host;
 mod op;
 mod spec;

@@ -1,7 +1,8 @@
 //! The U-Net's convolutions as a burn backend extension: on the CPU backends [`super::host`]
 //! (im2col and `gemm`; burn-flex computes a 3D convolution's weight gradient as a convolution
 //! whose kernel is the whole output gradient, which dominated training time), on the cube
-//! backends burn's own convolutions, forward and backward.
+//! backends burn's convolutions forward and [`super::cube`]'s backward (burn-cubecl computes
+//! the weight gradient the same way).
 
 // NdArray is deprecated in burn 0.22; see gausmoke-render's op module. The macro names it too.
 #![allow(deprecated)]
@@ -203,38 +204,7 @@ impl ConvPasses for burn_cubecl::CubeBackend {
         grad: FloatTensor<Self>,
         spec: ConvSpec,
     ) -> ConvGrads<Self> {
-        use burn::backend::ops::{FloatTensorOps, ModuleOps};
-        let channels = if spec.transposed {
-            weight.shape()[1]
-        } else {
-            weight.shape()[0]
-        };
-        let bias = Self::float_zeros([channels].into(), &x.device(), x.dtype().into());
-        if spec.transposed {
-            let options = spec.transpose_options();
-            ConvGrads {
-                x: Self::conv_transpose3d_x_backward(weight.clone(), grad.clone(), options.clone()),
-                weight: Self::conv_transpose3d_weight_backward(
-                    x.clone(),
-                    weight,
-                    grad.clone(),
-                    options,
-                ),
-                bias: Self::conv_transpose3d_bias_backward(x, bias, grad),
-            }
-        } else {
-            let options = spec.options();
-            ConvGrads {
-                x: Self::conv3d_x_backward(
-                    x.clone(),
-                    weight.clone(),
-                    grad.clone(),
-                    options.clone(),
-                ),
-                weight: Self::conv3d_weight_backward(x.clone(), weight, grad.clone(), options),
-                bias: Self::conv3d_bias_backward(x, bias, grad),
-            }
-        }
+        super::cube::conv_backward(x, weight, grad, spec)
     }
 }
 
