@@ -1,6 +1,7 @@
 //! Support for the integration tests: golden files written by the torch reference
 //! (`xtask/reference/torch_reference.py`) and comparisons with stated tolerances.
 
+pub mod conv;
 pub mod projection;
 
 use std::collections::HashMap;
