@@ -9,6 +9,7 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use gausmoke_data::synth::{SynthConfig, generate};
+use gausmoke_model::SolidCells;
 use gausmoke_render::backends::device_by_name;
 use gausmoke_train::arrays::read_arrays;
 use gausmoke_train::metrics::mean_abs_error;
@@ -1160,21 +1161,16 @@ fn obstacles_of_the_data_set_are_solid_in_the_trained_velocity() {
             )
             .unwrap();
         let obstacle = SynthConfig::obstacle_plume().solids[0].shape;
-        let inside = grid.cells_where(|p| obstacle.contains(p));
-        assert!(inside.iter().filter(|&&s| s).count() > 20);
+        let inside = SolidCells::new(
+            grid.resolution(),
+            grid.cells_where(|p| obstacle.contains(p)),
+        )
+        .unwrap();
+        assert!(inside.count() > 20);
         if let Some(solids) = &solids {
-            assert_eq!(solids.flags(), &inside[..]);
+            assert_eq!(solids, &inside);
         }
-        let speed: f32 = (0..inside.len())
-            .filter(|&c| inside[c])
-            .map(|c| {
-                velocity[3 * c..3 * c + 3]
-                    .iter()
-                    .map(|v| v.abs())
-                    .sum::<f32>()
-            })
-            .sum();
-        inside_speed.push(speed);
+        inside_speed.push(inside.speed_inside(velocity));
         let centres_inside = arrays["means"]
             .1
             .chunks(3)

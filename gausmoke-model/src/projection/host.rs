@@ -106,6 +106,22 @@ impl SolidCells {
     pub fn fingerprint(&self) -> u64 {
         self.fingerprint
     }
+
+    /// `sum |u_x| + |u_y| + |u_z|` of `velocity` (`[cells * 3]`, the grid's order) over the
+    /// solid cells: what flows inside the obstacles, zero after the exact projection.
+    pub fn speed_inside(&self, velocity: &[f32]) -> f32 {
+        assert_eq!(
+            velocity.len(),
+            3 * self.solid.len(),
+            "velocity per cell and axis"
+        );
+        velocity
+            .chunks_exact(3)
+            .zip(self.solid.iter())
+            .filter(|(_, solid)| **solid)
+            .map(|(u, _)| u.iter().map(|v| v.abs()).sum::<f32>())
+            .sum()
+    }
 }
 
 impl PartialEq for SolidCells {
