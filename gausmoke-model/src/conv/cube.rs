@@ -1,11 +1,12 @@
 //! The U-Net's convolution backward pass on the cube backends, from burn's dense ops.
 //!
 //! burn-cubecl's weight gradient convolves the input with the whole output gradient as the
-//! kernel: for a 64^3 grid, a "kernel" of 64^3 cells over an output of 3^3, which leaves most
-//! of a GPU idle (72% of a joint iteration at the paper's sizes on an H100,
-//! docs/BENCHMARKS.md). Here the weight gradient is im2col slices and one batched matrix
-//! product whose batches split the grid, summed afterwards; the input gradient is a forward
-//! convolution (or transposed convolution) of the output gradient.
+//! kernel (on a 64^3 grid, a "kernel" of 64^3 cells over an output of 3^3 cells); its backward
+//! pass was 72% of the training time at the paper's sizes on an H100. Here the weight gradient
+//! is im2col slices and a batched matrix product whose batches split the grid, summed
+//! afterwards, and the input gradient is a forward convolution (or transposed convolution) of
+//! the output gradient: 16% faster there, measured side by side, and still most of the time
+//! (docs/BENCHMARKS.md, "Training on an H100").
 
 use burn::backend::ops::{FloatTensorOps, ModuleOps};
 use burn::backend::tensor::FloatTensor;
