@@ -42,16 +42,28 @@ pub fn conv_backward(
         // y = adjoint of the plain convolution C (weight [C_in, C_out, k] read as C's
         // [out, in, k]) from y's grid to x's: dx = C(dy), dW = C's weight gradient with dy as
         // its input and x as its output gradient.
-        let grad_x = B::conv3d(grad.clone(), weight, None, spec.options());
-        let grad_weight = weight_grad(grad.clone(), x, &spec);
+        let grad_x = {
+            let _phase = gausmoke_core::phase!("convolution input gradient");
+            B::conv3d(grad.clone(), weight, None, spec.options())
+        };
+        let grad_weight = {
+            let _phase = gausmoke_core::phase!("convolution weight gradient");
+            weight_grad(grad.clone(), x, &spec)
+        };
         ConvGrads {
             x: grad_x,
             weight: grad_weight,
             bias: channel_sums(grad),
         }
     } else {
-        let grad_x = input_grad(grad.clone(), weight, &spec, &x_shape);
-        let grad_weight = weight_grad(x, grad.clone(), &spec);
+        let grad_x = {
+            let _phase = gausmoke_core::phase!("convolution input gradient");
+            input_grad(grad.clone(), weight, &spec, &x_shape)
+        };
+        let grad_weight = {
+            let _phase = gausmoke_core::phase!("convolution weight gradient");
+            weight_grad(x, grad.clone(), &spec)
+        };
         ConvGrads {
             x: grad_x,
             weight: grad_weight,

@@ -146,9 +146,17 @@ macro_rules! cpu_conv_passes {
                 let (grad_x, grad_weight, grad_bias) = if spec.transposed {
                     // y = adjoint(x): dx = forward(dy), dW = weight_grad(dy, x).
                     let no_bias = vec![0.0; g.channels_out];
+                    let grad_x = {
+                        let _phase = gausmoke_core::phase!("convolution input gradient");
+                        host::forward(&g, &grad, &weight, &no_bias)
+                    };
+                    let grad_weight = {
+                        let _phase = gausmoke_core::phase!("convolution weight gradient");
+                        host::weight_grad(&g, &grad, &x)
+                    };
                     (
-                        host::forward(&g, &grad, &weight, &no_bias),
-                        host::weight_grad(&g, &grad, &x),
+                        grad_x,
+                        grad_weight,
                         host::channel_sums(&grad, g.channels_in),
                     )
                 } else {
