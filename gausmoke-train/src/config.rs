@@ -153,6 +153,7 @@ pub const RESUMABLE_KEYS: &[&str] = &[
     "frames",
     "lr_velocity",
     "lr_gaussians",
+    "lr_log_scales",
     "lr_decay",
     "lr_decay_every",
     "output_every",
@@ -209,6 +210,9 @@ pub struct TrainConfig {
     pub lr_velocity: f64,
     /// Adam learning rate of the Gaussians after frame 0.
     pub lr_gaussians: f64,
+    /// Adam learning rate of the Gaussians' log-scales after frame 0 (ours; decays with the
+    /// others); unset, `lr_gaussians`. 0 keeps every Gaussian's size from frame 0 on.
+    pub lr_log_scales: Option<f64>,
     /// Both learning rates are multiplied by `lr_decay` every `lr_decay_every` frames.
     pub lr_decay: f64,
     pub lr_decay_every: usize,
@@ -359,6 +363,7 @@ impl Default for TrainConfig {
             refine_iterations: 50,
             lr_velocity: 1e-3,
             lr_gaussians: 5e-4,
+            lr_log_scales: None,
             lr_decay: 0.95,
             lr_decay_every: 10,
             lambda_div: 0.02,
@@ -553,6 +558,11 @@ impl TrainConfig {
             if !(value.is_finite() && value > 0.0) {
                 return bad(format!("{name} must be a positive number, got {value}"));
             }
+        }
+        if let Some(lr) = self.lr_log_scales
+            && !(lr.is_finite() && lr >= 0.0)
+        {
+            return bad(format!("lr_log_scales must be >= 0 when set, got {lr}"));
         }
         let weights = [
             ("lambda_div", self.lambda_div),

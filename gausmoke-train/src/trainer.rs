@@ -603,6 +603,7 @@ impl Trainer {
         let factor = config.lr_factor(t);
         let lr_velocity = config.lr_velocity * factor;
         let lr_gaussians = config.lr_gaussians * factor;
+        let lr_log_scales = config.lr_log_scales.map_or(lr_gaussians, |lr| lr * factor);
         let time = t as f32 / (self.sequence.frames() - 1).max(1) as f32;
         let previous_means = self.state.gaussians.means.val().detach();
         let previous_velocity = if config.transport_velocity {
@@ -789,7 +790,7 @@ impl Trainer {
                 Gaussians {
                     means: 0.0,
                     rotations: lr_gaussians,
-                    log_scales: lr_gaussians,
+                    log_scales: lr_log_scales,
                     raw_densities: lr_gaussians,
                     colors: lr_gaussians,
                 },
@@ -859,7 +860,13 @@ impl Trainer {
                 let _phase = phase!("backward (all ops)");
                 loss.backward()
             };
-            self.step_gaussians(&mut grads, Gaussians::default().map(|_, ()| lr_gaussians));
+            self.step_gaussians(
+                &mut grads,
+                Gaussians {
+                    log_scales: lr_log_scales,
+                    ..Gaussians::default().map(|_, ()| lr_gaussians)
+                },
+            );
             self.step_statics(&mut grads, lr_gaussians);
             if log.due() || iteration + 1 == refine_iterations {
                 read_log(&mut log, &mut losses, &bar, None)?;

@@ -26,6 +26,7 @@ const KEYS: &[(&str, bool)] = &[
     ("correction_iterations", false),
     ("lr_velocity", true),
     ("lr_gaussians", true),
+    ("lr_log_scales", true),
     ("lr_decay", true),
     ("lr_decay_every", true),
     ("lambda_div", true),

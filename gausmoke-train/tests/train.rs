@@ -965,6 +965,47 @@ fn the_look_ahead_changes_the_velocity_and_both_carriers_train() {
     );
 }
 
+/// `lr_log_scales` (ours) steps the Gaussians' sizes after frame 0 apart from their other
+/// attributes: at 0 every size stays as frame 0 fitted it while the densities still move;
+/// unset, the sizes move with `lr_gaussians`.
+#[test]
+fn the_log_scales_have_their_own_learning_rate_after_frame_0() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let attributes_around_frame_1 = |lr_log_scales: Option<f64>, name: &str| {
+        let config = TrainConfig {
+            frames: Some(2),
+            lr_log_scales,
+            ..joint_terms_config()
+        };
+        let scene = Sequence::open(&data, &config).unwrap();
+        let device = device_by_name("flex").unwrap().autodiff();
+        let mut run = Run::new(scene, config, device, &dir.path().join(name), false)
+            .unwrap()
+            .quiet(true);
+        run.trainer.fit_first_frame().unwrap();
+        let read = |run: &Run| {
+            let g = &run.trainer.state.gaussians;
+            (
+                g.log_scales.val().into_data().to_vec::<f32>().unwrap(),
+                g.raw_densities.val().into_data().to_vec::<f32>().unwrap(),
+            )
+        };
+        let before = read(&run);
+        run.trainer.advance_to(1).unwrap();
+        (before, read(&run))
+    };
+    let ((scales0, densities0), (scales1, densities1)) =
+        attributes_around_frame_1(Some(0.0), "fixed");
+    assert_eq!(scales1, scales0, "lr_log_scales = 0 changed a size");
+    assert!(largest_difference(&densities1, &densities0) > 0.0);
+    let ((scales0, _), (scales1, _)) = attributes_around_frame_1(None, "default");
+    assert!(
+        largest_difference(&scales1, &scales0) > 0.0,
+        "unset, the sizes did not move"
+    );
+}
+
 #[test]
 fn the_velocity_is_carried_along_itself_before_phi_when_asked() {
     use gausmoke_model::{ProjectionOptions, grid_from_fn, project_direct, transport_velocity};
