@@ -987,8 +987,16 @@ fn the_log_scales_have_their_own_learning_rate_after_frame_0() {
         let read = |run: &Run| {
             let g = &run.trainer.state.gaussians;
             (
-                g.log_scales.val().into_data().to_vec::<f32>().unwrap(),
-                g.raw_densities.val().into_data().to_vec::<f32>().unwrap(),
+                g.log_scales
+                    .val()
+                    .into_data()
+                    .try_into_vec_as::<f32>()
+                    .unwrap(),
+                g.raw_densities
+                    .val()
+                    .into_data()
+                    .try_into_vec_as::<f32>()
+                    .unwrap(),
             )
         };
         let before = read(&run);
