@@ -903,6 +903,17 @@ fn joint_terms_config() -> TrainConfig {
     }
 }
 
+/// A run of `config` on `data` (flex, quiet) in `dir/name`, frame 0 fitted.
+fn after_frame_0(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Run {
+    let scene = Sequence::open(data, &config).unwrap();
+    let device = device_by_name("flex").unwrap().autodiff();
+    let mut run = Run::new(scene, config, device, &dir.join(name), false)
+        .unwrap()
+        .quiet(true);
+    run.trainer.fit_first_frame().unwrap();
+    run
+}
+
 /// The velocity grid after training `config` on `data` (flex), the run in `dir/name`.
 fn velocity_after(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Vec<f32> {
     let scene = Sequence::open(data, &config).unwrap();
@@ -978,12 +989,7 @@ fn the_log_scales_have_their_own_learning_rate_after_frame_0() {
             lr_log_scales,
             ..joint_terms_config()
         };
-        let scene = Sequence::open(&data, &config).unwrap();
-        let device = device_by_name("flex").unwrap().autodiff();
-        let mut run = Run::new(scene, config, device, &dir.path().join(name), false)
-            .unwrap()
-            .quiet(true);
-        run.trainer.fit_first_frame().unwrap();
+        let mut run = after_frame_0(&data, dir.path(), config, name);
         let read = |run: &Run| {
             let g = &run.trainer.state.gaussians;
             (
@@ -1032,12 +1038,7 @@ fn the_velocity_is_carried_along_itself_before_phi_when_asked() {
             transport_velocity: transport,
             ..config.clone()
         };
-        let scene = Sequence::open(&data, &config).unwrap();
-        let device = device_by_name("flex").unwrap().autodiff();
-        let mut run = Run::new(scene, config, device, &dir.path().join(name), false)
-            .unwrap()
-            .quiet(true);
-        run.trainer.fit_first_frame().unwrap();
+        let mut run = after_frame_0(&data, dir.path(), config, name);
         let grid = run.trainer.grid;
         // A swirl about the box's vertical axis, over a cell per frame at the rim.
         let centre = (grid.lo() + grid.hi()) * 0.5;
@@ -1088,12 +1089,7 @@ fn the_velocity_correction_follows_the_refinement() {
             lr_velocity: 0.01,
             ..joint_terms_config()
         };
-        let scene = Sequence::open(&data, &config).unwrap();
-        let device = device_by_name("flex").unwrap().autodiff();
-        let mut run = Run::new(scene, config.clone(), device, &dir.path().join(name), false)
-            .unwrap()
-            .quiet(true);
-        run.trainer.fit_first_frame().unwrap();
+        let mut run = after_frame_0(&data, dir.path(), config.clone(), name);
         let before = run.trainer.state.gaussians.means.val().detach();
         run.trainer.advance_to(1).unwrap();
         let trainer = &run.trainer;
