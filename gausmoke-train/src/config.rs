@@ -213,7 +213,8 @@ pub struct TrainConfig {
     /// Adam learning rate of the Gaussians' log-scales after frame 0 (ours; decays with the
     /// others); unset, `lr_gaussians`. 0 keeps every Gaussian's size from frame 0 on.
     pub lr_log_scales: Option<f64>,
-    /// Both learning rates are multiplied by `lr_decay` every `lr_decay_every` frames.
+    /// The learning rates after frame 0 are multiplied by `lr_decay` every `lr_decay_every`
+    /// frames.
     pub lr_decay: f64,
     pub lr_decay_every: usize,
     pub lambda_div: f32,

@@ -37,38 +37,30 @@ pub fn conv_backward(
     grad: FloatTensor<B>,
     spec: ConvSpec,
 ) -> ConvGrads<B> {
-    let x_shape = x.shape();
-    if spec.transposed {
-        // y = adjoint of the plain convolution C (weight [C_in, C_out, k] read as C's
-        // [out, in, k]) from y's grid to x's: dx = C(dy), dW = C's weight gradient with dy as
-        // its input and x as its output gradient.
-        let grad_x = {
-            let _phase = gausmoke_core::phase!("convolution input gradient");
+    // A transposed convolution is the adjoint of the plain convolution C (weight
+    // [C_in, C_out, k] read as C's [out, in, k]) from its output's grid to its input's: its
+    // dx = C(dy), and its dW is C's weight gradient with dy as C's input and x as C's output
+    // gradient.
+    let grad_x = {
+        let _phase = gausmoke_core::phase!("convolution input gradient");
+        if spec.transposed {
             B::conv3d(grad.clone(), weight, None, spec.options())
-        };
-        let grad_weight = {
-            let _phase = gausmoke_core::phase!("convolution weight gradient");
+        } else {
+            input_grad(grad.clone(), weight, &spec, &x.shape())
+        }
+    };
+    let grad_weight = {
+        let _phase = gausmoke_core::phase!("convolution weight gradient");
+        if spec.transposed {
             weight_grad(grad.clone(), x, &spec)
-        };
-        ConvGrads {
-            x: grad_x,
-            weight: grad_weight,
-            bias: channel_sums(grad),
-        }
-    } else {
-        let grad_x = {
-            let _phase = gausmoke_core::phase!("convolution input gradient");
-            input_grad(grad.clone(), weight, &spec, &x_shape)
-        };
-        let grad_weight = {
-            let _phase = gausmoke_core::phase!("convolution weight gradient");
+        } else {
             weight_grad(x, grad.clone(), &spec)
-        };
-        ConvGrads {
-            x: grad_x,
-            weight: grad_weight,
-            bias: channel_sums(grad),
         }
+    };
+    ConvGrads {
+        x: grad_x,
+        weight: grad_weight,
+        bias: channel_sums(grad),
     }
 }
 
