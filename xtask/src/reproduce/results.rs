@@ -83,6 +83,9 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
             format!("recycled into [{}]", corners.join(", ")),
         ));
     }
+    if let Some(lr) = config["lr_log_scales"].as_f64() {
+        settings.push(("lr_log_scales", format!("sizes at lr {}", lr as f32)));
+    }
     let faces = open_faces(record);
     if !faces.is_empty() {
         settings.push(("open_faces", format!("open faces {}", faces.join(" "))));
@@ -614,6 +617,12 @@ mod tests {
              prediction, inertia prior 0.01, recycled into [0.35, 0, 0.35, 0.65, 0.15, 0.65], \
              open faces y+"
         );
+        // The sizes' own learning rate: named when a preset sets it, not twice when --set did.
+        let sizes = json!({"variant": "full method", "config": {"lr_log_scales": 0.0005}});
+        assert_eq!(variant(&sizes), "full method, sizes at lr 0.0005");
+        let tagged = json!({"variant": "full method, lr_log_scales=5e-4",
+                            "config": {"lr_log_scales": 0.0005}});
+        assert_eq!(variant(&tagged), "full method, lr_log_scales=5e-4");
     }
 
     #[test]
