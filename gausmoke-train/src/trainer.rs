@@ -603,8 +603,14 @@ impl Trainer {
         let factor = config.lr_factor(t);
         let lr_velocity = config.lr_velocity * factor;
         let lr_gaussians = config.lr_gaussians * factor;
-        let lr_log_scales = config.lr_log_scales.map_or(lr_gaussians, |lr| lr * factor);
-        let time = t as f32 / (self.sequence.frames() - 1).max(1) as f32;
+        // The Gaussians' rates after frame 0; the joint iterations leave the centres to the
+        // advection.
+        let rates = Gaussians {
+            log_scales: config.lr_log_scales.map_or(lr_gaussians, |lr| lr * factor),
+            ..Gaussians::default().map(|_, ()| lr_gaussians)
+        };
+        let last_frame = (self.sequence.frames() - 1).max(1) as f32;
+        let time = t as f32 / last_frame;
         let previous_means = self.state.gaussians.means.val().detach();
         let previous_velocity = if config.transport_velocity {
             let _phase = phase!("velocity transport");
@@ -690,16 +696,16 @@ impl Trainer {
             // Frames further on; only the velocity learns here.
             let mut carrier = projected.clone();
             let mut carried = next.clone();
+            let held = (!ahead.is_empty()).then(|| self.state.gaussians.tensors().detach());
             for (step, ((views, ahead_targets), lists)) in
                 ahead.iter().zip(ahead_lists.iter_mut()).enumerate()
             {
                 if config.lookahead_velocity == LookaheadVelocity::Predicted {
                     let sigma = density_grid(&carried, &self.grid, splat.cutoff).detach();
-                    let frames = (self.sequence.frames() - 1).max(1) as f32;
                     let delta = self.state.phi.forward(
                         carrier.clone(),
                         sigma,
-                        (t + 1 + step) as f32 / frames,
+                        (t + 1 + step) as f32 / last_frame,
                     )?;
                     carrier = self.project(carrier + delta);
                 }
@@ -712,13 +718,9 @@ impl Trainer {
                     interpolation,
                 )
                 .positions;
-                let live = self.state.gaussians.tensors();
                 carried = Gaussians {
                     means,
-                    rotations: live.rotations.detach(),
-                    log_scales: live.log_scales.detach(),
-                    raw_densities: live.raw_densities.detach(),
-                    colors: live.colors.detach(),
+                    ..held.clone().expect("made when there are frames ahead")
                 };
                 let (lookahead, check) = self.render_loss(
                     &self.scene(carried.clone(), false),
@@ -789,10 +791,7 @@ impl Trainer {
                 &mut grads,
                 Gaussians {
                     means: 0.0,
-                    rotations: lr_gaussians,
-                    log_scales: lr_log_scales,
-                    raw_densities: lr_gaussians,
-                    colors: lr_gaussians,
+                    ..rates
                 },
             );
             self.step_statics(&mut grads, lr_gaussians);
@@ -860,13 +859,7 @@ impl Trainer {
                 let _phase = phase!("backward (all ops)");
                 loss.backward()
             };
-            self.step_gaussians(
-                &mut grads,
-                Gaussians {
-                    log_scales: lr_log_scales,
-                    ..Gaussians::default().map(|_, ()| lr_gaussians)
-                },
-            );
+            self.step_gaussians(&mut grads, rates);
             self.step_statics(&mut grads, lr_gaussians);
             if log.due() || iteration + 1 == refine_iterations {
                 read_log(&mut log, &mut losses, &bar, None)?;
