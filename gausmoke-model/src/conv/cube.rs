@@ -57,18 +57,24 @@ pub fn conv_backward(
             weight_grad(x, grad.clone(), &spec)
         }
     };
+    let grad_bias = {
+        let _phase = gausmoke_core::phase!("convolution bias gradient");
+        channel_sums(grad)
+    };
     ConvGrads {
         x: grad_x,
         weight: grad_weight,
-        bias: channel_sums(grad),
+        bias: grad_bias,
     }
 }
 
-/// `[C]` sums of `t [1, C, D, H, W]` over the grid.
+/// `[C]` sums of `t [1, C, D, H, W]` over the grid, as one reduction along a contiguous axis
+/// of `[C, D H W]` (summing the three grid axes one after the other took longer than both
+/// gradients together at 64^3 on an H100).
 fn channel_sums(t: FloatTensor<B>) -> FloatTensor<B> {
-    let channels = t.shape()[1];
-    let summed = B::float_sum_dims(t, &[4, 3, 2]);
-    B::float_reshape(summed, Shape::from([channels]))
+    let [_, channels, d, h, w] = dims5(&t.shape());
+    let rows = B::float_reshape(t, Shape::from([channels, d * h * w]));
+    B::float_reshape(B::float_sum_dim(rows, 1), Shape::from([channels]))
 }
 
 /// The input gradient of a plain convolution: at stride 1 the convolution of `grad` with the
