@@ -309,6 +309,16 @@ pub struct TrainConfig {
     /// inflow where a source feeds the plume, so that new smoke enters where it does and is
     /// not placed anywhere in the training views' visual hull. Unset admits the whole box.
     pub respawn_region: Option<[f32; 6]>,
+    /// Most Gaussians split per frame, as a fraction of all (ours, `split` module): the
+    /// largest opaque ones become two halves with the same mass, mean and covariance, the
+    /// second half in a row that recycling would take (on a box face, or invisible), after
+    /// the frame's joint iterations so that the refinement fits them. 0 is the paper's
+    /// method.
+    pub split_fraction: f32,
+    /// Only Gaussians whose longest standard deviation exceeds this multiple of the
+    /// initialisation's (`0.5 (V / N)^(1/3)` for a box of volume `V` and `N` Gaussians) are
+    /// split.
+    pub split_size_factor: f32,
     /// Seed of the Gaussians' initialisation.
     pub seed: u64,
     /// Write renders, exports and velocity slices every this many frames (1 = all).
@@ -396,6 +406,8 @@ impl Default for TrainConfig {
             respawn_threshold: 0.05,
             respawn_near_smoke: 0.0,
             respawn_region: None,
+            split_fraction: 0.0,
+            split_size_factor: 1.0,
             seed: 2026,
             output_every: 1,
             log_every: 10,
@@ -589,6 +601,18 @@ impl TrainConfig {
             return bad(format!(
                 "respawn_fraction must be in [0, 1], got {}",
                 self.respawn_fraction
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.split_fraction) {
+            return bad(format!(
+                "split_fraction must be in [0, 1], got {}",
+                self.split_fraction
+            ));
+        }
+        if !(self.split_size_factor.is_finite() && self.split_size_factor > 0.0) {
+            return bad(format!(
+                "split_size_factor must be a positive number, got {}",
+                self.split_size_factor
             ));
         }
         if !(0.0..=1.0).contains(&self.respawn_near_smoke) {

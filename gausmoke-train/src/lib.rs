@@ -33,6 +33,7 @@ pub mod run;
 pub mod run_folder;
 pub mod run_lock;
 pub mod sequence;
+pub mod split;
 pub mod state;
 mod step_log;
 pub mod tensorboard;

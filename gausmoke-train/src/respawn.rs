@@ -39,7 +39,7 @@ use gausmoke_render::HostGaussians;
 use gausmoke_render::math::softplus;
 
 /// Opacity below which a Gaussian cannot change an 8-bit pixel.
-const INVISIBLE_OPACITY: f32 = 1.0 / 255.0;
+pub(crate) const INVISIBLE_OPACITY: f32 = 1.0 / 255.0;
 const SQRT_TAU: f32 = 2.506_628_3;
 
 /// One training view of the frame the Gaussians are fitted to.
@@ -112,7 +112,7 @@ pub struct RespawnReport {
 }
 
 /// Largest opacity a Gaussian can give a ray (through its centre, along its longest axis).
-fn peak_opacity(gaussians: &HostGaussians, index: usize) -> f32 {
+pub(crate) fn peak_opacity(gaussians: &HostGaussians, index: usize) -> f32 {
     let sigma = softplus(gaussians.raw_densities[index]);
     let max_log_std = gaussians.log_scales[3 * index..3 * index + 3]
         .iter()
@@ -122,7 +122,7 @@ fn peak_opacity(gaussians: &HostGaussians, index: usize) -> f32 {
 }
 
 /// The raw density whose softplus is `sigma > 0`.
-fn inverse_softplus(sigma: f32) -> f32 {
+pub(crate) fn inverse_softplus(sigma: f32) -> f32 {
     if sigma > 20.0 {
         sigma
     } else {
@@ -137,7 +137,10 @@ fn on_box_face(position: Vec3, lattice: &SpawnLattice) -> bool {
 }
 
 /// Rows to recycle, best candidates first: on a box face, then invisible by ascending opacity.
-fn recycling_candidates(gaussians: &HostGaussians, lattice: &SpawnLattice) -> (Vec<usize>, usize) {
+pub(crate) fn recycling_candidates(
+    gaussians: &HostGaussians,
+    lattice: &SpawnLattice,
+) -> (Vec<usize>, usize) {
     let mut on_faces = Vec::new();
     let mut invisible = Vec::new();
     for index in 0..gaussians.len() {

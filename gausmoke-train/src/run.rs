@@ -339,6 +339,7 @@ impl Run {
                 ("frame/max_speed", report.max_speed),
                 ("frame/clamped_to_box", report.clamped_to_box as f64),
                 ("frame/respawned", report.respawned as f64),
+                ("frame/split", report.split as f64),
                 ("frame/seconds", report.seconds),
             ],
         )?;
@@ -511,6 +512,7 @@ fn frame_report(
         divergence_rms_after: projection.divergence_rms_after,
         clamped_to_box: outcome.clamped_to_box,
         respawned: outcome.respawned,
+        split: outcome.split,
         mean_speed: speeds.iter().sum::<f64>() / speeds.len().max(1) as f64,
         max_speed: speeds.iter().cloned().fold(0.0, f64::max),
         seconds: start.elapsed().as_secs_f64(),

@@ -126,6 +126,9 @@ pub struct FrameReport {
     /// (`respawn_fraction`).
     #[serde(default)]
     pub respawned: usize,
+    /// Gaussians split in this frame, after recycling (`split_fraction`).
+    #[serde(default)]
+    pub split: usize,
     /// Mean and largest speed of the velocity grid (world units per frame).
     pub mean_speed: f64,
     pub max_speed: f64,

@@ -47,8 +47,11 @@ use crate::TrainError;
 use crate::config::{
     IntegratorKind, InterpolationKind, LookaheadVelocity, Obstacles, ProjectionKind, TrainConfig,
 };
-use crate::respawn::{DeficitView, RespawnOptions, RespawnReport, SpawnLattice, respawn};
+use crate::respawn::{
+    DeficitView, RespawnOptions, RespawnReport, SpawnLattice, recycling_candidates, respawn,
+};
 use crate::sequence::{Observation, Sequence};
+use crate::split::{SplitReport, split_largest};
 use crate::state::{LoopTraffic, LossRow, Phase, StaticGaussians, TrainState};
 use crate::step_log::{StepLog, StepLosses};
 
@@ -66,6 +69,8 @@ pub struct FrameOutcome {
     pub clamped_to_box: usize,
     /// Gaussians recycled between the joint iterations and the refinement.
     pub respawned: usize,
+    /// Gaussians split after the recycling.
+    pub split: usize,
     /// Device reads and kernel launches of the frame's optimisation loops, loop by loop.
     pub traffic: Vec<LoopTraffic>,
 }
@@ -588,6 +593,7 @@ impl Trainer {
             projection: None,
             clamped_to_box: 0,
             respawned: 0,
+            split: 0,
             traffic,
         })
     }
@@ -830,6 +836,13 @@ impl Trainer {
         // Recycling sees the transported Gaussians against frame t: what they miss entered
         // the box (or was never fitted), and the refinement fits the recycled ones.
         let respawned = self.respawn(t)?.indices;
+        let split = self.split()?;
+        // Rows that jumped here, which the velocity correction must not fit.
+        let moved: Vec<usize> = [&respawned, &split.parents, &split.children]
+            .into_iter()
+            .flatten()
+            .copied()
+            .collect();
         let anchor = self.state.gaussians.means.val().detach();
         let mut lists = ListCapacities::new(config.tile_list_headroom);
         let start = Traffic::now();
@@ -873,7 +886,7 @@ impl Trainer {
             (velocity, unprojected) = self.correct_velocity(
                 &previous_means,
                 &previous_velocity,
-                &respawned,
+                &moved,
                 time,
                 lr_velocity,
             )?;
@@ -886,6 +899,7 @@ impl Trainer {
             projection: Some(self.projection_report(unprojected)),
             clamped_to_box: clamped,
             respawned: respawned.len(),
+            split: split.parents.len(),
             traffic,
         })
     }
@@ -899,7 +913,7 @@ impl Trainer {
         &mut self,
         previous_means: &Tensor<2>,
         previous_velocity: &Tensor<4>,
-        respawned: &[usize],
+        moved: &[usize],
         time: f32,
         lr_velocity: f64,
     ) -> Result<(Tensor<4>, Tensor<4>), TrainError> {
@@ -910,7 +924,7 @@ impl Trainer {
         let sigma_previous =
             density_grid(&previous, &self.grid, SplatOptions::default().cutoff).detach();
         let mut kept = vec![1.0f32; n];
-        for &i in respawned {
+        for &i in moved {
             kept[i] = 0.0;
         }
         let kept = Tensor::<1>::from_data(TensorData::new(kept, [n]), &self.device);
@@ -1005,6 +1019,34 @@ impl Trainer {
             max_deficit = report.max_deficit,
             "respawn"
         );
+        Ok(report)
+    }
+
+    /// Splits the largest Gaussians (see [`crate::split`]) into rows recycling would take,
+    /// after recycling took its own; nothing happens with `split_fraction = 0`.
+    fn split(&mut self) -> Result<SplitReport, TrainError> {
+        if self.config.split_fraction <= 0.0 {
+            return Ok(SplitReport::default());
+        }
+        let _phase = phase!("split");
+        let mut host = self.state.gaussians.to_host();
+        let lattice = SpawnLattice {
+            lo: self.grid.lo(),
+            hi: self.grid.hi(),
+            resolution: self.grid.resolution(),
+        };
+        let extent = lattice.hi - lattice.lo;
+        // A multiple of the initialisation's size (see `GaussianModel::init_in_box`).
+        let min_std = self.config.split_size_factor
+            * 0.5
+            * (extent.x * extent.y * extent.z / host.len() as f32).cbrt();
+        let budget = (self.config.split_fraction * host.len() as f32).floor() as usize;
+        let (slots, _) = recycling_candidates(&host, &lattice);
+        let report = split_largest(&mut host, &slots, budget, min_std, &lattice);
+        if !report.parents.is_empty() {
+            self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
+        }
+        tracing::debug!(split = report.parents.len(), slots = slots.len(), "split");
         Ok(report)
     }
 

@@ -45,6 +45,8 @@ const KEYS: &[(&str, bool)] = &[
     ("respawn_fraction", true),
     ("respawn_threshold", true),
     ("respawn_near_smoke", true),
+    ("split_fraction", true),
+    ("split_size_factor", true),
     ("seed", true),
     ("output_every", true),
     ("log_every", true),

@@ -224,9 +224,10 @@ fn train_command(data: &Path, out: &Path) -> Command {
         ("unet_channels", config.unet_channels.to_string()),
         ("time_frequencies", config.time_frequencies.to_string()),
         ("output_every", "100".to_string()),
-        // Recycling on, so the resume test also covers its per-frame random streams.
+        // Recycling and splitting on, so the resume test also covers them.
         ("respawn_fraction", "0.02".to_string()),
         ("respawn_threshold", "0.01".to_string()),
+        ("split_fraction", "0.02".to_string()),
     ] {
         command.arg("--set").arg(format!("{key}={value}"));
     }
@@ -287,15 +288,21 @@ fn a_killed_run_resumes_to_the_uninterrupted_result() {
     let metrics: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(straight.join("metrics.json")).unwrap())
             .unwrap();
-    let respawned: u64 = metrics["per_frame"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|f| f["respawned"].as_u64().unwrap())
-        .sum();
+    let count = |key: &str| -> u64 {
+        metrics["per_frame"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|f| f[key].as_u64().unwrap())
+            .sum()
+    };
     assert!(
-        respawned > 0,
+        count("respawned") > 0,
         "no Gaussian was recycled: the test covers nothing"
+    );
+    assert!(
+        count("split") > 0,
+        "no Gaussian was split: the test covers nothing"
     );
 
     // The phase timings cover both sessions: every training render is counted once.

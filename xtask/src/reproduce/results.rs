@@ -86,6 +86,15 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
     if let Some(lr) = config["lr_log_scales"].as_f64() {
         settings.push(("lr_log_scales", format!("sizes at lr {}", lr as f32)));
     }
+    if let Some(fraction) = weight("split_fraction") {
+        let factor = config["split_size_factor"].as_f64().unwrap_or(1.0) as f32;
+        let above = if factor == 1.0 {
+            String::new()
+        } else {
+            format!(" above {factor}x the initial size")
+        };
+        settings.push(("split_fraction", format!("split {fraction} a frame{above}")));
+    }
     let faces = open_faces(record);
     if !faces.is_empty() {
         settings.push(("open_faces", format!("open faces {}", faces.join(" "))));
@@ -623,6 +632,15 @@ mod tests {
         let tagged = json!({"variant": "full method, lr_log_scales=5e-4",
                             "config": {"lr_log_scales": 0.0005}});
         assert_eq!(variant(&tagged), "full method, lr_log_scales=5e-4");
+        let split = json!({"variant": "full method",
+                           "config": {"split_fraction": 0.009999999776482582,
+                                      "split_size_factor": 1.5}});
+        assert_eq!(
+            variant(&split),
+            "full method, split 0.01 a frame above 1.5x the initial size"
+        );
+        let none = json!({"variant": "full method", "config": {"split_fraction": 0.0}});
+        assert_eq!(variant(&none), "full method");
     }
 
     #[test]
