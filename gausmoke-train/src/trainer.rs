@@ -982,17 +982,11 @@ impl Trainer {
             })
             .collect();
         let mut host = self.state.gaussians.to_host();
-        let lattice = SpawnLattice {
-            lo: self.grid.lo(),
-            hi: self.grid.hi(),
-            resolution: self.grid.resolution(),
-        };
-        let extent = lattice.hi - lattice.lo;
+        let lattice = self.spawn_lattice();
         let options = RespawnOptions {
             fraction: self.config.respawn_fraction,
             threshold: self.config.respawn_threshold,
-            // The initialisation's size (see `GaussianModel::init_in_box`).
-            std: 0.5 * (extent.x * extent.y * extent.z / host.len() as f32).cbrt(),
+            std: self.initial_std(),
             background: self.sequence.background,
             // A per-frame stream, so a resumed run draws what an uninterrupted one did.
             seed: self.config.seed ^ (t as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
@@ -1022,6 +1016,23 @@ impl Trainer {
         Ok(report)
     }
 
+    /// The box and lattice recycled and split Gaussians are placed in: the velocity grid's.
+    fn spawn_lattice(&self) -> SpawnLattice {
+        SpawnLattice {
+            lo: self.grid.lo(),
+            hi: self.grid.hi(),
+            resolution: self.grid.resolution(),
+        }
+    }
+
+    /// The Gaussians' standard deviation at initialisation (see `GaussianModel::init_in_box`).
+    fn initial_std(&self) -> f32 {
+        let extent = self.grid.hi() - self.grid.lo();
+        let [count, _] = self.state.gaussians.means.val().dims();
+        let count = count as f32;
+        0.5 * (extent.x * extent.y * extent.z / count).cbrt()
+    }
+
     /// Splits the largest Gaussians (see [`crate::split`]) into rows recycling would take,
     /// after recycling took its own; nothing happens with `split_fraction = 0`.
     fn split(&mut self) -> Result<SplitReport, TrainError> {
@@ -1030,21 +1041,15 @@ impl Trainer {
         }
         let _phase = phase!("split");
         let mut host = self.state.gaussians.to_host();
-        let lattice = SpawnLattice {
-            lo: self.grid.lo(),
-            hi: self.grid.hi(),
-            resolution: self.grid.resolution(),
-        };
-        let extent = lattice.hi - lattice.lo;
-        // A multiple of the initialisation's size (see `GaussianModel::init_in_box`).
-        let min_std = self.config.split_size_factor
-            * 0.5
-            * (extent.x * extent.y * extent.z / host.len() as f32).cbrt();
+        let lattice = self.spawn_lattice();
+        let min_std = self.config.split_size_factor * self.initial_std();
         let budget = (self.config.split_fraction * host.len() as f32).floor() as usize;
         let (slots, _) = recycling_candidates(&host, &lattice);
         let report = split_largest(&mut host, &slots, budget, min_std, &lattice);
         if !report.parents.is_empty() {
             self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
+            // A half may land in an obstacle, as an advected centre may.
+            self.keep_out_of_obstacles();
         }
         tracing::debug!(split = report.parents.len(), slots = slots.len(), "split");
         Ok(report)

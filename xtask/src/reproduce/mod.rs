@@ -154,7 +154,8 @@ fn paper_scalar_real() -> TrainConfig {
 /// inflow (`inflow`: a box in fractions of the smoke box, around the source). The velocity is
 /// also fitted to the next frame's views along Phi's prediction for that frame, carried by its
 /// own flow from frame to frame, and its increment is kept small; Gaussians the training
-/// views leave unused are recycled into the inflow. Half the joint iterations pay for the
+/// views leave unused are recycled into the inflow, and the rest of them take the halves of
+/// the largest Gaussians, 1% of all a frame. Half the joint iterations pay for the
 /// look-ahead's second render and U-Net pass. Measured at the quick presets' scale only
 /// (three paired seeds on each scene): docs/RESULTS.md, "Why we fall short", item 1.
 fn with_look_ahead_and_inflow(config: TrainConfig, inflow: [f32; 6]) -> TrainConfig {
@@ -166,6 +167,7 @@ fn with_look_ahead_and_inflow(config: TrainConfig, inflow: [f32; 6]) -> TrainCon
         respawn_fraction: 0.02,
         respawn_threshold: 0.01,
         respawn_region: Some(inflow),
+        split_fraction: 0.01,
         advect_iterations: config.advect_iterations / 2,
         ..config
     }
@@ -888,6 +890,7 @@ mod tests {
             assert_eq!(config.advect_iterations, 10);
             let sizes = (target == Target::ScalarReal).then_some(SCALAR_REAL_LR_LOG_SCALES);
             assert_eq!(config.lr_log_scales, sizes, "{target:?}");
+            assert_eq!(config.split_fraction, 0.01);
             config.validate().unwrap();
 
             let args = ReproduceArgs {
@@ -908,6 +911,7 @@ mod tests {
             assert_eq!(config.respawn_region, None);
             assert_eq!(config.advect_iterations, 20);
             assert_eq!(config.lr_log_scales, None);
+            assert_eq!(config.split_fraction, 0.0);
             // Everything else is the preset's.
             assert_eq!(config.open_faces, ours.config.open_faces);
             assert_eq!(config.gaussians, ours.config.gaussians);
