@@ -1014,8 +1014,8 @@ mod tests {
         .unwrap();
         assert_eq!(record["frames"], 2);
         assert_eq!(record["gaussians"], 8000);
-        // Measured 35.67 dB over frames 0 and 1 (2026-11-26, the preset with our update and
-        // its sizes' learning rate). A broken loader, camera convention or renderer lands far
+        // Measured 35.43 dB over frames 0 and 1 (2026-11-26, the preset with our update, its
+        // sizes' learning rate and the split). A broken loader, camera convention or renderer lands far
         // below: an all-black render scores roughly 28 dB.
         let psnr = record["test_psnr"].as_f64().unwrap();
         assert!(psnr > 33.0, "held-out PSNR {psnr} dB");
@@ -1048,8 +1048,8 @@ mod tests {
             results.contains(
                 "| `scalar-real-quick-f2` | full method, respawn 0.02, velocity transported, \
                            look-ahead 1 along Phi's prediction, inertia prior 0.01, recycled into \
-                           [0.4, 0, 0.4, 0.66, 0.15, 0.66], sizes at lr 0.0005, open faces y- y+ \
-                           | 2 | 8000 |"
+                           [0.4, 0, 0.4, 0.66, 0.15, 0.66], sizes at lr 0.0005, split 0.01 a \
+                           frame, open faces y- y+ | 2 | 8000 |"
             ),
             "{results}"
         );
