@@ -60,6 +60,16 @@ pub struct SpawnLattice {
 }
 
 impl SpawnLattice {
+    /// The unit box on an 8^3 lattice, for tests.
+    #[cfg(test)]
+    pub(crate) fn unit_box() -> Self {
+        Self {
+            lo: Vec3::ZERO,
+            hi: Vec3::ONE,
+            resolution: [8, 8, 8],
+        }
+    }
+
     fn cell_size(&self) -> Vec3 {
         let [nx, ny, nz] = self.resolution;
         (self.hi - self.lo) / Vec3::new(nx as f32, ny as f32, nz as f32)
@@ -367,11 +377,7 @@ mod tests {
     use gausmoke_core::Camera;
 
     fn lattice() -> SpawnLattice {
-        SpawnLattice {
-            lo: Vec3::ZERO,
-            hi: Vec3::ONE,
-            resolution: [8, 8, 8],
-        }
+        SpawnLattice::unit_box()
     }
 
     /// Two cameras looking at the unit box's centre along -Z and along -X.

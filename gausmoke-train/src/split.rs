@@ -126,14 +126,9 @@ fn copy_row(gaussians: &mut HostGaussians, from: usize, to: usize) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use gausmoke_core::glam::Vec3;
 
     fn lattice() -> SpawnLattice {
-        SpawnLattice {
-            lo: Vec3::ZERO,
-            hi: Vec3::ONE,
-            resolution: [8, 8, 8],
-        }
+        SpawnLattice::unit_box()
     }
 
     /// Row 0 large and opaque (longest along its local y, rotated), row 1 small, row 2 large
