@@ -319,6 +319,9 @@ pub struct TrainConfig {
     /// initialisation's (`0.5 (V / N)^(1/3)` for a box of volume `V` and `N` Gaussians) are
     /// split.
     pub split_size_factor: f32,
+    /// Split only into rows on a box face (Gaussians that left the box), not into invisible
+    /// ones.
+    pub split_into_faces_only: bool,
     /// Seed of the Gaussians' initialisation.
     pub seed: u64,
     /// Write renders, exports and velocity slices every this many frames (1 = all).
@@ -408,6 +411,7 @@ impl Default for TrainConfig {
             respawn_region: None,
             split_fraction: 0.0,
             split_size_factor: 1.0,
+            split_into_faces_only: false,
             seed: 2026,
             output_every: 1,
             log_every: 10,

@@ -9,7 +9,8 @@
 //! - **Which to split.** Visible Gaussians larger than the initialisation's size, by their
 //!   longest standard deviation times their peak opacity (large and opaque first).
 //! - **Into which rows.** The rows recycling would take (on a box face, or invisible), after
-//!   recycling has taken its own; none left, no split.
+//!   recycling has taken its own; none left, no split. `split_into_faces_only` keeps to the
+//!   face ones.
 //! - **How.** The parent becomes two Gaussians along its longest axis `a` (standard
 //!   deviation `s`): centres at `+-0.6 s`, that axis' deviation `0.8 s`, the density times
 //!   `1 / 1.6`, everything else kept. The pair has the parent's mass, mean and covariance

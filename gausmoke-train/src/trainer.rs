@@ -1044,7 +1044,10 @@ impl Trainer {
         let lattice = self.spawn_lattice();
         let min_std = self.config.split_size_factor * self.initial_std();
         let budget = (self.config.split_fraction * host.len() as f32).floor() as usize;
-        let (slots, _) = recycling_candidates(&host, &lattice);
+        let (mut slots, on_faces) = recycling_candidates(&host, &lattice);
+        if self.config.split_into_faces_only {
+            slots.truncate(on_faces);
+        }
         let report = split_largest(&mut host, &slots, budget, min_std, &lattice);
         if !report.parents.is_empty() {
             self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
