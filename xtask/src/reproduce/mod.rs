@@ -154,8 +154,8 @@ fn paper_scalar_real() -> TrainConfig {
 /// inflow (`inflow`: a box in fractions of the smoke box, around the source). The velocity is
 /// also fitted to the next frame's views along Phi's prediction for that frame, carried by its
 /// own flow from frame to frame, and its increment is kept small; Gaussians the training
-/// views leave unused are recycled into the inflow, and the rest of them take the halves of
-/// the largest Gaussians, 1% of all a frame. Half the joint iterations pay for the
+/// views leave unused are recycled into the inflow, and the unused rows recycling leaves take
+/// the halves of the largest Gaussians (1% of all a frame). Half the joint iterations pay for the
 /// look-ahead's second render and U-Net pass. Measured at the quick presets' scale only
 /// (three paired seeds on each scene): docs/RESULTS.md, "Why we fall short", item 1.
 fn with_look_ahead_and_inflow(config: TrainConfig, inflow: [f32; 6]) -> TrainConfig {
