@@ -782,7 +782,7 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             "state_bytes_all_frames": frames_bytes,
             "run": run_dir.display().to_string(),
         });
-        std::fs::write(&path, serde_json::to_string_pretty(&record)?)?;
+        results::write_atomically(&path, &serde_json::to_string_pretty(&record)?)?;
         eprintln!(
             "   PSNR {:?} SSIM {:?} |div u| {:.3e}; wrote {}",
             report.test_psnr_mean,

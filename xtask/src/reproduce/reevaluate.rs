@@ -80,7 +80,7 @@ pub fn run(args: ReevaluateArgs) -> Result<()> {
                 .map(|f| f.velocity_cosine)
                 .collect::<Vec<_>>()
         );
-        std::fs::write(&path, serde_json::to_string_pretty(&record)?)?;
+        super::results::write_atomically(&path, &serde_json::to_string_pretty(&record)?)?;
         eprintln!("   LPIPS {:.4}", report.test_lpips_mean.unwrap_or(f64::NAN));
         updated += 1;
     }

@@ -538,9 +538,20 @@ pub fn write_results_md(docs: &Path) -> Result<()> {
         );
     };
     let updated = format!("{}{begin}\n{block}{}", &text[..start], &text[stop..]);
-    std::fs::write(&path, updated)?;
+    write_atomically(&path, &updated)?;
     eprintln!("wrote {}", path.display());
     Ok(())
+}
+
+/// Writes `contents` to `path` through a temporary file in the same folder and a rename, so
+/// that a reader (another `reproduce` rebuilding the tables, say) never sees half a file.
+pub(crate) fn write_atomically(path: &Path, contents: &str) -> std::io::Result<()> {
+    let name = path
+        .file_name()
+        .map_or_else(Default::default, |n| n.to_string_lossy());
+    let temporary = path.with_file_name(format!(".{name}.tmp-{}", std::process::id()));
+    std::fs::write(&temporary, contents)?;
+    std::fs::rename(&temporary, path)
 }
 
 #[cfg(test)]
@@ -641,6 +652,17 @@ mod tests {
         );
         let none = json!({"variant": "full method", "config": {"split_fraction": 0.0}});
         assert_eq!(variant(&none), "full method");
+    }
+
+    #[test]
+    fn an_atomic_write_replaces_the_file_and_leaves_nothing_beside_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("RESULTS.md");
+        std::fs::write(&path, "old").unwrap();
+        write_atomically(&path, "new").unwrap();
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), "new");
+        let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(names.len(), 1, "{names:?}");
     }
 
     #[test]
