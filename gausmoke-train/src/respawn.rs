@@ -121,14 +121,18 @@ pub struct RespawnReport {
     pub max_deficit: f32,
 }
 
+/// The log of a Gaussian's longest standard deviation.
+pub(crate) fn largest_log_std(gaussians: &HostGaussians, index: usize) -> f32 {
+    gaussians.log_scales[3 * index..3 * index + 3]
+        .iter()
+        .cloned()
+        .fold(f32::NEG_INFINITY, f32::max)
+}
+
 /// Largest opacity a Gaussian can give a ray (through its centre, along its longest axis).
 pub(crate) fn peak_opacity(gaussians: &HostGaussians, index: usize) -> f32 {
     let sigma = softplus(gaussians.raw_densities[index]);
-    let max_log_std = gaussians.log_scales[3 * index..3 * index + 3]
-        .iter()
-        .cloned()
-        .fold(f32::NEG_INFINITY, f32::max);
-    1.0 - (-sigma * SQRT_TAU * max_log_std.exp()).exp()
+    1.0 - (-sigma * SQRT_TAU * largest_log_std(gaussians, index).exp()).exp()
 }
 
 /// The raw density whose softplus is `sigma > 0`.

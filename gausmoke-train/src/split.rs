@@ -22,7 +22,9 @@
 use gausmoke_render::HostGaussians;
 use gausmoke_render::math::{quat_to_rotation, softplus};
 
-use crate::respawn::{INVISIBLE_OPACITY, SpawnLattice, inverse_softplus, peak_opacity};
+use crate::respawn::{
+    INVISIBLE_OPACITY, SpawnLattice, inverse_softplus, largest_log_std, peak_opacity,
+};
 
 /// The halves' offset along the split axis, in the parent's standard deviations.
 const OFFSET: f32 = 0.6;
@@ -102,13 +104,6 @@ pub fn split_largest(
         report.children.push(child);
     }
     report
-}
-
-fn largest_log_std(gaussians: &HostGaussians, index: usize) -> f32 {
-    gaussians.log_scales[3 * index..3 * index + 3]
-        .iter()
-        .cloned()
-        .fold(f32::NEG_INFINITY, f32::max)
 }
 
 /// Copies every attribute of row `from` into row `to`.

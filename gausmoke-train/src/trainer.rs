@@ -38,8 +38,8 @@ use gausmoke_model::{
 use gausmoke_render::cpu::TILE_SIZE;
 use gausmoke_render::device_traffic::{ReadKind, Traffic, read_floats, read_floats_for};
 use gausmoke_render::{
-    GaussianTensors, Gaussians, InputCheck, RasterOptions, list_buffer_lengths, render_volume,
-    render_volume_deferred,
+    GaussianTensors, Gaussians, HostGaussians, InputCheck, RasterOptions, list_buffer_lengths,
+    render_volume, render_volume_deferred,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -835,8 +835,8 @@ impl Trainer {
         self.keep_out_of_obstacles();
         // Recycling sees the transported Gaussians against frame t: what they miss entered
         // the box (or was never fitted), and the refinement fits the recycled ones.
-        let respawned = self.respawn(t)?.indices;
-        let split = self.split()?;
+        let (respawned, split) = self.renew_gaussians(t)?;
+        let respawned = respawned.indices;
         // Rows that jumped here, which the velocity correction must not fit.
         let moved: Vec<usize> = [&respawned, &split.parents, &split.children]
             .into_iter()
@@ -963,9 +963,29 @@ impl Trainer {
         Ok(last)
     }
 
-    /// Recycles Gaussians (see [`crate::respawn`]) against frame `t`'s training views, after
-    /// they were carried to frame `t`; nothing happens with `respawn_fraction = 0`.
-    fn respawn(&mut self, t: usize) -> Result<RespawnReport, TrainError> {
+    /// Recycling, then splitting, on one host copy of the Gaussians: one read from the device
+    /// and at most one write back a frame, whichever of the two is on.
+    fn renew_gaussians(&mut self, t: usize) -> Result<(RespawnReport, SplitReport), TrainError> {
+        if self.config.respawn_fraction <= 0.0 && self.config.split_fraction <= 0.0 {
+            return Ok(Default::default());
+        }
+        let mut host = self.state.gaussians.to_host();
+        let recycled = self.respawn(t, &mut host)?;
+        let split = self.split(&mut host);
+        if !recycled.indices.is_empty() || !split.parents.is_empty() {
+            self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
+        }
+        if !split.parents.is_empty() {
+            // A half may land in an obstacle, as an advected centre may.
+            self.keep_out_of_obstacles();
+        }
+        Ok((recycled, split))
+    }
+
+    /// Recycles rows of `host` (see [`crate::respawn`]) against frame `t`'s training views,
+    /// after the Gaussians were carried to frame `t`; nothing happens with
+    /// `respawn_fraction = 0`.
+    fn respawn(&self, t: usize, host: &mut HostGaussians) -> Result<RespawnReport, TrainError> {
         if self.config.respawn_fraction <= 0.0 {
             return Ok(RespawnReport::default());
         }
@@ -981,7 +1001,6 @@ impl Trainer {
                 rendered,
             })
             .collect();
-        let mut host = self.state.gaussians.to_host();
         let lattice = self.spawn_lattice();
         let options = RespawnOptions {
             fraction: self.config.respawn_fraction,
@@ -1001,10 +1020,7 @@ impl Trainer {
         } else {
             Vec::new()
         };
-        let report = respawn(&mut host, &views, &lattice, &options, &density);
-        if !report.indices.is_empty() {
-            self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
-        }
+        let report = respawn(host, &views, &lattice, &options, &density);
         tracing::debug!(
             frame = t,
             recycled = report.indices.len(),
@@ -1033,29 +1049,23 @@ impl Trainer {
         0.5 * (extent.x * extent.y * extent.z / count).cbrt()
     }
 
-    /// Splits the largest Gaussians (see [`crate::split`]) into rows recycling would take,
-    /// after recycling took its own; nothing happens with `split_fraction = 0`.
-    fn split(&mut self) -> Result<SplitReport, TrainError> {
+    /// Splits the largest rows of `host` (see [`crate::split`]) into rows recycling would
+    /// take, after recycling took its own; nothing happens with `split_fraction = 0`.
+    fn split(&self, host: &mut HostGaussians) -> SplitReport {
         if self.config.split_fraction <= 0.0 {
-            return Ok(SplitReport::default());
+            return SplitReport::default();
         }
         let _phase = phase!("split");
-        let mut host = self.state.gaussians.to_host();
         let lattice = self.spawn_lattice();
         let min_std = self.config.split_size_factor * self.initial_std();
         let budget = (self.config.split_fraction * host.len() as f32).floor() as usize;
-        let (mut slots, on_faces) = recycling_candidates(&host, &lattice);
+        let (mut slots, on_faces) = recycling_candidates(host, &lattice);
         if self.config.split_into_faces_only {
             slots.truncate(on_faces);
         }
-        let report = split_largest(&mut host, &slots, budget, min_std, &lattice);
-        if !report.parents.is_empty() {
-            self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
-            // A half may land in an obstacle, as an advected centre may.
-            self.keep_out_of_obstacles();
-        }
+        let report = split_largest(host, &slots, budget, min_std, &lattice);
         tracing::debug!(split = report.parents.len(), slots = slots.len(), "split");
-        Ok(report)
+        report
     }
 
     /// Host density grid of the current Gaussians.

@@ -155,8 +155,8 @@ fn paper_scalar_real() -> TrainConfig {
 /// also fitted to the next frame's views along Phi's prediction for that frame, carried by its
 /// own flow from frame to frame, and its increment is kept small; Gaussians the training
 /// views leave unused are recycled into the inflow, and the unused rows recycling leaves take
-/// the halves of the largest Gaussians (1% of all a frame). Half the joint iterations pay for the
-/// look-ahead's second render and U-Net pass. Measured at the quick presets' scale only
+/// the halves of the largest Gaussians (1% of all a frame). Half the joint iterations pay for
+/// the look-ahead's second render and U-Net pass. Measured at the quick presets' scale only
 /// (three paired seeds on each scene): docs/RESULTS.md, "Why we fall short", item 1.
 fn with_look_ahead_and_inflow(config: TrainConfig, inflow: [f32; 6]) -> TrainConfig {
     TrainConfig {
@@ -1015,8 +1015,8 @@ mod tests {
         assert_eq!(record["frames"], 2);
         assert_eq!(record["gaussians"], 8000);
         // Measured 35.43 dB over frames 0 and 1 (2026-11-26, the preset with our update, its
-        // sizes' learning rate and the split). A broken loader, camera convention or renderer lands far
-        // below: an all-black render scores roughly 28 dB.
+        // sizes' learning rate and the split). A broken loader, camera convention or renderer
+        // lands far below: an all-black render scores roughly 28 dB.
         let psnr = record["test_psnr"].as_f64().unwrap();
         assert!(psnr > 33.0, "held-out PSNR {psnr} dB");
         let divergence = record["mean_abs_divergence"].as_f64().unwrap();
