@@ -153,7 +153,10 @@ pub const RESUMABLE_KEYS: &[&str] = &[
     "frames",
     "lr_velocity",
     "lr_gaussians",
+    "lr_means",
     "lr_log_scales",
+    "lr_colors",
+    "lr_raw_densities",
     "lr_decay",
     "lr_decay_every",
     "output_every",
@@ -210,9 +213,19 @@ pub struct TrainConfig {
     pub lr_velocity: f64,
     /// Adam learning rate of the Gaussians after frame 0.
     pub lr_gaussians: f64,
+    /// Adam learning rate of the Gaussians' centres in the refinement after frame 0 (ours;
+    /// decays with the others; world units, as `lr_gaussians`); unset, `lr_gaussians`. 0
+    /// leaves every centre where the velocity carried it.
+    pub lr_means: Option<f64>,
     /// Adam learning rate of the Gaussians' log-scales after frame 0 (ours; decays with the
     /// others); unset, `lr_gaussians`. 0 keeps every Gaussian's size from frame 0 on.
     pub lr_log_scales: Option<f64>,
+    /// Adam learning rate of the Gaussians' colours after frame 0 (ours; decays with the
+    /// others); unset, `lr_gaussians`. 0 keeps every Gaussian's colour from frame 0 on.
+    pub lr_colors: Option<f64>,
+    /// Adam learning rate of the Gaussians' raw densities after frame 0 (ours; decays with
+    /// the others); unset, `lr_gaussians`.
+    pub lr_raw_densities: Option<f64>,
     /// The learning rates after frame 0 are multiplied by `lr_decay` every `lr_decay_every`
     /// frames.
     pub lr_decay: f64,
@@ -377,7 +390,10 @@ impl Default for TrainConfig {
             refine_iterations: 50,
             lr_velocity: 1e-3,
             lr_gaussians: 5e-4,
+            lr_means: None,
             lr_log_scales: None,
+            lr_colors: None,
+            lr_raw_densities: None,
             lr_decay: 0.95,
             lr_decay_every: 10,
             lambda_div: 0.02,
@@ -576,10 +592,17 @@ impl TrainConfig {
                 return bad(format!("{name} must be a positive number, got {value}"));
             }
         }
-        if let Some(lr) = self.lr_log_scales
-            && !(lr.is_finite() && lr >= 0.0)
-        {
-            return bad(format!("lr_log_scales must be >= 0 when set, got {lr}"));
+        for (name, rate) in [
+            ("lr_means", self.lr_means),
+            ("lr_log_scales", self.lr_log_scales),
+            ("lr_colors", self.lr_colors),
+            ("lr_raw_densities", self.lr_raw_densities),
+        ] {
+            if let Some(lr) = rate
+                && !(lr.is_finite() && lr >= 0.0)
+            {
+                return bad(format!("{name} must be >= 0 when set, got {lr}"));
+            }
         }
         let weights = [
             ("lambda_div", self.lambda_div),

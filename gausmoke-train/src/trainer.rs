@@ -612,7 +612,12 @@ impl Trainer {
         // The Gaussians' rates after frame 0; the joint iterations leave the centres to the
         // advection.
         let rates = Gaussians {
+            means: config.lr_means.map_or(lr_gaussians, |lr| lr * factor),
             log_scales: config.lr_log_scales.map_or(lr_gaussians, |lr| lr * factor),
+            colors: config.lr_colors.map_or(lr_gaussians, |lr| lr * factor),
+            raw_densities: config
+                .lr_raw_densities
+                .map_or(lr_gaussians, |lr| lr * factor),
             ..Gaussians::default().map(|_, ()| lr_gaussians)
         };
         let last_frame = (self.sequence.frames() - 1).max(1) as f32;

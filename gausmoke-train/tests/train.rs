@@ -14,7 +14,7 @@ use gausmoke_render::backends::device_by_name;
 use gausmoke_train::arrays::read_arrays;
 use gausmoke_train::metrics::mean_abs_error;
 use gausmoke_train::sequence::Sequence;
-use gausmoke_train::{Run, TrainConfig, eval};
+use gausmoke_train::{Phase, Run, TrainConfig, eval};
 
 /// Small enough for CI in a debug build, large enough that the plume moves and is fitted.
 fn test_config() -> TrainConfig {
@@ -983,48 +983,99 @@ fn the_look_ahead_changes_the_velocity_and_both_carriers_train() {
     );
 }
 
-/// `lr_log_scales` (ours) steps the Gaussians' sizes after frame 0 apart from their other
-/// attributes: at 0 every size stays as frame 0 fitted it while the densities still move;
-/// unset, the sizes move with `lr_gaussians`.
+/// `lr_means`, `lr_log_scales`, `lr_colors` and `lr_raw_densities` (ours) step those
+/// attributes after frame 0 apart from the others: at 0 the attribute stays as it was (the
+/// centres where the velocity carried them) while the others still move; unset, each moves
+/// with `lr_gaussians`.
 #[test]
-fn the_log_scales_have_their_own_learning_rate_after_frame_0() {
+fn each_attribute_can_have_its_own_learning_rate_after_frame_0() {
+    struct Frame1 {
+        before: [Vec<f32>; 3],
+        after: [Vec<f32>; 3],
+        /// The mean squared move of the centres from the advected ones, per refinement step.
+        refine: Vec<f32>,
+    }
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
-    let attributes_around_frame_1 = |lr_log_scales: Option<f64>, name: &str| {
-        let config = TrainConfig {
+    let frame_1 = |set: fn(&mut TrainConfig), name| {
+        let mut config = TrainConfig {
             frames: Some(2),
-            lr_log_scales,
+            // Every step's losses: the refine term after the first step measures the moves.
+            refine_iterations: 3,
+            log_every: 1,
             ..joint_terms_config()
         };
+        set(&mut config);
         let mut run = after_frame_0(&data, dir.path(), config, name);
         let read = |run: &Run| {
             let g = &run.trainer.state.gaussians;
-            (
-                g.log_scales
-                    .val()
-                    .into_data()
-                    .try_into_vec_as::<f32>()
-                    .unwrap(),
+            let host = |t: burn::tensor::Tensor<2>| t.into_data().try_into_vec_as::<f32>().unwrap();
+            [
+                host(g.log_scales.val()),
+                host(g.colors.val()),
                 g.raw_densities
                     .val()
                     .into_data()
                     .try_into_vec_as::<f32>()
                     .unwrap(),
-            )
+            ]
         };
         let before = read(&run);
-        run.trainer.advance_to(1).unwrap();
-        (before, read(&run))
+        let outcome = run.trainer.advance_to(1).unwrap();
+        let refine = outcome
+            .losses
+            .iter()
+            .filter(|row| row.phase == Phase::Refine)
+            .map(|row| row.refine)
+            .collect();
+        Frame1 {
+            before,
+            after: read(&run),
+            refine,
+        }
     };
-    let ((scales0, densities0), (scales1, densities1)) =
-        attributes_around_frame_1(Some(0.0), "fixed");
-    assert_eq!(scales1, scales0, "lr_log_scales = 0 changed a size");
-    assert!(largest_difference(&densities1, &densities0) > 0.0);
-    let ((scales0, _), (scales1, _)) = attributes_around_frame_1(None, "default");
+    let [sizes, colours, densities] = [0, 1, 2];
+    let moved = |frame: &Frame1, attribute: usize| {
+        largest_difference(&frame.after[attribute], &frame.before[attribute]) > 0.0
+    };
+    let fixed_sizes = frame_1(|c| c.lr_log_scales = Some(0.0), "fixed sizes");
     assert!(
-        largest_difference(&scales1, &scales0) > 0.0,
+        !moved(&fixed_sizes, sizes),
+        "lr_log_scales = 0 changed a size"
+    );
+    assert!(
+        moved(&fixed_sizes, colours),
+        "unset, the colours did not move"
+    );
+    assert!(
+        moved(&fixed_sizes, densities),
+        "unset, the densities did not move"
+    );
+    let fixed_colours = frame_1(|c| c.lr_colors = Some(0.0), "fixed colours");
+    assert!(
+        !moved(&fixed_colours, colours),
+        "lr_colors = 0 changed a colour"
+    );
+    assert!(
+        moved(&fixed_colours, sizes),
         "unset, the sizes did not move"
     );
+    let fixed_densities = frame_1(|c| c.lr_raw_densities = Some(0.0), "fixed densities");
+    assert!(
+        !moved(&fixed_densities, densities),
+        "lr_raw_densities = 0 changed a density"
+    );
+    assert!(moved(&fixed_densities, sizes));
+    let fixed_centres = frame_1(|c| c.lr_means = Some(0.0), "fixed centres");
+    assert!(!fixed_centres.refine.is_empty());
+    assert!(
+        fixed_centres.refine.iter().all(|&r| r == 0.0),
+        "lr_means = 0 moved a centre off its advected place: {:?}",
+        fixed_centres.refine
+    );
+    assert!(moved(&fixed_centres, densities));
+    let free = fixed_sizes.refine.last().copied().unwrap_or(0.0);
+    assert!(free > 0.0, "unset, the refinement did not move the centres");
 }
 
 #[test]
