@@ -29,6 +29,7 @@ import sys
 import numpy as np
 
 from safetensors_f32 import read_safetensors as read
+from scene_truth import read_run_and_truth
 
 
 def derivatives(v, h):
@@ -85,17 +86,13 @@ def main(run, data, frames):
         box = json.load(f)
     h = [(hi - lo) / n for lo, hi, n in zip(box["box_lo"], box["box_hi"], box["grid_resolution"])]
     for t in frames:
-        ours = read(f"{run}/frames/frame_{t:03}.safetensors")["velocity"].astype(np.float64)
         line = f"frame {t:3d}: run "
         if data == "-":
-            own = read(f"{run}/frames/frame_{t:03}.safetensors")["density"]
+            frame = read(f"{run}/frames/frame_{t:03}.safetensors")
+            ours, own = frame["velocity"].astype(np.float64), frame["density"]
             a = measures(ours, own > 0.01 * own.max(), h)
         else:
-            truth = read(f"{data}/gt/frame_{t:03}.safetensors")
-            density = np.transpose(truth["density"], (2, 1, 0))
-            velocity = np.transpose(truth["velocity"], (2, 1, 0, 3)).astype(np.float64)
-            if ours.shape != velocity.shape:
-                sys.exit(f"frame {t}: run grid {ours.shape[:3]} vs truth {velocity.shape[:3]}")
+            ours, density, velocity = read_run_and_truth(run, data, t)
             smoke = density > 0.01 * density.max()
             a = measures(ours, smoke, h)
             b = measures(velocity, smoke, h)

@@ -19,17 +19,12 @@ import sys
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from safetensors_f32 import read_safetensors as read
+from scene_truth import read_run_and_truth
 
 
 def main(run, data, frames):
     for t in frames:
-        ours = read(f"{run}/frames/frame_{t:03}.safetensors")["velocity"].astype(np.float64)
-        truth = read(f"{data}/gt/frame_{t:03}.safetensors")
-        density = np.transpose(truth["density"], (2, 1, 0))
-        velocity = np.transpose(truth["velocity"], (2, 1, 0, 3)).astype(np.float64)
-        if ours.shape != velocity.shape:
-            sys.exit(f"frame {t}: run grid {ours.shape[:3]} vs truth {velocity.shape[:3]}")
+        ours, density, velocity = read_run_and_truth(run, data, t)
         smoke = density > 0.01 * density.max()
         a, b = ours[smoke], velocity[smoke]
         norm = lambda v: np.linalg.norm(v, axis=1)

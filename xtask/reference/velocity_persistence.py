@@ -17,14 +17,7 @@ import sys
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from safetensors_f32 import read_safetensors as read
-
-
-def load(data, t):
-    truth = read(f"{data}/gt/frame_{t:03}.safetensors")
-    density = np.transpose(truth["density"], (2, 1, 0))
-    velocity = np.transpose(truth["velocity"], (2, 1, 0, 3)).astype(np.float64)
-    return density, velocity
+from scene_truth import read_truth as load
 
 
 def transported(u_cells):

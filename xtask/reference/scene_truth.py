@@ -1,0 +1,31 @@
+"""A synthetic scene's ground truth and a run's velocity, in the run's layout, for the
+reference diagnostics (numpy alone).
+
+The scene's `gt/frame_TTT.safetensors` holds density [z, y, x] and velocity [z, y, x, 3]
+(x fastest); a run's `frames/frame_TTT.safetensors` holds velocity [x, y, z, 3] (x slowest);
+both in world units per frame on the same box.
+"""
+
+import sys
+
+import numpy as np
+
+from safetensors_f32 import read_safetensors as read
+
+
+def read_truth(data, t):
+    """Frame `t`'s true density [x, y, z] and velocity [x, y, z, 3] (float64)."""
+    truth = read(f"{data}/gt/frame_{t:03}.safetensors")
+    density = np.transpose(truth["density"], (2, 1, 0))
+    velocity = np.transpose(truth["velocity"], (2, 1, 0, 3)).astype(np.float64)
+    return density, velocity
+
+
+def read_run_and_truth(run, data, t):
+    """The run's velocity at frame `t` with the truth's density and velocity; exits when the
+    grids differ."""
+    ours = read(f"{run}/frames/frame_{t:03}.safetensors")["velocity"].astype(np.float64)
+    density, velocity = read_truth(data, t)
+    if ours.shape != velocity.shape:
+        sys.exit(f"frame {t}: run grid {ours.shape[:3]} vs truth {velocity.shape[:3]}")
+    return ours, density, velocity
