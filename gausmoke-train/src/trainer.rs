@@ -609,8 +609,8 @@ impl Trainer {
         let factor = config.lr_factor(t);
         let lr_velocity = config.lr_velocity * factor;
         let lr_gaussians = config.lr_gaussians * factor;
-        // The Gaussians' rates after frame 0; the joint iterations leave the centres to the
-        // advection.
+        // The Gaussians' rates after frame 0; the centres' applies to the refinement alone,
+        // the joint iterations leave them to the advection.
         let rates = Gaussians {
             means: config.lr_means.map_or(lr_gaussians, |lr| lr * factor),
             log_scales: config.lr_log_scales.map_or(lr_gaussians, |lr| lr * factor),
