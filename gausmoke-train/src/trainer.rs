@@ -611,13 +611,12 @@ impl Trainer {
         let lr_gaussians = config.lr_gaussians * factor;
         // The Gaussians' rates after frame 0; the centres' applies to the refinement alone,
         // the joint iterations leave them to the advection.
+        let own_or_shared = |own: Option<f64>| own.map_or(lr_gaussians, |lr| lr * factor);
         let rates = Gaussians {
-            means: config.lr_means.map_or(lr_gaussians, |lr| lr * factor),
-            log_scales: config.lr_log_scales.map_or(lr_gaussians, |lr| lr * factor),
-            colors: config.lr_colors.map_or(lr_gaussians, |lr| lr * factor),
-            raw_densities: config
-                .lr_raw_densities
-                .map_or(lr_gaussians, |lr| lr * factor),
+            means: own_or_shared(config.lr_means),
+            log_scales: own_or_shared(config.lr_log_scales),
+            colors: own_or_shared(config.lr_colors),
+            raw_densities: own_or_shared(config.lr_raw_densities),
             ..Gaussians::default().map(|_, ()| lr_gaussians)
         };
         let last_frame = (self.sequence.frames() - 1).max(1) as f32;

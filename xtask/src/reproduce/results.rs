@@ -83,17 +83,15 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
             format!("recycled into [{}]", corners.join(", ")),
         ));
     }
-    if let Some(lr) = config["lr_means"].as_f64() {
-        settings.push(("lr_means", format!("refined centres at lr {}", lr as f32)));
-    }
-    if let Some(lr) = config["lr_log_scales"].as_f64() {
-        settings.push(("lr_log_scales", format!("sizes at lr {}", lr as f32)));
-    }
-    if let Some(lr) = config["lr_colors"].as_f64() {
-        settings.push(("lr_colors", format!("colours at lr {}", lr as f32)));
-    }
-    if let Some(lr) = config["lr_raw_densities"].as_f64() {
-        settings.push(("lr_raw_densities", format!("densities at lr {}", lr as f32)));
+    for (key, attribute) in [
+        ("lr_means", "refined centres"),
+        ("lr_log_scales", "sizes"),
+        ("lr_colors", "colours"),
+        ("lr_raw_densities", "densities"),
+    ] {
+        if let Some(lr) = config[key].as_f64() {
+            settings.push((key, format!("{attribute} at lr {}", lr as f32)));
+        }
     }
     if let Some(fraction) = weight("split_fraction") {
         let factor = config["split_size_factor"].as_f64().unwrap_or(1.0) as f32;
