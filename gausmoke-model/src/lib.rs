@@ -13,6 +13,7 @@ pub mod gaussians;
 pub mod grid;
 pub mod interp;
 pub mod losses;
+pub mod moves;
 pub mod penalty;
 pub mod projection;
 pub mod unet;
@@ -26,6 +27,7 @@ pub use gaussians::{GaussianModel, INITIAL_RAW_DENSITY};
 pub use grid::{GridError, GridSpec};
 pub use interp::{Interpolation, VelocitySample, grid_from_fn, sample_velocity};
 pub use losses::{advection_loss, divergence_loss, divergence_loss_of, refine_loss};
+pub use moves::GridScale;
 pub use penalty::{PenaltyOptions, penalty_projection};
 pub use projection::{
     ConvergenceTests, DeferredSolves, OpenFaces, ProjectionBackend, ProjectionOptions,

@@ -233,6 +233,14 @@ pub struct TrainConfig {
     pub lambda_div: f32,
     pub lambda_adv: f32,
     pub lambda_refine: f32,
+    /// Weights of ties on the two parts of the refinement's move (ours; 0 = the paper's
+    /// method, which ties the whole move by `lambda_refine`): its grid-scale part, the
+    /// mass-weighted mean move around each cell of the velocity grid (a move the velocity
+    /// could have made), and the sub-grid rest (each Gaussian on its own). Mass-weighted
+    /// means of squared lengths in world units, as `L_refine`
+    /// (see `gausmoke_model::GridScale`).
+    pub lambda_refine_grid: f32,
+    pub lambda_refine_subgrid: f32,
     /// Weight of a look-ahead render term in the joint iterations (ours; 0 = the paper's
     /// method): the Gaussians carried to frame t are carried on by the same velocity to
     /// frame t+1 (and on: `lookahead_frames`) and rendered against those frames' training
@@ -399,6 +407,8 @@ impl Default for TrainConfig {
             lambda_div: 0.02,
             lambda_adv: 0.02,
             lambda_refine: 0.01,
+            lambda_refine_grid: 0.0,
+            lambda_refine_subgrid: 0.0,
             lambda_lookahead: 0.0,
             lookahead_velocity: LookaheadVelocity::Held,
             lookahead_frames: 1,
@@ -608,6 +618,8 @@ impl TrainConfig {
             ("lambda_div", self.lambda_div),
             ("lambda_adv", self.lambda_adv),
             ("lambda_refine", self.lambda_refine),
+            ("lambda_refine_grid", self.lambda_refine_grid),
+            ("lambda_refine_subgrid", self.lambda_refine_subgrid),
             ("lambda_lookahead", self.lambda_lookahead),
             ("lambda_kinetic", self.lambda_kinetic),
             ("lambda_increment", self.lambda_increment),

@@ -129,6 +129,16 @@ pub struct FrameReport {
     /// Gaussians split in this frame, after recycling (`split_fraction`).
     #[serde(default)]
     pub split: usize,
+    /// The refinement's move of the centres (mass-weighted; `None` without refinement):
+    /// its RMS length in cells of the velocity grid, the share of its mean square in its
+    /// grid-scale part (a move the velocity could have made), and that share with the moves
+    /// shuffled among the Gaussians (the floor a move without spatial order reaches).
+    #[serde(default)]
+    pub refine_move_cells: Option<f64>,
+    #[serde(default)]
+    pub refine_move_grid_share: Option<f64>,
+    #[serde(default)]
+    pub refine_move_grid_share_shuffled: Option<f64>,
     /// Mean and largest speed of the velocity grid (world units per frame).
     pub mean_speed: f64,
     pub max_speed: f64,

@@ -23,17 +23,17 @@
 //! evaluating it, writing files and checkpoints is [`crate::run::Run`]'s business.
 
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
-use burn::tensor::{Device, Gradients, Tensor, TensorData};
+use burn::tensor::{Device, Gradients, Int, Tensor, TensorData};
 use gausmoke_core::glam::Vec3;
 use gausmoke_core::phase;
 use gausmoke_data::Obstacle;
 use gausmoke_model::penalty::penalty_projection_with_report;
 use gausmoke_model::{
-    GaussianModel, GridSpec, INITIAL_RAW_DENSITY, Integrator, Interpolation, PenaltyOptions,
-    ProjectionOptions, ProjectionReport, SolidCells, SplatOptions, UNetConfig, VelocityUNet,
-    advect, advection_loss, density_and_gradient_grid, density_grid, divergence_loss_of,
-    penalty_projection, project_direct, project_velocity, refine_loss, settle_deferred_solves,
-    transport_velocity,
+    GaussianModel, GridScale, GridSpec, INITIAL_RAW_DENSITY, Integrator, Interpolation,
+    PenaltyOptions, ProjectionOptions, ProjectionReport, SolidCells, SplatOptions, UNetConfig,
+    VelocityUNet, advect, advection_loss, density_and_gradient_grid, density_grid,
+    divergence_loss_of, penalty_projection, project_direct, project_velocity, refine_loss,
+    settle_deferred_solves, transport_velocity,
 };
 use gausmoke_render::cpu::TILE_SIZE;
 use gausmoke_render::device_traffic::{ReadKind, Traffic, read_floats, read_floats_for};
@@ -71,8 +71,55 @@ pub struct FrameOutcome {
     pub respawned: usize,
     /// Gaussians split after the recycling.
     pub split: usize,
+    /// How far and how coherently the refinement moved the centres (`None` without it).
+    pub refine_moves: Option<RefineMoves>,
     /// Device reads and kernel launches of the frame's optimisation loops, loop by loop.
     pub traffic: Vec<LoopTraffic>,
+}
+
+/// The refinement's move of the centres at one frame, mass-weighted (see
+/// [`gausmoke_model::GridScale`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RefineMoves {
+    /// RMS length of the move, in cells of the velocity grid.
+    pub rms_cells: f64,
+    /// Share of the move's mean square in its grid-scale part.
+    pub grid_share: f64,
+    /// The same share with the moves shuffled among the Gaussians: what a move without
+    /// spatial order gets, the floor to read `grid_share` against.
+    pub shuffled_grid_share: f64,
+}
+
+/// [`RefineMoves`] of `moves` (`[n, 3]`, in cells), in one read.
+fn refine_moves(scale: &GridScale, moves: Tensor<2>) -> RefineMoves {
+    let [n, _] = moves.dims();
+    // A stride coprime to n shuffles the rows deterministically.
+    let stride = [7919usize, 7927, 7933, 7937]
+        .into_iter()
+        .find(|p| n % p != 0)
+        .unwrap_or(1);
+    let order: Vec<i64> = (0..n).map(|i| ((i * stride) % n.max(1)) as i64).collect();
+    let order = Tensor::<1, Int>::from_data(TensorData::new(order, [n]), &moves.device());
+    let shuffled = moves.clone().select(0, order);
+    let parts = [
+        scale.mean_square(moves.clone()),
+        scale.mean_square(scale.grid_part(moves)),
+        scale.mean_square(shuffled.clone()),
+        scale.mean_square(scale.grid_part(shuffled)),
+    ];
+    let v = read_floats(Tensor::cat(parts.to_vec(), 0));
+    let share = |part: f32, whole: f32| {
+        if whole > 0.0 {
+            (part / whole) as f64
+        } else {
+            0.0
+        }
+    };
+    RefineMoves {
+        rms_cells: (v[0] as f64).sqrt(),
+        grid_share: share(v[1], v[0]),
+        shuffled_grid_share: share(v[3], v[2]),
+    }
 }
 
 /// Reads `log` (and `tail` with it), appends its rows to `losses` and shows the last one on
@@ -594,6 +641,7 @@ impl Trainer {
             clamped_to_box: 0,
             respawned: 0,
             split: 0,
+            refine_moves: None,
             traffic,
         })
     }
@@ -848,6 +896,9 @@ impl Trainer {
             .copied()
             .collect();
         let anchor = self.state.gaussians.means.val().detach();
+        // The split of the moves is fixed by where they start.
+        let grid_scale = (refine_iterations > 0)
+            .then(|| GridScale::of(&self.grid, &self.state.gaussians.tensors()));
         let mut lists = ListCapacities::new(config.tile_list_headroom);
         let start = Traffic::now();
         for iteration in 0..refine_iterations {
@@ -859,7 +910,16 @@ impl Trainer {
                 &mut lists,
             )?;
             let refine = refine_loss(&gaussians.means, &anchor);
-            let loss = render.clone() + refine.clone() * config.lambda_refine;
+            let mut loss = render.clone() + refine.clone() * config.lambda_refine;
+            if let Some(scale) = &grid_scale
+                && (config.lambda_refine_grid > 0.0 || config.lambda_refine_subgrid > 0.0)
+            {
+                let moves = gaussians.means.clone() - anchor.clone();
+                let grid_part = scale.grid_part(moves.clone());
+                loss = loss
+                    + scale.mean_square(grid_part.clone()) * config.lambda_refine_grid
+                    + scale.mean_square(moves - grid_part) * config.lambda_refine_subgrid;
+            }
             log.push(
                 (t, Phase::Refine, iteration),
                 StepLosses {
@@ -886,6 +946,11 @@ impl Trainer {
         }
         bar.finish_and_clear();
         traffic.push(LoopTraffic::of(Phase::Refine, refine_iterations, start));
+        let refine_moves = grid_scale.map(|scale| {
+            let moves = (self.state.gaussians.means.val().detach() - anchor)
+                * self.cells_per_world_unit().reshape([1, 3]);
+            refine_moves(&scale, moves)
+        });
         if config.correction_iterations > 0 {
             (velocity, unprojected) = self.correct_velocity(
                 &previous_means,
@@ -904,6 +969,7 @@ impl Trainer {
             clamped_to_box: clamped,
             respawned: respawned.len(),
             split: split.parents.len(),
+            refine_moves,
             traffic,
         })
     }

@@ -35,6 +35,8 @@ const KEYS: &[(&str, bool)] = &[
     ("lambda_div", true),
     ("lambda_adv", true),
     ("lambda_refine", true),
+    ("lambda_refine_grid", true),
+    ("lambda_refine_subgrid", true),
     ("lambda_lookahead", true),
     ("lookahead_frames", true),
     ("lambda_kinetic", true),

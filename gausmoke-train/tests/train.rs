@@ -1078,6 +1078,61 @@ fn each_attribute_can_have_its_own_learning_rate_after_frame_0() {
     assert!(free > 0.0, "unset, the refinement did not move the centres");
 }
 
+/// The refinement's move is reported per frame (its length and how much of it is at the
+/// velocity grid's scale), and `lambda_refine_grid` / `lambda_refine_subgrid` (ours) tie
+/// its two parts apart: tying the sub-grid part leaves a move more of whose mean square is
+/// grid-scale, tying the grid-scale part one with less.
+#[test]
+fn the_refinement_moves_can_be_tied_at_the_grid_scale_or_below_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let frame_1 = |set: fn(&mut TrainConfig), name| {
+        let mut config = TrainConfig {
+            frames: Some(2),
+            refine_iterations: 10,
+            ..joint_terms_config()
+        };
+        set(&mut config);
+        let mut run = after_frame_0(&data, dir.path(), config, name);
+        let outcome = run.trainer.advance_to(1).unwrap();
+        outcome
+            .refine_moves
+            .expect("refinement on: its moves are reported")
+    };
+    let free = frame_1(|_| {}, "free");
+    assert!(
+        free.rms_cells > 0.0,
+        "the refinement moved nothing: {free:?}"
+    );
+    assert!((0.0..=1.0).contains(&free.shuffled_grid_share), "{free:?}");
+    let sub_grid_tied = frame_1(|c| c.lambda_refine_subgrid = 1e4, "sub-grid tied");
+    let grid_tied = frame_1(|c| c.lambda_refine_grid = 1e4, "grid tied");
+    assert!(
+        sub_grid_tied.grid_share > free.grid_share,
+        "tying the sub-grid part: {sub_grid_tied:?} against free {free:?}"
+    );
+    assert!(
+        grid_tied.grid_share < free.grid_share,
+        "tying the grid-scale part: {grid_tied:?} against free {free:?}"
+    );
+    for tied in [sub_grid_tied, grid_tied] {
+        assert!(
+            tied.rms_cells < free.rms_cells,
+            "{tied:?} against free {free:?}"
+        );
+    }
+    let none = {
+        let config = TrainConfig {
+            frames: Some(2),
+            refinement: false,
+            ..joint_terms_config()
+        };
+        let mut run = after_frame_0(&data, dir.path(), config, "no refinement");
+        run.trainer.advance_to(1).unwrap().refine_moves
+    };
+    assert_eq!(none, None, "without refinement there is no move to report");
+}
+
 #[test]
 fn the_velocity_is_carried_along_itself_before_phi_when_asked() {
     use gausmoke_model::{ProjectionOptions, grid_from_fn, project_direct, transport_velocity};

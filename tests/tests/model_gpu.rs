@@ -236,3 +236,40 @@ fn interpolation_kernels_match_cpu() {
         }
     }
 }
+
+/// The split of a move into its grid-scale and sub-grid parts (`GridScale`, built on the
+/// device from the Gaussians) against the CPU: the grid part of a random move and the
+/// gradient of both parts' mass-weighted mean squares.
+#[test]
+fn move_split_matches_cpu() {
+    use gausmoke_model::GridScale;
+    let scene = random_scene(3000, 11);
+    let grid = GridSpec::new(Vec3::splat(-1.0), Vec3::ONE, [16, 12, 14], 4).unwrap();
+    let mut rng = SplitMix64::new(5);
+    let moves: Vec<f32> = (0..3 * 3000)
+        .map(|_| 0.05 * (rng.uniform() - 0.5))
+        .collect();
+    let run = |device: &Device| {
+        let ad = device.clone().autodiff();
+        let g = gaussians(&scene, &ad);
+        let scale = GridScale::of(&grid, &g);
+        let m =
+            Tensor::<2>::from_data(TensorData::new(moves.clone(), [3000, 3]), &ad).require_grad();
+        let part = scale.grid_part(m.clone());
+        let loss =
+            scale.mean_square(part.clone()) * 2.0 + scale.mean_square(m.clone() - part.clone());
+        let grads = loss.backward();
+        (to_vec(part), to_vec(m.grad(&grads).unwrap()))
+    };
+    let (cpu_part, cpu_grad) = run(&cpu_devices()[0].1);
+    let gpus = gpu_devices();
+    assert!(
+        !gpus.is_empty(),
+        "no GPU adapter: this test needs one (lavapipe in CI)"
+    );
+    for (name, device) in gpus {
+        let (part, grad) = run(&device);
+        assert_close(&format!("{name}: grid part"), &part, &cpu_part, 1e-7, 1e-5);
+        assert_close(&format!("{name}: gradient"), &grad, &cpu_grad, 1e-7, 1e-4);
+    }
+}
