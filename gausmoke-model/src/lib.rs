@@ -4,7 +4,8 @@
 //! gradient), continuous velocity interpolation with its closed-form divergence, advection of
 //! Gaussian centres, the exact Helmholtz projection `Pi` (a custom op whose backward is `Pi`
 //! itself) and the paper's penalty form of it ([`penalty`]), the update network Phi (a small
-//! 3D U-Net), and the losses `L_div`, `L_adv` and `L_refine` (plain tensor functions).
+//! 3D U-Net), the losses `L_div`, `L_adv` and `L_refine` (plain tensor functions), and the
+//! split of the refinement's move into its grid-scale and sub-grid parts ([`GridScale`]).
 
 pub mod advect;
 pub mod conv;

@@ -14,7 +14,9 @@
 //!   `lambda_kinetic > 0` (ours, off by default) it also penalises the mean `|u^t|^2` in
 //!   cells per frame.
 //! * Then K' refinement iterations (lines 11-13): the centres become free parameters tied to
-//!   the advected ones by `lambda_refine L_refine`, with `L_render`.
+//!   the advected ones by `lambda_refine L_refine`, with `L_render`; `lambda_refine_grid` and
+//!   `lambda_refine_subgrid` (ours, off by default) tie the move's grid-scale and sub-grid
+//!   parts apart (`gausmoke_model::GridScale`).
 //!
 //! Units: world units, time in frames (`dt` frames per step), velocity in world units per
 //! frame. `L_render` is the mean absolute error per pixel and channel over the training views.
