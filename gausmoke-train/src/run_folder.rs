@@ -402,6 +402,20 @@ impl RunFolder {
                 },
             ),
             (
+                "refine_moves.png",
+                [640, 320],
+                Chart {
+                    title: "Refinement's move: share at the velocity grid's scale".into(),
+                    x_label: "frame".into(),
+                    y_label: "share of mean square".into(),
+                    log_y: false,
+                    series: vec![
+                        per_frame("grid-scale share", |r| r.refine_move_grid_share),
+                        per_frame("same moves shuffled", |r| r.refine_move_grid_share_shuffled),
+                    ],
+                },
+            ),
+            (
                 "psnr.png",
                 [640, 320],
                 Chart {
@@ -465,6 +479,8 @@ losses.csv         every optimisation step: frame, phase (init/advect/refine), l
 losses.png         loss curves over the optimisation steps (log scale, legend in the chart)
 speed.png          per frame: mean and max speed of the velocity (world units per frame)
 psnr.png           per frame: held-out PSNR (dB)
+refine_moves.png   per frame: share of the refinement's move at the velocity grid's scale,
+                   and the share the same moves shuffled among the Gaussians reach
 renders/VIEW/      per-frame renders of every camera (train and held-out)
 comparison/        per frame: held-out reference | render; comparison.gif and
                    comparison.mp4 (H.264, 10 frames per second) animate them

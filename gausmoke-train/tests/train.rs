@@ -129,6 +129,7 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
         "losses.csv",
         "losses.png",
         "speed.png",
+        "refine_moves.png",
         "psnr.png",
         "comparison.gif",
         "comparison.mp4",
