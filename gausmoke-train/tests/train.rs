@@ -1035,38 +1035,35 @@ fn each_attribute_can_have_its_own_learning_rate_after_frame_0() {
             refine,
         }
     };
-    let [sizes, colours, densities] = [0, 1, 2];
+    let attributes = ["sizes", "colours", "densities"];
+    let densities = 2;
     let moved = |frame: &Frame1, attribute: usize| {
         largest_difference(&frame.after[attribute], &frame.before[attribute]) > 0.0
     };
-    let fixed_sizes = frame_1(|c| c.lr_log_scales = Some(0.0), "fixed sizes");
-    assert!(
-        !moved(&fixed_sizes, sizes),
-        "lr_log_scales = 0 changed a size"
-    );
-    assert!(
-        moved(&fixed_sizes, colours),
-        "unset, the colours did not move"
-    );
-    assert!(
-        moved(&fixed_sizes, densities),
-        "unset, the densities did not move"
-    );
-    let fixed_colours = frame_1(|c| c.lr_colors = Some(0.0), "fixed colours");
-    assert!(
-        !moved(&fixed_colours, colours),
-        "lr_colors = 0 changed a colour"
-    );
-    assert!(
-        moved(&fixed_colours, sizes),
-        "unset, the sizes did not move"
-    );
-    let fixed_densities = frame_1(|c| c.lr_raw_densities = Some(0.0), "fixed densities");
-    assert!(
-        !moved(&fixed_densities, densities),
-        "lr_raw_densities = 0 changed a density"
-    );
-    assert!(moved(&fixed_densities, sizes));
+    // Each rate at 0 holds its attribute while the others, unset, still move.
+    let fixed: [(fn(&mut TrainConfig), &str); 3] = [
+        (|c| c.lr_log_scales = Some(0.0), "lr_log_scales"),
+        (|c| c.lr_colors = Some(0.0), "lr_colors"),
+        (|c| c.lr_raw_densities = Some(0.0), "lr_raw_densities"),
+    ];
+    let frames: Vec<Frame1> = fixed
+        .iter()
+        .enumerate()
+        .map(|(held, &(set, key))| {
+            let frame = frame_1(set, key);
+            for (attribute, name) in attributes.iter().enumerate() {
+                if attribute == held {
+                    assert!(!moved(&frame, attribute), "{key} = 0 changed the {name}");
+                } else {
+                    assert!(
+                        moved(&frame, attribute),
+                        "with {key} = 0 the {name}, unset, did not move"
+                    );
+                }
+            }
+            frame
+        })
+        .collect();
     let fixed_centres = frame_1(|c| c.lr_means = Some(0.0), "fixed centres");
     assert!(!fixed_centres.refine.is_empty());
     assert!(
@@ -1075,7 +1072,7 @@ fn each_attribute_can_have_its_own_learning_rate_after_frame_0() {
         fixed_centres.refine
     );
     assert!(moved(&fixed_centres, densities));
-    let free = fixed_sizes.refine.last().copied().unwrap_or(0.0);
+    let free = frames[0].refine.last().copied().unwrap_or(0.0);
     assert!(free > 0.0, "unset, the refinement did not move the centres");
 }
 
