@@ -22,26 +22,29 @@ from scipy.ndimage import gaussian_filter
 from scene_truth import read_run_and_truth
 
 
+def relative(x, truth):
+    """RMS of `x - truth` over the RMS of `truth`."""
+    return np.sqrt(((x - truth) ** 2).sum() / (truth ** 2).sum())
+
+
 def main(run, data, frames):
     for t in frames:
         ours, density, velocity = read_run_and_truth(run, data, t)
         smoke = density > 0.01 * density.max()
         a, b = ours[smoke], velocity[smoke]
         norm = lambda v: np.linalg.norm(v, axis=1)
-        rel = np.sqrt(((a - b) ** 2).sum() / (b ** 2).sum())
+        rel = relative(a, b)
         cosine = ((a * b).sum(1) / (norm(a) * norm(b) + 1e-12)).mean()
-        uniform = np.sqrt(((b - b.mean(0)) ** 2).sum() / (b ** 2).sum())
+        uniform = relative(b.mean(0), b)
         blurred = []
         for sigma in (1.0, 2.0, 4.0):
             smooth = np.stack([gaussian_filter(velocity[..., c], sigma) for c in range(3)], -1)[smoke]
-            blurred.append(np.sqrt(((smooth - b) ** 2).sum() / (b ** 2).sum()))
+            blurred.append(relative(smooth, b))
         components = [np.corrcoef(a[:, c], b[:, c])[0, 1] for c in range(3)]
         cells = np.sqrt((b ** 2).sum(1).mean()) * density.shape[0]
         # the same error in denser smoke only: how much of it sits in the thin edges
-        dense = []
-        for share in (0.1, 0.3):
-            m = density > share * density.max()
-            dense.append(np.sqrt(((ours[m] - velocity[m]) ** 2).sum() / (velocity[m] ** 2).sum()))
+        dense = [relative(ours[m], velocity[m])
+                 for m in (density > share * density.max() for share in (0.1, 0.3))]
         print(f"frame {t:3d}: rel. error {rel:.2f} (above 10/30% of the max density "
               + "/".join(f"{v:.2f}" for v in dense) + f"), mean cosine {cosine:.2f}, speed ratio "
               f"{norm(a).mean() / norm(b).mean():.2f}, component corr. "
