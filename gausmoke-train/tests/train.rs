@@ -1041,7 +1041,8 @@ fn each_attribute_can_have_its_own_learning_rate_after_frame_0() {
         largest_difference(&frame.after[attribute], &frame.before[attribute]) > 0.0
     };
     // Each rate at 0 holds its attribute while the others, unset, still move.
-    let fixed: [(fn(&mut TrainConfig), &str); 3] = [
+    type HoldOne = fn(&mut TrainConfig);
+    let fixed: [(HoldOne, &str); 3] = [
         (|c| c.lr_log_scales = Some(0.0), "lr_log_scales"),
         (|c| c.lr_colors = Some(0.0), "lr_colors"),
         (|c| c.lr_raw_densities = Some(0.0), "lr_raw_densities"),
