@@ -209,6 +209,12 @@ pub struct TrainConfig {
     pub advect_iterations: usize,
     /// K': sub-grid refinement iterations per frame (lines 11-13).
     pub refine_iterations: usize,
+    /// Training views each refinement step renders (ours; 0 = all of them, the paper's
+    /// method): step i renders this many views in turn from view `i * refine_views_per_step`,
+    /// wrapping around, so K' steps of one view cost what K' / 4 steps of four do. The step's
+    /// loss is the mean over its views; the frame's train L1, the mean over its last turn of
+    /// steps (as many as there are views), which renders each view equally often.
+    pub refine_views_per_step: usize,
     /// Adam learning rate of the velocity network Phi.
     pub lr_velocity: f64,
     /// Adam learning rate of the Gaussians after frame 0.
@@ -396,6 +402,7 @@ impl Default for TrainConfig {
             init_learning_rates: InitLearningRates::default(),
             advect_iterations: 250,
             refine_iterations: 50,
+            refine_views_per_step: 0,
             lr_velocity: 1e-3,
             lr_gaussians: 5e-4,
             lr_means: None,

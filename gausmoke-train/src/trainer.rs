@@ -27,7 +27,7 @@
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Gradients, Int, Tensor, TensorData};
 use gausmoke_core::glam::Vec3;
-use gausmoke_core::phase;
+use gausmoke_core::{Camera, phase};
 use gausmoke_data::Obstacle;
 use gausmoke_model::penalty::penalty_projection_with_report;
 use gausmoke_model::{
@@ -63,7 +63,8 @@ pub struct FrameOutcome {
     pub frame: usize,
     /// Every optimisation step's losses, in order.
     pub losses: Vec<LossRow>,
-    /// `L_render` at the frame's last step.
+    /// `L_render` at the frame's last step, over every training view (when that step
+    /// rendered some of them, over its last turn of steps: see `refine_views_per_step`).
     pub train_l1: f64,
     /// What `Pi` did at the frame's last joint step (`None` for frame 0).
     pub projection: Option<ProjectionReport>,
@@ -267,6 +268,17 @@ impl Trainer {
         device: Device,
     ) -> Result<Self, TrainError> {
         config.validate()?;
+        let views = sequence.train.first().map_or(0, Vec::len);
+        if config.refine_views_per_step > views {
+            return Err(TrainError::Config {
+                origin: "configuration".into(),
+                reason: format!(
+                    "refine_views_per_step is {} but the data set has {views} training views \
+                     (0 renders all of them)",
+                    config.refine_views_per_step
+                ),
+            });
+        }
         // Each frame reports its loops' kernel launches (no-op without a cube backend).
         gausmoke_render::device_traffic::count_launches();
         let grid = config.grid(sequence.lo, sequence.hi)?;
@@ -382,17 +394,16 @@ impl Trainer {
         }
     }
 
-    /// Mean L1 over `observations` of the Gaussians' renders, their tile-list buffers sized by
-    /// `lists`.
+    /// Mean L1 of the Gaussians' renders from `cameras` against `targets`, their tile-list
+    /// buffers sized by `lists`.
     fn render_loss(
         &self,
         gaussians: &GaussianTensors,
-        observations: &[Observation],
+        cameras: &[Camera],
         targets: &[Tensor<3>],
         lists: &mut ListCapacities,
     ) -> Result<(Tensor<1>, InputCheck), TrainError> {
-        let cameras: Vec<_> = observations.iter().map(|o| o.camera).collect();
-        let lengths = list_buffer_lengths(gaussians, &cameras, &self.raster);
+        let lengths = list_buffer_lengths(gaussians, cameras, &self.raster);
         let most: Vec<u64> = cameras
             .iter()
             .map(|c| {
@@ -406,18 +417,13 @@ impl Trainer {
         let check = InputCheck::new(gaussians, &self.background)?
             .with_list_capacities(lengths, capacities.clone())?;
         let mut total: Option<Tensor<1>> = None;
-        for ((observation, target), capacity) in observations.iter().zip(targets).zip(capacities) {
+        for ((camera, target), capacity) in cameras.iter().zip(targets).zip(capacities) {
             let options = RasterOptions {
                 tile_list_capacity: Some(capacity),
                 ..self.raster
             };
-            let out = render_volume_deferred(
-                gaussians,
-                &observation.camera,
-                &self.background,
-                &options,
-                &check,
-            )?;
+            let out =
+                render_volume_deferred(gaussians, camera, &self.background, &options, &check)?;
             let l1 = (out.rgb - target.clone()).abs().mean();
             total = Some(match total {
                 Some(t) => t + l1,
@@ -425,7 +431,7 @@ impl Trainer {
             });
         }
         Ok((
-            total.expect("at least one training view") / observations.len() as f32,
+            total.expect("at least one training view") / cameras.len() as f32,
             check,
         ))
     }
@@ -516,12 +522,13 @@ impl Trainer {
         let mut losses = Vec::with_capacity(iterations);
         let mut log = StepLog::new(self.config.log_every);
         let mut lists = ListCapacities::new(self.config.tile_list_headroom);
+        let cameras: Vec<Camera> = observations.iter().map(|o| o.camera).collect();
         for iteration in 0..iterations {
             let gaussians = match (fit, &self.state.statics) {
                 (StillFit::Statics, Some(statics)) => statics.gaussians.tensors(),
                 _ => self.scene(self.state.gaussians.tensors(), false),
             };
-            let (loss, check) = self.render_loss(&gaussians, observations, targets, &mut lists)?;
+            let (loss, check) = self.render_loss(&gaussians, &cameras, targets, &mut lists)?;
             log.push(
                 (0, phase, iteration),
                 StepLosses {
@@ -651,7 +658,8 @@ impl Trainer {
     /// Frames `t-1 -> t`: K joint iterations, then K' refinement iterations.
     pub fn advance_to(&mut self, t: usize) -> Result<FrameOutcome, TrainError> {
         let config = self.config.clone();
-        let observations = self.sequence.train[t].clone();
+        let observations = &self.sequence.train[t];
+        let cameras: Vec<Camera> = observations.iter().map(|o| o.camera).collect();
         let targets: Vec<Tensor<3>> = observations
             .iter()
             .map(|o| image_tensor(o, &self.device))
@@ -693,14 +701,15 @@ impl Trainer {
         } else {
             0
         };
-        let ahead: Vec<(Vec<Observation>, Vec<Tensor<3>>)> = (t + 1..=t + ahead_frames)
+        let ahead: Vec<(Vec<Camera>, Vec<Tensor<3>>)> = (t + 1..=t + ahead_frames)
             .map(|frame| {
-                let views = self.sequence.train[frame].clone();
+                let views = &self.sequence.train[frame];
+                let cameras = views.iter().map(|o| o.camera).collect();
                 let targets = views
                     .iter()
                     .map(|o| image_tensor(o, &self.device))
                     .collect();
-                (views, targets)
+                (cameras, targets)
             })
             .collect();
 
@@ -747,7 +756,7 @@ impl Trainer {
             let next = self.state.gaussians.tensors_at(moved.positions.clone());
             let (render, check) = self.render_loss(
                 &self.scene(next.clone(), true),
-                &observations,
+                &cameras,
                 &targets,
                 &mut lists,
             )?;
@@ -901,15 +910,21 @@ impl Trainer {
         // The split of the moves is fixed by where they start.
         let grid_scale = (refine_iterations > 0)
             .then(|| GridScale::of(&self.grid, &self.state.gaussians.tensors()));
-        let mut lists = ListCapacities::new(config.tile_list_headroom);
+        // One set of list capacities per group of views a step renders (keyed by its first).
+        let mut group_lists: Vec<ListCapacities> = (0..cameras.len())
+            .map(|_| ListCapacities::new(config.tile_list_headroom))
+            .collect();
         let start = Traffic::now();
         for iteration in 0..refine_iterations {
             let gaussians = self.state.gaussians.tensors();
+            let group = refinement_views(iteration, cameras.len(), config.refine_views_per_step);
+            let group_cameras: Vec<Camera> = group.iter().map(|&v| cameras[v]).collect();
+            let group_targets: Vec<Tensor<3>> = group.iter().map(|&v| targets[v].clone()).collect();
             let (render, check) = self.render_loss(
                 &self.scene(gaussians.clone(), true),
-                &observations,
-                &targets,
-                &mut lists,
+                &group_cameras,
+                &group_targets,
+                &mut group_lists[group[0]],
             )?;
             let refine = refine_loss(&gaussians.means, &anchor);
             let mut loss = render.clone() + refine.clone() * config.lambda_refine;
@@ -942,7 +957,7 @@ impl Trainer {
             self.step_statics(&mut grads, lr_gaussians);
             if log.due() || iteration + 1 == refine_iterations {
                 read_log(&mut log, &mut losses, &bar, None)?;
-                lists.expire();
+                group_lists.iter_mut().for_each(ListCapacities::expire);
             }
             bar.inc(1);
         }
@@ -965,7 +980,7 @@ impl Trainer {
         self.state.velocity = velocity;
         Ok(FrameOutcome {
             frame: t,
-            train_l1: losses.last().map_or(f32::NAN, |r| r.render) as f64,
+            train_l1: last_turn_l1(&losses, cameras.len(), config.refine_views_per_step),
             losses,
             projection: Some(self.projection_report(unprojected)),
             clamped_to_box: clamped,
@@ -1243,6 +1258,38 @@ pub(crate) fn solid_cells(
     Ok(Some(solids))
 }
 
+/// The frame's L1 on its training views after its loops: the last step's, or, when that step
+/// was a refinement step rendering some of the `views` (`per_step`), the mean of the last
+/// `views` refinement steps' (one turn in which each view is rendered equally often).
+fn last_turn_l1(losses: &[LossRow], views: usize, per_step: usize) -> f64 {
+    let Some(last) = losses.last() else {
+        return f64::NAN;
+    };
+    if last.phase != Phase::Refine || per_step == 0 || per_step >= views {
+        return last.render as f64;
+    }
+    let turn: Vec<f32> = losses
+        .iter()
+        .rev()
+        .take_while(|row| row.phase == Phase::Refine)
+        .take(views)
+        .map(|row| row.render)
+        .collect();
+    turn.iter().map(|&l1| l1 as f64).sum::<f64>() / turn.len() as f64
+}
+
+/// The training views (indices into the frame's `views`) that refinement step `step`
+/// renders: `per_step` of them in turn from view `step * per_step`, wrapping around, so that
+/// every view is rendered equally often over `views` steps; all of them when `per_step` is 0
+/// or not below `views`. The first index names the group (a group's views are fixed by it).
+fn refinement_views(step: usize, views: usize, per_step: usize) -> Vec<usize> {
+    if per_step == 0 || per_step >= views {
+        return (0..views).collect();
+    }
+    let first = step * per_step % views;
+    (0..per_step).map(|i| (first + i) % views).collect()
+}
+
 /// `increment` `[nx, ny, nz, 3]` less its buoyancy-like part: `b sigma` taken from the upward
 /// (y) component, with `b = <increment_y, sigma> / <sigma, sigma>` the least-squares fit over
 /// the grid (0 where there is no density), so what is left is what buoyancy cannot explain.
@@ -1475,6 +1522,65 @@ mod tests {
             );
             assert_eq!([left[3 * cell], left[3 * cell + 2]], [0.0, 0.0]);
         }
+    }
+
+    #[test]
+    fn refinement_steps_take_the_views_in_turn() {
+        for views in 1..=5 {
+            for per_step in 0..=views + 1 {
+                let all = per_step == 0 || per_step >= views;
+                let mut seen = vec![0; views];
+                let mut groups = std::collections::HashMap::new();
+                for step in 0..3 * views {
+                    let group = refinement_views(step, views, per_step);
+                    assert_eq!(group.len(), if all { views } else { per_step });
+                    // A group is fixed by its first view (it keys the list capacities).
+                    let known = groups.entry(group[0]).or_insert_with(|| group.clone());
+                    assert_eq!(*known, group, "{views} views, {per_step} per step");
+                    for v in group {
+                        seen[v] += 1;
+                    }
+                }
+                // Over any whole number of turns every view is rendered equally often.
+                let want = if all { 3 * views } else { 3 * per_step };
+                assert!(
+                    seen.iter().all(|&n| n == want),
+                    "{views} views, {per_step} per step: {seen:?}"
+                );
+            }
+        }
+        assert_eq!(refinement_views(1, 4, 1), vec![1]);
+        assert_eq!(refinement_views(1, 4, 3), vec![3, 0, 1]);
+    }
+
+    #[test]
+    fn the_train_l1_of_a_frame_covers_every_view() {
+        let row = |phase, render| LossRow {
+            frame: 1,
+            phase,
+            iteration: 0,
+            total: render,
+            render,
+            divergence: 0.0,
+            advection: 0.0,
+            refine: 0.0,
+        };
+        let rows = [
+            row(Phase::Advect, 9.0),
+            row(Phase::Refine, 1.0),
+            row(Phase::Refine, 2.0),
+            row(Phase::Refine, 4.0),
+            row(Phase::Refine, 6.0),
+        ];
+        // All views per step: the last step's.
+        assert_eq!(last_turn_l1(&rows, 3, 0), 6.0);
+        assert_eq!(last_turn_l1(&rows, 3, 3), 6.0);
+        // One of three per step: the last three steps'.
+        assert_eq!(last_turn_l1(&rows, 3, 1), 4.0);
+        // Fewer refinement steps than a turn: those there are, never the joint step's.
+        assert_eq!(last_turn_l1(&rows[..3], 4, 1), 1.5);
+        assert_eq!(last_turn_l1(&rows[..1], 4, 1), 9.0);
+        assert!(last_turn_l1(&[], 4, 1).is_nan());
     }
 
     #[test]

@@ -23,6 +23,7 @@ const KEYS: &[(&str, bool)] = &[
     ("init_learning_rates.colors", true),
     ("advect_iterations", false),
     ("refine_iterations", false),
+    ("refine_views_per_step", true),
     ("correction_iterations", false),
     ("lr_velocity", true),
     ("lr_gaussians", true),

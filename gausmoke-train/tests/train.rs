@@ -1132,6 +1132,67 @@ fn the_refinement_moves_can_be_tied_at_the_grid_scale_or_below_it() {
     assert_eq!(none, None, "without refinement there is no move to report");
 }
 
+/// `refine_views_per_step` (ours): each refinement step renders that many training views in
+/// turn. With no joint iterations the first step starts from frame 0's fit, so its logged L1
+/// is known: view 0's alone with one view per step, the mean over the views with all. More
+/// views per step than the data set has is refused, naming the setting.
+#[test]
+fn a_refinement_step_can_render_some_of_the_views() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let config = |per_step| TrainConfig {
+        frames: Some(2),
+        advect_iterations: 0,
+        refine_iterations: 2,
+        refine_views_per_step: per_step,
+        log_every: 1,
+        ..joint_terms_config()
+    };
+    let first_refine_l1 = |per_step, name| {
+        let mut run = after_frame_0(&data, dir.path(), config(per_step), name);
+        let views = run.trainer.sequence.train[1].clone();
+        let renders = run.trainer.render_host(&views).unwrap();
+        let per_view: Vec<f32> = views
+            .iter()
+            .zip(&renders)
+            .map(|(view, render)| mean_abs_error(render, view.image.data()) as f32)
+            .collect();
+        let outcome = run.trainer.advance_to(1).unwrap();
+        let rows: Vec<_> = outcome
+            .losses
+            .iter()
+            .filter(|row| row.phase == Phase::Refine)
+            .collect();
+        assert_eq!(rows.len(), 2, "{name}: {rows:?}");
+        assert!(rows.iter().all(|row| row.render.is_finite()), "{rows:?}");
+        (rows[0].render, per_view)
+    };
+    let (one, per_view) = first_refine_l1(1, "one view");
+    assert!(per_view.len() >= 2, "the tiny scene trains on {per_view:?}");
+    assert!(
+        (one - per_view[0]).abs() < 1e-4 * per_view[0],
+        "one view per step: {one}, view 0 alone {per_view:?}"
+    );
+    let (all, per_view) = first_refine_l1(0, "all views");
+    let mean = per_view.iter().sum::<f32>() / per_view.len() as f32;
+    assert!(
+        (all - mean).abs() < 1e-4 * mean,
+        "all views: {all}, their mean {mean} ({per_view:?})"
+    );
+    assert!(
+        (per_view[0] - mean).abs() > 1e-3 * mean,
+        "the views' L1 are too alike to tell one from all: {per_view:?}"
+    );
+    let too_many = config(per_view.len() + 1);
+    let scene = Sequence::open(&data, &too_many).unwrap();
+    let device = device_by_name("flex").unwrap().autodiff();
+    let err = Run::new(scene, too_many, device, &dir.path().join("too many"), false)
+        .err()
+        .expect("more views per step than the data set has is refused")
+        .to_string();
+    assert!(err.contains("refine_views_per_step"), "{err}");
+}
+
 #[test]
 fn the_velocity_is_carried_along_itself_before_phi_when_asked() {
     use gausmoke_model::{ProjectionOptions, grid_from_fn, project_direct, transport_velocity};
