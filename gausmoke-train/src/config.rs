@@ -211,7 +211,7 @@ pub struct TrainConfig {
     pub refine_iterations: usize,
     /// Training views each refinement step renders (ours; 0 = all of them, the paper's
     /// method): step i renders this many views in turn from view `i * refine_views_per_step`,
-    /// wrapping around, so K' steps of one view cost what K' / 4 steps of four do. The step's
+    /// wrapping around, so K' steps of one view render what K' / 4 steps of four do. The step's
     /// loss is the mean over its views; the frame's train L1, the mean over its last turn of
     /// steps (as many as there are views), which renders each view equally often.
     pub refine_views_per_step: usize,
