@@ -4,10 +4,12 @@
 //! gradient), continuous velocity interpolation with its closed-form divergence, advection of
 //! Gaussian centres, the exact Helmholtz projection `Pi` (a custom op whose backward is `Pi`
 //! itself) and the paper's penalty form of it ([`penalty`]), the update network Phi (a small
-//! 3D U-Net), the losses `L_div`, `L_adv` and `L_refine` (plain tensor functions), and the
-//! split of the refinement's move into its grid-scale and sub-grid parts ([`GridScale`]).
+//! 3D U-Net), an explicit buoyancy force with a fitted coefficient ([`BuoyancyForce`]), the
+//! losses `L_div`, `L_adv` and `L_refine` (plain tensor functions), and the split of the
+//! refinement's move into its grid-scale and sub-grid parts ([`GridScale`]).
 
 pub mod advect;
+pub mod buoyancy;
 pub mod conv;
 pub mod density;
 pub mod gaussians;
@@ -20,6 +22,7 @@ pub mod projection;
 pub mod unet;
 
 pub use advect::{Advected, Integrator, advect, transport_velocity};
+pub use buoyancy::BuoyancyForce;
 pub use density::{
     DensityBackend, DensityField, SplatOptions, density_and_gradient_grid, density_field,
     density_gradient_grid, density_grid,

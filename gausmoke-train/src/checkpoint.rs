@@ -16,7 +16,7 @@ use crate::arrays::{HostArrays, read_arrays, take_array, write_arrays};
 use crate::config::TrainConfig;
 use crate::export::sync_to_disk;
 use crate::hash::Fnv1a;
-use crate::state::{FrameReport, LossRow, PhaseSeconds, StaticGaussians, TrainState};
+use crate::state::{Buoyancy, FrameReport, LossRow, PhaseSeconds, StaticGaussians, TrainState};
 
 fn checkpoint_error(path: &Path, reason: impl ToString) -> TrainError {
     TrainError::Checkpoint {
@@ -53,6 +53,8 @@ const VELOCITY_FILE: &str = "velocity.safetensors";
 const META_FILE: &str = "state.json";
 const STATICS_FILE: &str = "statics.bpk";
 const STATIC_OPTIM_FILE: &str = "static_optim.bpk";
+const BUOYANCY_FILE: &str = "buoyancy.bpk";
+const BUOYANCY_OPTIM_FILE: &str = "buoyancy_optim.bpk";
 const TENSOR_FILES: [&str; 5] = [
     GAUSSIANS_FILE,
     PHI_FILE,
@@ -187,6 +189,18 @@ fn write_files(dir: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<
             .map_err(record)?;
         files.extend([STATICS_FILE, STATIC_OPTIM_FILE]);
     }
+    if let Some(buoyancy) = &state.buoyancy {
+        buoyancy
+            .force
+            .clone()
+            .save_file(dir.join(BUOYANCY_FILE))
+            .map_err(record)?;
+        buoyancy
+            .optim
+            .save(dir.join(BUOYANCY_OPTIM_FILE))
+            .map_err(record)?;
+        files.extend([BUOYANCY_FILE, BUOYANCY_OPTIM_FILE]);
+    }
     let velocity = state.velocity.clone();
     let shape = velocity.dims().to_vec();
     let values = gausmoke_render::device_traffic::read_floats(velocity);
@@ -289,6 +303,19 @@ pub fn load(
         }),
         None => None,
     };
+    let buoyancy = match state.buoyancy {
+        Some(buoyancy) => Some(Buoyancy {
+            force: buoyancy
+                .force
+                .try_load_file(dir.join(BUOYANCY_FILE))
+                .map_err(record(BUOYANCY_FILE))?,
+            optim: buoyancy
+                .optim
+                .load(dir.join(BUOYANCY_OPTIM_FILE))
+                .map_err(record(BUOYANCY_OPTIM_FILE))?,
+        }),
+        None => None,
+    };
     let path = dir.join(VELOCITY_FILE);
     let mut arrays = read_arrays(&path)?;
     let shape = state.velocity.dims();
@@ -302,6 +329,7 @@ pub fn load(
             phi,
             gaussian_optim,
             phi_optim,
+            buoyancy,
         },
         meta,
     ))

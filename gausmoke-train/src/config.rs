@@ -153,6 +153,7 @@ pub const RESUMABLE_KEYS: &[&str] = &[
     "frames",
     "lr_velocity",
     "lr_gaussians",
+    "lr_buoyancy",
     "lr_means",
     "lr_log_scales",
     "lr_colors",
@@ -283,6 +284,16 @@ pub struct TrainConfig {
     /// the grid at each iteration) is taken out, so the velocity may accelerate where there
     /// is smoke, as buoyancy does, at no cost, while any other change still pays.
     pub buoyancy_free_increment: bool,
+    /// Add an explicit buoyancy force to the velocity update (ours; `false` = the paper's
+    /// method): `u^t = Pi(u' + Phi(u', sigma, t) + b sigma / max(sigma) e_y)`, `u'` the
+    /// previous velocity (transported with `transport_velocity`), `sigma` the previous
+    /// centres' density, one coefficient `b` for the whole run, starting at 0 and fitted to
+    /// the pictures in the joint iterations (see `gausmoke_model::BuoyancyForce`).
+    /// The look-ahead's predicted steps and the velocity correction use it too.
+    pub buoyancy_force: bool,
+    /// Adam's learning rate for `b` (world units per frame per step; decays with the
+    /// others).
+    pub lr_buoyancy: f64,
     /// Steps fitting Phi, after each frame's refinement, so that the frame's velocity carries
     /// the previous centres to the refined ones (ours; 0 = the paper's method, where what the
     /// refinement finds never reaches the velocity).
@@ -423,6 +434,8 @@ impl Default for TrainConfig {
             transport_velocity: false,
             lambda_increment: 0.0,
             buoyancy_free_increment: false,
+            buoyancy_force: false,
+            lr_buoyancy: 3e-4,
             correction_iterations: 0,
             dt: 1.0,
             unet_channels: 16,
@@ -600,6 +613,7 @@ impl TrainConfig {
         let positive = [
             ("lr_velocity", self.lr_velocity),
             ("lr_gaussians", self.lr_gaussians),
+            ("lr_buoyancy", self.lr_buoyancy),
             ("lr_decay", self.lr_decay),
             ("dt", self.dt as f64),
             ("projection_tolerance", self.projection_tolerance),

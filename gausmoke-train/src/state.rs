@@ -3,7 +3,7 @@
 
 use burn::optim::ModuleOptimizer;
 use burn::tensor::Tensor;
-use gausmoke_model::{GaussianModel, VelocityUNet};
+use gausmoke_model::{BuoyancyForce, GaussianModel, VelocityUNet};
 use serde::{Deserialize, Serialize};
 
 /// Everything the optimisation changes; what a checkpoint stores.
@@ -16,6 +16,14 @@ pub struct TrainState {
     pub phi: VelocityUNet,
     pub gaussian_optim: ModuleOptimizer,
     pub phi_optim: ModuleOptimizer,
+    /// The explicit buoyancy force (`buoyancy_force`), and its optimiser.
+    pub buoyancy: Option<Buoyancy>,
+}
+
+/// The fitted coefficient of the explicit buoyancy force and its optimiser.
+pub struct Buoyancy {
+    pub force: BuoyancyForce,
+    pub optim: ModuleOptimizer,
 }
 
 /// Gaussians that are the same in every frame (solids, background): never advected.
@@ -139,6 +147,10 @@ pub struct FrameReport {
     pub refine_move_grid_share: Option<f64>,
     #[serde(default)]
     pub refine_move_grid_share_shuffled: Option<f64>,
+    /// The explicit buoyancy force's coefficient after the frame (`buoyancy_force`): the
+    /// upward change of velocity per frame at the densest cell, world units per frame.
+    #[serde(default)]
+    pub buoyancy: Option<f64>,
     /// Mean and largest speed of the velocity grid (world units per frame).
     pub mean_speed: f64,
     pub max_speed: f64,

@@ -31,14 +31,16 @@ use gausmoke_core::{Camera, phase};
 use gausmoke_data::Obstacle;
 use gausmoke_model::penalty::penalty_projection_with_report;
 use gausmoke_model::{
-    GaussianModel, GridScale, GridSpec, INITIAL_RAW_DENSITY, Integrator, Interpolation,
-    PenaltyOptions, ProjectionOptions, ProjectionReport, SolidCells, SplatOptions, UNetConfig,
-    VelocityUNet, advect, advection_loss, density_and_gradient_grid, density_grid,
+    BuoyancyForce, GaussianModel, GridScale, GridSpec, INITIAL_RAW_DENSITY, Integrator,
+    Interpolation, PenaltyOptions, ProjectionOptions, ProjectionReport, SolidCells, SplatOptions,
+    UNetConfig, VelocityUNet, advect, advection_loss, density_and_gradient_grid, density_grid,
     divergence_loss_of, penalty_projection, project_direct, project_velocity, refine_loss,
     settle_deferred_solves, transport_velocity,
 };
 use gausmoke_render::cpu::TILE_SIZE;
-use gausmoke_render::device_traffic::{ReadKind, Traffic, read_floats, read_floats_for};
+use gausmoke_render::device_traffic::{
+    ReadKind, Traffic, read_floats, read_floats_for, read_scalar,
+};
 use gausmoke_render::{
     GaussianTensors, Gaussians, HostGaussians, InputCheck, RasterOptions, list_buffer_lengths,
     render_volume, render_volume_deferred,
@@ -54,7 +56,7 @@ use crate::respawn::{
 };
 use crate::sequence::{Observation, Sequence};
 use crate::split::{SplitReport, split_largest};
-use crate::state::{LoopTraffic, LossRow, Phase, StaticGaussians, TrainState};
+use crate::state::{Buoyancy, LoopTraffic, LossRow, Phase, StaticGaussians, TrainState};
 use crate::step_log::{StepLog, StepLosses};
 
 /// What training one frame produced.
@@ -78,6 +80,8 @@ pub struct FrameOutcome {
     pub refine_moves: Option<RefineMoves>,
     /// Device reads and kernel launches of the frame's optimisation loops, loop by loop.
     pub traffic: Vec<LoopTraffic>,
+    /// The explicit buoyancy force's coefficient after the frame (`buoyancy_force`).
+    pub buoyancy: Option<f64>,
 }
 
 /// The refinement's move of the centres at one frame, mass-weighted (see
@@ -382,6 +386,40 @@ impl Trainer {
         };
     }
 
+    fn step_buoyancy(&mut self, grads: &mut Gradients, lr: f64) {
+        let Some(buoyancy) = self.state.buoyancy.as_mut() else {
+            return;
+        };
+        let force_grads = GradientsParams::from_module(grads, &buoyancy.force);
+        let force = buoyancy.force.clone();
+        buoyancy.force = {
+            let _phase = phase!("optimizer");
+            buoyancy.optim.step(lr, force, force_grads)
+        };
+    }
+
+    /// The velocity before `Pi`: `previous` plus Phi's increment `delta`, plus the explicit
+    /// buoyancy force over one frame on `density` (`buoyancy_force`).
+    fn unprojected_update(
+        &self,
+        previous: Tensor<4>,
+        delta: Tensor<4>,
+        density: Tensor<3>,
+    ) -> Tensor<4> {
+        match &self.state.buoyancy {
+            Some(buoyancy) => previous + delta + buoyancy.force.velocity_change(density),
+            None => previous + delta,
+        }
+    }
+
+    /// The explicit buoyancy force's coefficient (one read), if there is one.
+    fn buoyancy_coefficient(&self) -> Option<f64> {
+        self.state
+            .buoyancy
+            .as_ref()
+            .map(|b| read_scalar(b.force.coefficient.val()) as f64)
+    }
+
     /// What the configured `Pi` does to `velocity` (for the frame's metrics).
     fn projection_report(&self, velocity: Tensor<4>) -> ProjectionReport {
         match self.config.projection {
@@ -652,6 +690,7 @@ impl Trainer {
             split: 0,
             refine_moves: None,
             traffic,
+            buoyancy: self.buoyancy_coefficient(),
         })
     }
 
@@ -743,7 +782,11 @@ impl Trainer {
                     time,
                 )?
             };
-            let update = previous_velocity.clone() + delta.clone();
+            let update = self.unprojected_update(
+                previous_velocity.clone(),
+                delta.clone(),
+                sigma_previous.clone(),
+            );
             let projected = self.project(update.clone());
             let moved = advect(
                 &self.grid,
@@ -773,10 +816,10 @@ impl Trainer {
                     let sigma = density_grid(&carried, &self.grid, splat.cutoff).detach();
                     let delta = self.state.phi.forward(
                         carrier.clone(),
-                        sigma,
+                        sigma.clone(),
                         (t + 1 + step) as f32 / last_frame,
                     )?;
-                    carrier = self.project(carrier + delta);
+                    carrier = self.project(self.unprojected_update(carrier, delta, sigma));
                 }
                 let means = advect(
                     &self.grid,
@@ -856,6 +899,7 @@ impl Trainer {
                 loss.backward()
             };
             self.step_phi(&mut grads, lr_velocity);
+            self.step_buoyancy(&mut grads, config.lr_buoyancy * factor);
             self.step_gaussians(
                 &mut grads,
                 Gaussians {
@@ -988,6 +1032,7 @@ impl Trainer {
             split: split.parents.len(),
             refine_moves,
             traffic,
+            buoyancy: self.buoyancy_coefficient(),
         })
     }
 
@@ -1024,7 +1069,8 @@ impl Trainer {
                     .phi
                     .forward(previous_velocity.clone(), sigma_previous.clone(), time)?
             };
-            let update = previous_velocity.clone() + delta;
+            let update =
+                self.unprojected_update(previous_velocity.clone(), delta, sigma_previous.clone());
             let projected = self.project(update.clone());
             let moved = advect(
                 &self.grid,
@@ -1387,6 +1433,10 @@ fn fresh_state(
         // 3DGS practice: a tiny epsilon, so rarely-seen Gaussians still move.
         gaussian_optim: AdamConfig::new().with_epsilon(1e-15).init(),
         phi_optim: AdamConfig::new().init(),
+        buoyancy: config.buoyancy_force.then(|| Buoyancy {
+            force: BuoyancyForce::new(0.0, device),
+            optim: AdamConfig::new().init(),
+        }),
     }
 }
 

@@ -27,6 +27,7 @@ const KEYS: &[(&str, bool)] = &[
     ("correction_iterations", false),
     ("lr_velocity", true),
     ("lr_gaussians", true),
+    ("lr_buoyancy", true),
     ("lr_means", true),
     ("lr_log_scales", true),
     ("lr_colors", true),

@@ -1328,6 +1328,67 @@ fn the_kinetic_and_inertia_priors_slow_the_velocity() {
     }
 }
 
+/// `buoyancy_force` (ours): the coefficient starts at 0, is fitted by the joint iterations
+/// (reported per frame in `metrics.json`), changes the velocity, and a run resumed from a
+/// checkpoint continues with the fitted coefficient and its optimiser's state.
+#[test]
+fn the_buoyancy_force_is_fitted_and_resumes() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let config = TrainConfig {
+        buoyancy_force: true,
+        lr_buoyancy: 1e-2,
+        ..joint_terms_config()
+    };
+    let without = velocity_after(&data, dir.path(), joint_terms_config(), "without");
+    let with = velocity_after(&data, dir.path(), config.clone(), "with");
+    assert!(with.iter().all(|v| v.is_finite()));
+    assert!(
+        largest_difference(&with, &without) > 1e-4,
+        "the force did not change the velocity"
+    );
+    let coefficients = |run: &Path| -> Vec<f64> {
+        let text = std::fs::read_to_string(run.join("metrics.json")).unwrap();
+        let metrics: serde_json::Value = serde_json::from_str(&text).unwrap();
+        metrics["per_frame"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|f| f["buoyancy"].as_f64().expect("reported with the force on"))
+            .collect()
+    };
+    let straight = dir.path().join("with");
+    let fitted = coefficients(&straight);
+    assert_eq!(fitted.len(), 3);
+    assert_eq!(fitted[0], 0.0, "frame 0 has no joint iterations");
+    assert!(
+        fitted[1] != 0.0 && fitted[2] != fitted[1],
+        "the coefficient was not fitted: {fitted:?}"
+    );
+
+    // The last checkpoint lost: frame 2 retrains from frame 1's to the same coefficient and
+    // velocity, which it would not with a fresh coefficient or optimiser.
+    let resumed = dir.path().join("resumed");
+    copy_dir(&straight, &resumed);
+    std::fs::remove_dir_all(resumed.join("checkpoints/frame_002")).unwrap();
+    std::fs::remove_file(resumed.join("frames/frame_002.safetensors")).unwrap();
+    let scene = Sequence::open(&data, &config).unwrap();
+    let device = device_by_name("flex").unwrap().autodiff();
+    let mut run = Run::new(scene, config, device, &resumed, true)
+        .unwrap()
+        .quiet(true);
+    run.run().unwrap();
+    let again = coefficients(&resumed);
+    assert!(
+        (again[2] - fitted[2]).abs() <= 1e-7 * fitted[2].abs().max(1e-3),
+        "resumed {again:?}, straight {fitted:?}"
+    );
+    let velocity = run.trainer.state.velocity.clone().into_data();
+    let velocity = velocity.try_into_vec_as::<f32>().unwrap();
+    let scale = with.iter().fold(1e-6f32, |m, v| m.max(v.abs()));
+    assert!(largest_difference(&velocity, &with) <= 1e-5 * scale);
+}
+
 /// A data set with an obstacle: its cells are solid in the trained velocity (no flow in
 /// them), no Gaussian's centre stays inside it, eval reports the leakage into it, `obstacles = "ignore"` lets the flow through,
 /// and the penalty form, which cannot keep the flow out, is refused naming the setting.
