@@ -8,6 +8,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use burn::module::Module;
+use burn::optim::ModuleOptimizer;
 use burn::tensor::{Device, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
@@ -178,27 +179,23 @@ fn write_files(dir: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<
         .map_err(record)?;
     let mut files = TENSOR_FILES.to_vec();
     if let Some(statics) = &state.statics {
-        statics
-            .gaussians
-            .clone()
-            .save_file(dir.join(STATICS_FILE))
-            .map_err(record)?;
-        statics
-            .optim
-            .save(dir.join(STATIC_OPTIM_FILE))
-            .map_err(record)?;
+        save_with_optim(
+            dir,
+            &statics.gaussians,
+            &statics.optim,
+            STATICS_FILE,
+            STATIC_OPTIM_FILE,
+        )?;
         files.extend([STATICS_FILE, STATIC_OPTIM_FILE]);
     }
     if let Some(buoyancy) = &state.buoyancy {
-        buoyancy
-            .force
-            .clone()
-            .save_file(dir.join(BUOYANCY_FILE))
-            .map_err(record)?;
-        buoyancy
-            .optim
-            .save(dir.join(BUOYANCY_OPTIM_FILE))
-            .map_err(record)?;
+        save_with_optim(
+            dir,
+            &buoyancy.force,
+            &buoyancy.optim,
+            BUOYANCY_FILE,
+            BUOYANCY_OPTIM_FILE,
+        )?;
         files.extend([BUOYANCY_FILE, BUOYANCY_OPTIM_FILE]);
     }
     let velocity = state.velocity.clone();
@@ -223,6 +220,46 @@ fn write_files(dir: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<
         sync_to_disk(&dir.join(file))?;
     }
     sync_to_disk(dir)
+}
+
+/// Writes an optional part of the state, a module and its optimiser, into `dir`.
+fn save_with_optim<M: Module>(
+    dir: &Path,
+    module: &M,
+    optim: &ModuleOptimizer,
+    module_file: &str,
+    optim_file: &str,
+) -> Result<(), TrainError> {
+    let record = |file: &str| {
+        let path = dir.join(file);
+        move |e: burn::store::RecordError| checkpoint_error(&path, e)
+    };
+    module
+        .clone()
+        .save_file(dir.join(module_file))
+        .map_err(record(module_file))?;
+    optim.save(dir.join(optim_file)).map_err(record(optim_file))
+}
+
+/// Reads an optional part of the state, a module and its optimiser, from `dir`.
+fn load_with_optim<M: Module>(
+    dir: &Path,
+    module: M,
+    optim: ModuleOptimizer,
+    module_file: &str,
+    optim_file: &str,
+) -> Result<(M, ModuleOptimizer), TrainError> {
+    let record = |file: &str| {
+        let path = dir.join(file);
+        move |e: burn::store::RecordError| checkpoint_error(&path, e)
+    };
+    let module = module
+        .try_load_file(dir.join(module_file))
+        .map_err(record(module_file))?;
+    let optim = optim
+        .load(dir.join(optim_file))
+        .map_err(record(optim_file))?;
+    Ok((module, optim))
 }
 
 fn checksum(path: &Path) -> Result<String, TrainError> {
@@ -291,29 +328,19 @@ pub fn load(
         .load(dir.join(PHI_OPTIM_FILE))
         .map_err(record(PHI_OPTIM_FILE))?;
     let statics = match state.statics {
-        Some(statics) => Some(StaticGaussians {
-            gaussians: statics
-                .gaussians
-                .try_load_file(dir.join(STATICS_FILE))
-                .map_err(record(STATICS_FILE))?,
-            optim: statics
-                .optim
-                .load(dir.join(STATIC_OPTIM_FILE))
-                .map_err(record(STATIC_OPTIM_FILE))?,
-        }),
+        Some(StaticGaussians { gaussians, optim }) => {
+            let (gaussians, optim) =
+                load_with_optim(dir, gaussians, optim, STATICS_FILE, STATIC_OPTIM_FILE)?;
+            Some(StaticGaussians { gaussians, optim })
+        }
         None => None,
     };
     let buoyancy = match state.buoyancy {
-        Some(buoyancy) => Some(Buoyancy {
-            force: buoyancy
-                .force
-                .try_load_file(dir.join(BUOYANCY_FILE))
-                .map_err(record(BUOYANCY_FILE))?,
-            optim: buoyancy
-                .optim
-                .load(dir.join(BUOYANCY_OPTIM_FILE))
-                .map_err(record(BUOYANCY_OPTIM_FILE))?,
-        }),
+        Some(Buoyancy { force, optim }) => {
+            let (force, optim) =
+                load_with_optim(dir, force, optim, BUOYANCY_FILE, BUOYANCY_OPTIM_FILE)?;
+            Some(Buoyancy { force, optim })
+        }
         None => None,
     };
     let path = dir.join(VELOCITY_FILE);
