@@ -158,25 +158,24 @@ fn write_files(dir: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<
         path: dir.to_path_buf(),
         source,
     })?;
-    let record = |e: burn::store::RecordError| checkpoint_error(dir, e);
     state
         .gaussians
         .clone()
         .save_file(dir.join(GAUSSIANS_FILE))
-        .map_err(record)?;
+        .map_err(file_error(dir, GAUSSIANS_FILE))?;
     state
         .phi
         .clone()
         .save_file(dir.join(PHI_FILE))
-        .map_err(record)?;
+        .map_err(file_error(dir, PHI_FILE))?;
     state
         .gaussian_optim
         .save(dir.join(GAUSSIAN_OPTIM_FILE))
-        .map_err(record)?;
+        .map_err(file_error(dir, GAUSSIAN_OPTIM_FILE))?;
     state
         .phi_optim
         .save(dir.join(PHI_OPTIM_FILE))
-        .map_err(record)?;
+        .map_err(file_error(dir, PHI_OPTIM_FILE))?;
     let mut files = TENSOR_FILES.to_vec();
     if let Some(statics) = &state.statics {
         save_with_optim(
@@ -222,6 +221,12 @@ fn write_files(dir: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<
     sync_to_disk(dir)
 }
 
+/// Turns a burn record error on `file` in `dir` into ours, naming the file.
+fn file_error(dir: &Path, file: &str) -> impl FnOnce(burn::store::RecordError) -> TrainError {
+    let path = dir.join(file);
+    move |e| checkpoint_error(&path, e)
+}
+
 /// Writes an optional part of the state, a module and its optimiser, into `dir`.
 fn save_with_optim<M: Module>(
     dir: &Path,
@@ -230,15 +235,13 @@ fn save_with_optim<M: Module>(
     module_file: &str,
     optim_file: &str,
 ) -> Result<(), TrainError> {
-    let record = |file: &str| {
-        let path = dir.join(file);
-        move |e: burn::store::RecordError| checkpoint_error(&path, e)
-    };
     module
         .clone()
         .save_file(dir.join(module_file))
-        .map_err(record(module_file))?;
-    optim.save(dir.join(optim_file)).map_err(record(optim_file))
+        .map_err(file_error(dir, module_file))?;
+    optim
+        .save(dir.join(optim_file))
+        .map_err(file_error(dir, optim_file))
 }
 
 /// Reads an optional part of the state, a module and its optimiser, from `dir`.
@@ -249,16 +252,12 @@ fn load_with_optim<M: Module>(
     module_file: &str,
     optim_file: &str,
 ) -> Result<(M, ModuleOptimizer), TrainError> {
-    let record = |file: &str| {
-        let path = dir.join(file);
-        move |e: burn::store::RecordError| checkpoint_error(&path, e)
-    };
     let module = module
         .try_load_file(dir.join(module_file))
-        .map_err(record(module_file))?;
+        .map_err(file_error(dir, module_file))?;
     let optim = optim
         .load(dir.join(optim_file))
-        .map_err(record(optim_file))?;
+        .map_err(file_error(dir, optim_file))?;
     Ok((module, optim))
 }
 
@@ -306,27 +305,22 @@ pub fn load(
 ) -> Result<(TrainState, CheckpointMeta), TrainError> {
     let meta = read_meta(dir)?;
     verify(dir, &meta)?;
-    // Each error names the file, not only the folder.
-    let record = |file: &str| {
-        let path = dir.join(file);
-        move |e: burn::store::RecordError| checkpoint_error(&path, e)
-    };
     let gaussians = state
         .gaussians
         .try_load_file(dir.join(GAUSSIANS_FILE))
-        .map_err(record(GAUSSIANS_FILE))?;
+        .map_err(file_error(dir, GAUSSIANS_FILE))?;
     let phi = state
         .phi
         .try_load_file(dir.join(PHI_FILE))
-        .map_err(record(PHI_FILE))?;
+        .map_err(file_error(dir, PHI_FILE))?;
     let gaussian_optim = state
         .gaussian_optim
         .load(dir.join(GAUSSIAN_OPTIM_FILE))
-        .map_err(record(GAUSSIAN_OPTIM_FILE))?;
+        .map_err(file_error(dir, GAUSSIAN_OPTIM_FILE))?;
     let phi_optim = state
         .phi_optim
         .load(dir.join(PHI_OPTIM_FILE))
-        .map_err(record(PHI_OPTIM_FILE))?;
+        .map_err(file_error(dir, PHI_OPTIM_FILE))?;
     let statics = match state.statics {
         Some(StaticGaussians { gaussians, optim }) => {
             let (gaussians, optim) =
