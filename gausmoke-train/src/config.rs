@@ -90,6 +90,18 @@ pub enum LookaheadVelocity {
     Predicted,
 }
 
+/// What the velocity correction fits the frame's velocity to (see `correction_iterations`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CorrectionTarget {
+    /// Each Gaussian's refined centre: the velocity carries every previous centre to it.
+    Centres,
+    /// The refined Gaussians' density on the grid: the velocity carries the previous centres
+    /// so that their density matches it. A move no flow makes (Gaussians trading places
+    /// inside the smoke) leaves the density as it is and so does not pull the velocity.
+    Density,
+}
+
 /// What the training does with obstacles the data set describes (PINF `obstacles`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -298,6 +310,10 @@ pub struct TrainConfig {
     /// the previous centres to the refined ones (ours; 0 = the paper's method, where what the
     /// refinement finds never reaches the velocity).
     pub correction_iterations: usize,
+    /// What those steps fit: `centres` (each Gaussian's refined centre) or `density` (the
+    /// refined Gaussians' density on the grid). Either way Phi's increment also pays the
+    /// inertia prior (`lambda_increment`) there, as in the joint iterations.
+    pub correction_target: CorrectionTarget,
     /// Time step of the velocity update and advection, in frames.
     pub dt: f32,
     /// Channels of the U-Net's first level.
@@ -437,6 +453,7 @@ impl Default for TrainConfig {
             buoyancy_force: false,
             lr_buoyancy: 3e-4,
             correction_iterations: 0,
+            correction_target: CorrectionTarget::Centres,
             dt: 1.0,
             unet_channels: 16,
             time_frequencies: 4,
@@ -657,6 +674,13 @@ impl TrainConfig {
                     .into(),
             );
         }
+        if self.correction_target != CorrectionTarget::Centres && self.correction_iterations == 0 {
+            return bad(
+                "correction_target chooses what the velocity correction fits, which is off: \
+                 set correction_iterations > 0 too"
+                    .into(),
+            );
+        }
         if !(0.0..=1.0).contains(&self.respawn_fraction) {
             return bad(format!(
                 "respawn_fraction must be in [0, 1], got {}",
@@ -871,6 +895,13 @@ mod tests {
                     ..TrainConfig::default()
                 },
                 "lambda_increment",
+            ),
+            (
+                TrainConfig {
+                    correction_target: CorrectionTarget::Density,
+                    ..TrainConfig::default()
+                },
+                "correction_iterations",
             ),
             (
                 TrainConfig {

@@ -516,6 +516,14 @@ fn frame_report(
         refine_move_cells: outcome.refine_moves.map(|m| m.rms_cells),
         refine_move_grid_share: outcome.refine_moves.map(|m| m.grid_share),
         refine_move_grid_share_shuffled: outcome.refine_moves.map(|m| m.shuffled_grid_share),
+        refine_move_persistence: outcome
+            .refine_moves
+            .and_then(|m| m.persistence)
+            .map(|[whole, _]| whole),
+        refine_move_grid_persistence: outcome
+            .refine_moves
+            .and_then(|m| m.persistence)
+            .map(|[_, grid]| grid),
         buoyancy: outcome.buoyancy,
         mean_speed: speeds.iter().sum::<f64>() / speeds.len().max(1) as f64,
         max_speed: speeds.iter().cloned().fold(0.0, f64::max),

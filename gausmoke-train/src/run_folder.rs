@@ -405,13 +405,15 @@ impl RunFolder {
                 "refine_moves.png",
                 [640, 320],
                 Chart {
-                    title: "Refinement's move: share at the velocity grid's scale".into(),
+                    title: "Refinement's move: grid-scale share, persistence".into(),
                     x_label: "frame".into(),
-                    y_label: "share of mean square".into(),
+                    y_label: "share of mean square; correlation".into(),
                     log_y: false,
                     series: vec![
                         per_frame("grid-scale share", |r| r.refine_move_grid_share),
                         per_frame("same moves shuffled", |r| r.refine_move_grid_share_shuffled),
+                        per_frame("persistence", |r| r.refine_move_persistence),
+                        per_frame("grid-scale persistence", |r| r.refine_move_grid_persistence),
                     ],
                 },
             ),
@@ -480,7 +482,8 @@ losses.png         loss curves over the optimisation steps (log scale, legend in
 speed.png          per frame: mean and max speed of the velocity (world units per frame)
 psnr.png           per frame: held-out PSNR (dB)
 refine_moves.png   per frame: share of the refinement's move at the velocity grid's scale,
-                   and the share the same moves shuffled among the Gaussians reach
+                   the share the same moves shuffled among the Gaussians reach, and the
+                   moves' correlation with the frame before's (whole and grid-scale part)
 renders/VIEW/      per-frame renders of every camera (train and held-out)
 comparison/        per frame: held-out reference | render; comparison.gif and
                    comparison.mp4 (H.264, 10 frames per second) animate them

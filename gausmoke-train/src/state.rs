@@ -147,6 +147,13 @@ pub struct FrameReport {
     pub refine_move_grid_share: Option<f64>,
     #[serde(default)]
     pub refine_move_grid_share_shuffled: Option<f64>,
+    /// Mass-weighted correlation of each Gaussian's move with its move at the frame before,
+    /// and the same for the grid-scale parts (`None` at the first frame refined after a
+    /// start or a resume, and without refinement).
+    #[serde(default)]
+    pub refine_move_persistence: Option<f64>,
+    #[serde(default)]
+    pub refine_move_grid_persistence: Option<f64>,
     /// The explicit buoyancy force's coefficient after the frame (`buoyancy_force`): the
     /// upward change of velocity per frame at the densest cell, world units per frame.
     #[serde(default)]

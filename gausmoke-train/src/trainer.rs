@@ -49,7 +49,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::TrainError;
 use crate::config::{
-    IntegratorKind, InterpolationKind, LookaheadVelocity, Obstacles, ProjectionKind, TrainConfig,
+    CorrectionTarget, IntegratorKind, InterpolationKind, LookaheadVelocity, Obstacles,
+    ProjectionKind, TrainConfig,
 };
 use crate::respawn::{
     DeficitView, RespawnOptions, RespawnReport, SpawnLattice, recycling_candidates, respawn,
@@ -84,6 +85,10 @@ pub struct FrameOutcome {
     pub buoyancy: Option<f64>,
 }
 
+/// A raw density whose softplus is negligible (about 1e-13): a Gaussian left out of a
+/// density sum without changing the set's shape.
+const OFF_DENSITY: f32 = -30.0;
+
 /// The refinement's move of the centres at one frame, mass-weighted (see
 /// [`gausmoke_model::GridScale`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -95,10 +100,31 @@ pub struct RefineMoves {
     /// The same share with the moves shuffled among the Gaussians: what a move without
     /// spatial order gets, the floor to read `grid_share` against.
     pub shuffled_grid_share: f64,
+    /// Mass-weighted correlation of each Gaussian's move with its own move at the frame
+    /// before, and the same for the moves' grid-scale parts: near 1 the refinement supplies
+    /// the same motion frame after frame (motion the velocity keeps missing), near 0 its
+    /// moves do not persist. Gaussians that jumped this frame are left out; `None` at the
+    /// first frame the trainer refines (after a start or a resume).
+    pub persistence: Option<[f64; 2]>,
 }
 
-/// [`RefineMoves`] of `moves` (`[n, 3]`, in cells), in one read.
-fn refine_moves(scale: &GridScale, moves: Tensor<2>) -> RefineMoves {
+/// One frame's refinement moves (in cells) and their grid-scale parts, kept for the next
+/// frame's [`RefineMoves::persistence`].
+#[derive(Debug, Clone)]
+struct FrameMoves {
+    moves: Tensor<2>,
+    grid_part: Tensor<2>,
+}
+
+/// [`RefineMoves`] of `moves` (`[n, 3]`, in cells), against the frame before's where there
+/// is one, leaving out the rows `jumped` marks (`[n]`, 1 for a row that jumped), in one read.
+/// Returns the frame's moves too, for the next frame.
+fn refine_moves(
+    scale: &GridScale,
+    moves: Tensor<2>,
+    before: Option<&FrameMoves>,
+    jumped: &Tensor<1>,
+) -> (RefineMoves, FrameMoves) {
     let [n, _] = moves.dims();
     // A stride coprime to n shuffles the rows deterministically.
     let stride = [7919usize, 7927, 7933, 7937]
@@ -108,13 +134,31 @@ fn refine_moves(scale: &GridScale, moves: Tensor<2>) -> RefineMoves {
     let order: Vec<i64> = (0..n).map(|i| ((i * stride) % n.max(1)) as i64).collect();
     let order = Tensor::<1, Int>::from_data(TensorData::new(order, [n]), &moves.device());
     let shuffled = moves.clone().select(0, order);
-    let parts = [
+    let grid_part = scale.grid_part(moves.clone());
+    let mut parts = vec![
         scale.mean_square(moves.clone()),
-        scale.mean_square(scale.grid_part(moves)),
+        scale.mean_square(grid_part.clone()),
         scale.mean_square(shuffled.clone()),
         scale.mean_square(scale.grid_part(shuffled)),
     ];
-    let v = read_floats(Tensor::cat(parts.to_vec(), 0));
+    let before = before.filter(|b| b.moves.dims() == [n, 3]);
+    if let Some(before) = before {
+        // Weighted dot products from mean squares: a.b = (|a + b|^2 - |a - b|^2) / 4.
+        let kept = (jumped.clone().neg() + 1.0).reshape([n, 1]);
+        for (now, then) in [
+            (moves.clone(), before.moves.clone()),
+            (grid_part.clone(), before.grid_part.clone()),
+        ] {
+            let (now, then) = (now * kept.clone(), then * kept.clone());
+            parts.extend([
+                scale.mean_square(now.clone() + then.clone()),
+                scale.mean_square(now.clone() - then.clone()),
+                scale.mean_square(now),
+                scale.mean_square(then),
+            ]);
+        }
+    }
+    let v = read_floats(Tensor::cat(parts, 0));
     let share = |part: f32, whole: f32| {
         if whole > 0.0 {
             (part / whole) as f64
@@ -122,11 +166,24 @@ fn refine_moves(scale: &GridScale, moves: Tensor<2>) -> RefineMoves {
             0.0
         }
     };
-    RefineMoves {
-        rms_cells: (v[0] as f64).sqrt(),
-        grid_share: share(v[1], v[0]),
-        shuffled_grid_share: share(v[3], v[2]),
-    }
+    let correlation = |w: &[f32]| {
+        let norms = (w[2] as f64 * w[3] as f64).sqrt();
+        if norms > 0.0 {
+            (w[0] as f64 - w[1] as f64) / 4.0 / norms
+        } else {
+            0.0
+        }
+    };
+    let persistence = (v.len() == 12).then(|| [correlation(&v[4..8]), correlation(&v[8..12])]);
+    (
+        RefineMoves {
+            rms_cells: (v[0] as f64).sqrt(),
+            grid_share: share(v[1], v[0]),
+            shuffled_grid_share: share(v[3], v[2]),
+            persistence,
+        },
+        FrameMoves { moves, grid_part },
+    )
 }
 
 /// Reads `log` (and `tail` with it), appends its rows to `losses` and shows the last one on
@@ -250,6 +307,9 @@ pub struct Trainer {
     raster: RasterOptions,
     /// The data set's obstacles on the grid, when the configuration makes them solid.
     solids: Option<SolidCells>,
+    /// The last frame's refinement moves, for the next frame's persistence (not saved:
+    /// a resumed run reports none at its first frame).
+    last_moves: Option<FrameMoves>,
     quiet: bool,
 }
 
@@ -300,6 +360,7 @@ impl Trainer {
             background,
             raster,
             solids,
+            last_moves: None,
             quiet: false,
         })
     }
@@ -365,6 +426,18 @@ impl Trainer {
     fn mean_square_in_cells(&self, field: Tensor<4>) -> Tensor<1> {
         let in_cells = self.cells_per_world_unit().reshape([1, 1, 1, 3]);
         (field * in_cells).powi_scalar(2).sum_dim(3).mean()
+    }
+
+    /// `lambda_increment` times the mean square of Phi's increment `delta` in cells per frame,
+    /// less what a multiple of the density `sigma` explains in its upward component with
+    /// `buoyancy_free_increment`.
+    fn inertia_prior(&self, delta: Tensor<4>, sigma: Tensor<3>) -> Tensor<1> {
+        let counted = if self.config.buoyancy_free_increment {
+            without_buoyancy(delta, sigma)
+        } else {
+            delta
+        };
+        self.mean_square_in_cells(counted) * self.config.lambda_increment
     }
 
     /// `1 / cell size` per axis, `[3]`: world lengths to cell lengths.
@@ -848,13 +921,7 @@ impl Trainer {
                 loss = loss + kinetic * config.lambda_kinetic;
             }
             if config.lambda_increment > 0.0 {
-                let counted = if config.buoyancy_free_increment {
-                    without_buoyancy(delta, sigma_previous.clone().detach())
-                } else {
-                    delta
-                };
-                let increment = self.mean_square_in_cells(counted);
-                loss = loss + increment * config.lambda_increment;
+                loss = loss + self.inertia_prior(delta, sigma_previous.clone().detach());
             }
             let mut physical = None;
             if let Some(gradient_previous) = gradient_previous {
@@ -1007,19 +1074,36 @@ impl Trainer {
         }
         bar.finish_and_clear();
         traffic.push(LoopTraffic::of(Phase::Refine, refine_iterations, start));
-        let refine_moves = grid_scale.map(|scale| {
-            let moves = (self.state.gaussians.means.val().detach() - anchor)
-                * self.cells_per_world_unit().reshape([1, 3]);
-            refine_moves(&scale, moves)
-        });
-        if config.correction_iterations > 0 {
-            (velocity, unprojected) = self.correct_velocity(
+        let refine_moves = match grid_scale {
+            Some(scale) => {
+                let moves = (self.state.gaussians.means.val().detach() - anchor)
+                    * self.cells_per_world_unit().reshape([1, 3]);
+                let [n, _] = moves.dims();
+                let mut jumped = vec![0.0f32; n];
+                for &i in &moved {
+                    jumped[i] = 1.0;
+                }
+                let jumped = Tensor::<1>::from_data(TensorData::new(jumped, [n]), &self.device);
+                let (report, frame_moves) =
+                    refine_moves(&scale, moves, self.last_moves.as_ref(), &jumped);
+                self.last_moves = Some(frame_moves);
+                Some(report)
+            }
+            None => {
+                self.last_moves = None;
+                None
+            }
+        };
+        if config.correction_iterations > 0
+            && let Some(corrected) = self.correct_velocity(
                 &previous_means,
                 &previous_velocity,
                 &moved,
                 time,
                 lr_velocity,
-            )?;
+            )?
+        {
+            (velocity, unprojected) = corrected;
         }
         self.state.velocity = velocity;
         Ok(FrameOutcome {
@@ -1036,11 +1120,14 @@ impl Trainer {
         })
     }
 
-    /// Fits Phi so that the frame's velocity carries the previous centres to the refined ones
-    /// (ours, `correction_iterations`): the refinement moved the Gaussians where the pictures
-    /// put the smoke, and without this the velocity never learns from that move. Recycled
-    /// Gaussians, which jumped, and ones the velocity would carry out of the box are left
-    /// out. Returns the projected and unprojected velocity of the last step.
+    /// Fits Phi so that the frame's velocity carries the previous centres to where the
+    /// refinement put the smoke (ours, `correction_iterations`): to each refined centre, or
+    /// (`correction_target = "density"`) so that the carried Gaussians' density matches the
+    /// refined ones'. The refinement moved the Gaussians where the pictures put the smoke,
+    /// and without this the velocity never learns from that move. Recycled and split
+    /// Gaussians, which jumped, are left out, and for the centres also ones the velocity
+    /// would carry out of the box. Returns the projected and unprojected velocity of the
+    /// last step, or `None` when every Gaussian jumped (nothing to fit).
     fn correct_velocity(
         &mut self,
         previous_means: &Tensor<2>,
@@ -1048,20 +1135,39 @@ impl Trainer {
         moved: &[usize],
         time: f32,
         lr_velocity: f64,
-    ) -> Result<(Tensor<4>, Tensor<4>), TrainError> {
+    ) -> Result<Option<(Tensor<4>, Tensor<4>)>, TrainError> {
         let config = self.config.clone();
-        let refined = self.state.gaussians.means.val().detach();
-        let [n, _] = refined.dims();
+        let cutoff = SplatOptions::default().cutoff;
+        let refined = self.state.gaussians.tensors().detach();
+        let [n, _] = refined.means.dims();
         let previous = self.state.gaussians.tensors_at(previous_means.clone());
-        let sigma_previous =
-            density_grid(&previous, &self.grid, SplatOptions::default().cutoff).detach();
+        let sigma_previous = density_grid(&previous, &self.grid, cutoff).detach();
         let mut kept = vec![1.0f32; n];
         for &i in moved {
             kept[i] = 0.0;
         }
+        if !kept.contains(&1.0) {
+            return Ok(None);
+        }
         let kept = Tensor::<1>::from_data(TensorData::new(kept, [n]), &self.device);
+        // The density counts the kept Gaussians only: the others' at (nearly) zero. Detached
+        // again because burn 0.22 keeps an op on a detached parameter's value on the tape,
+        // which the first step's backward would consume and the next step's refuse.
+        let refined = Gaussians {
+            raw_densities: refined
+                .raw_densities
+                .mask_fill(kept.clone().equal_elem(0.0), OFF_DENSITY),
+            ..refined
+        }
+        .detach();
+        // The density target, and its mean square to make the miss a relative one.
+        let target = (config.correction_target == CorrectionTarget::Density).then(|| {
+            let sigma = density_grid(&refined, &self.grid, cutoff).detach();
+            let scale = sigma.clone().powi_scalar(2).mean().clamp_min(1e-12);
+            (sigma, scale)
+        });
         let in_cells = self.cells_per_world_unit().reshape([1, 3]);
-        let mut last = (previous_velocity.clone(), previous_velocity.clone());
+        let mut last = None;
         for _ in 0..config.correction_iterations {
             let delta = {
                 let _phase = phase!("U-Net forward");
@@ -1069,8 +1175,11 @@ impl Trainer {
                     .phi
                     .forward(previous_velocity.clone(), sigma_previous.clone(), time)?
             };
-            let update =
-                self.unprojected_update(previous_velocity.clone(), delta, sigma_previous.clone());
+            let update = self.unprojected_update(
+                previous_velocity.clone(),
+                delta.clone(),
+                sigma_previous.clone(),
+            );
             let projected = self.project(update.clone());
             let moved = advect(
                 &self.grid,
@@ -1080,13 +1189,28 @@ impl Trainer {
                 self.integrator(),
                 self.interpolation(),
             );
-            let weight = kept.clone() * moved.left_box.bool_not().float();
-            let miss = ((moved.positions - refined.clone()) * in_cells.clone())
-                .powi_scalar(2)
-                .sum_dim(1)
-                .reshape([n]);
-            let loss = (miss * weight.clone()).sum() / weight.sum().clamp_min(1.0);
-            last = (projected.detach(), update.detach());
+            let mut loss = match &target {
+                Some((sigma_target, scale)) => {
+                    let carried = Gaussians {
+                        means: moved.positions,
+                        ..refined.clone()
+                    };
+                    let sigma = density_grid(&carried, &self.grid, cutoff);
+                    (sigma - sigma_target.clone()).powi_scalar(2).mean() / scale.clone()
+                }
+                None => {
+                    let weight = kept.clone() * moved.left_box.bool_not().float();
+                    let miss = ((moved.positions - refined.means.clone()) * in_cells.clone())
+                        .powi_scalar(2)
+                        .sum_dim(1)
+                        .reshape([n]);
+                    (miss * weight.clone()).sum() / weight.sum().clamp_min(1.0)
+                }
+            };
+            if config.lambda_increment > 0.0 {
+                loss = loss + self.inertia_prior(delta, sigma_previous.clone());
+            }
+            last = Some((projected.detach(), update.detach()));
             let mut grads = {
                 let _phase = phase!("backward (all ops)");
                 loss.backward()
@@ -1452,6 +1576,16 @@ mod tests {
     /// make (a swirl about the box's vertical axis), and leave recycled rows out.
     #[test]
     fn the_velocity_correction_fits_the_move_of_the_centres() {
+        velocity_correction_fits_a_swirl(CorrectionTarget::Centres);
+    }
+
+    /// The same with the refined density as the target.
+    #[test]
+    fn the_velocity_correction_fits_the_refined_density() {
+        velocity_correction_fits_a_swirl(CorrectionTarget::Density);
+    }
+
+    fn velocity_correction_fits_a_swirl(target: CorrectionTarget) {
         use gausmoke_data::synth::{SynthConfig, generate};
         use gausmoke_render::backends::device_by_name;
         let dir = tempfile::tempdir().unwrap();
@@ -1468,6 +1602,7 @@ mod tests {
             unet_channels: 4,
             time_frequencies: 2,
             correction_iterations: 60,
+            correction_target: target,
             ..TrainConfig::default()
         };
         let device = device_by_name("flex").unwrap().autodiff();
@@ -1512,22 +1647,80 @@ mod tests {
             let squared = (carried - refined.clone()).powi_scalar(2).sum_dim(1).mean();
             squared.into_scalar::<f32>()
         };
-        // Every row recycled: nothing to fit, and Phi (its output layer at zero) stays at rest.
+        // Every row recycled: nothing to fit.
         let all: Vec<usize> = (0..n).collect();
-        let (rest, _) = trainer
+        let rest = trainer
             .correct_velocity(&previous, &still, &all, 0.5, 0.01)
             .unwrap();
-        let largest = rest.abs().max().into_scalar::<f32>();
-        assert!(largest < 1e-6, "{largest}");
+        assert!(rest.is_none());
         let before = miss(&still);
         let (fitted, _) = trainer
             .correct_velocity(&previous, &still, &[], 0.5, 0.01)
+            .unwrap()
             .unwrap();
         let after = miss(&fitted);
         assert!(
             after < 0.3 * before,
             "mean squared miss {after} after the correction, {before} before"
         );
+    }
+
+    /// The persistence of the refinement's moves is their correlation with the frame
+    /// before's: 1 for the same moves, -1 for reversed ones, about 0 for unrelated ones,
+    /// and rows that jumped this frame do not count.
+    #[test]
+    fn the_persistence_of_the_moves_is_their_correlation_with_the_frame_before() {
+        let (_, device) = cpu_devices().into_iter().next().unwrap();
+        let grid = GridSpec::new(Vec3::ZERO, Vec3::ONE, [8, 8, 8], 1).unwrap();
+        let mut rng = SplitMix64::new(3);
+        let n = 500;
+        let mut random = |lo: f32, hi: f32| -> Tensor<2> {
+            let values: Vec<f32> = (0..3 * n).map(|_| rng.range(lo, hi)).collect();
+            Tensor::from_data(TensorData::new(values, [n, 3]), &device)
+        };
+        let centres = random(0.05, 0.95);
+        let moves = random(-1.0, 1.0);
+        let unrelated = random(-1.0, 1.0);
+        let masses = Tensor::<1>::ones([n], &device);
+        let scale = GridScale::new(&grid, centres, masses);
+        let none = Tensor::<1>::zeros([n], &device);
+        let frame = |m: Tensor<2>| FrameMoves {
+            grid_part: scale.grid_part(m.clone()),
+            moves: m,
+        };
+        let persistence = |before: Option<&FrameMoves>, jumped: &Tensor<1>| {
+            refine_moves(&scale, moves.clone(), before, jumped)
+                .0
+                .persistence
+        };
+        assert_eq!(persistence(None, &none), None);
+        let close = |got: Option<[f64; 2]>, want: f64, tolerance: f64| {
+            let got = got.expect("a frame before");
+            assert!(
+                got.iter().all(|g| (g - want).abs() < tolerance),
+                "{got:?} against {want}"
+            );
+        };
+        close(persistence(Some(&frame(moves.clone())), &none), 1.0, 1e-4);
+        close(persistence(Some(&frame(-moves.clone())), &none), -1.0, 1e-4);
+        close(
+            persistence(Some(&frame(unrelated.clone())), &none),
+            0.0,
+            0.15,
+        );
+        // The first half jumped, and only there did the moves change.
+        let half: Vec<f32> = (0..n).map(|i| if i < n / 2 { 1.0 } else { 0.0 }).collect();
+        let jumped = Tensor::<1>::from_data(TensorData::new(half.clone(), [n]), &device);
+        let first_half = Tensor::<2>::from_data(TensorData::new(half, [n, 1]), &device);
+        let changed = moves.clone() * (first_half.clone().neg() + 1.0) + unrelated * first_half;
+        let persistence_of = |jumped: &Tensor<1>| {
+            refine_moves(&scale, moves.clone(), Some(&frame(changed.clone())), jumped)
+                .0
+                .persistence
+                .expect("a frame before")[0]
+        };
+        assert!((persistence_of(&jumped) - 1.0).abs() < 1e-4);
+        assert!(persistence_of(&none) < 0.8);
     }
 
     /// The tensor form that keeps smoke centres out of obstacles against its host twin,

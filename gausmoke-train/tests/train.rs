@@ -1104,6 +1104,10 @@ fn the_refinement_moves_can_be_tied_at_the_grid_scale_or_below_it() {
         "the refinement moved nothing: {free:?}"
     );
     assert!((0.0..=1.0).contains(&free.shuffled_grid_share), "{free:?}");
+    assert_eq!(
+        free.persistence, None,
+        "the first frame refined has none before it"
+    );
     let sub_grid_tied = frame_1(|c| c.lambda_refine_subgrid = 1e4, "sub-grid tied");
     let grid_tied = frame_1(|c| c.lambda_refine_grid = 1e4, "grid tied");
     assert!(
