@@ -112,9 +112,10 @@ impl GridScale {
         Self::new(grid, gaussians.means.clone().detach(), masses)
     }
 
-    /// The grid-scale part of `moves` (`[n, c]`): at each cell centre the mass-weighted mean
-    /// of the moves of the Gaussians around it, sampled back at each Gaussian.
-    pub fn grid_part(&self, moves: Tensor<2>) -> Tensor<2> {
+    /// At each cell centre the mass-weighted mean of the `moves` (`[n, c]`) of the Gaussians
+    /// around it (trilinear weights), 0 where none reaches: `[cells, c]`, cells in the grid's
+    /// row-major order (x slowest).
+    pub fn cell_means(&self, moves: Tensor<2>) -> Tensor<2> {
         let [n, c] = moves.dims();
         assert_eq!(n, self.points, "moves must have one row per Gaussian");
         let per_corner = moves
@@ -127,7 +128,14 @@ impl GridScale {
             per_corner * self.massed.clone(),
             IndexingUpdateOp::Add,
         );
-        let means = sums * self.inverse_cell_mass.clone();
+        sums * self.inverse_cell_mass.clone()
+    }
+
+    /// The grid-scale part of `moves` (`[n, c]`): [`Self::cell_means`] sampled back at each
+    /// Gaussian.
+    pub fn grid_part(&self, moves: Tensor<2>) -> Tensor<2> {
+        let [n, c] = moves.dims();
+        let means = self.cell_means(moves);
         (means.select(0, self.corners.clone()) * self.trilinear.clone())
             .reshape([n, CORNERS, c])
             .sum_dim(1)

@@ -314,6 +314,12 @@ pub struct TrainConfig {
     /// refined Gaussians' density on the grid). Either way Phi's increment also pays the
     /// inertia prior (`lambda_increment`) there, as in the joint iterations.
     pub correction_target: CorrectionTarget,
+    /// Share of the refinement's move, at the velocity grid's scale, added to the frame's
+    /// velocity as a velocity (ours; 0 = the paper's method): after the refinement, at each
+    /// cell the mass-weighted mean move of the Gaussians around it, times this share over
+    /// `dt`, is added and the sum projected again, so the motion the pictures asked for and
+    /// the velocity missed is carried on to the next frame. Phi is not changed.
+    pub refine_velocity_share: f32,
     /// Time step of the velocity update and advection, in frames.
     pub dt: f32,
     /// Channels of the U-Net's first level.
@@ -454,6 +460,7 @@ impl Default for TrainConfig {
             lr_buoyancy: 3e-4,
             correction_iterations: 0,
             correction_target: CorrectionTarget::Centres,
+            refine_velocity_share: 0.0,
             dt: 1.0,
             unet_channels: 16,
             time_frequencies: 4,
@@ -671,6 +678,26 @@ impl TrainConfig {
             return bad(
                 "buoyancy_free_increment changes the inertia prior, which is off: set \
                  lambda_increment > 0 too"
+                    .into(),
+            );
+        }
+        if !(self.refine_velocity_share.is_finite() && self.refine_velocity_share >= 0.0) {
+            return bad(format!(
+                "refine_velocity_share must be >= 0, got {}",
+                self.refine_velocity_share
+            ));
+        }
+        if self.refine_velocity_share > 0.0 && !self.refinement {
+            return bad(
+                "refine_velocity_share adds the refinement's move to the velocity, and the \
+                 refinement is off: set refinement = true too"
+                    .into(),
+            );
+        }
+        if self.refine_velocity_share > 0.0 && self.correction_iterations > 0 {
+            return bad(
+                "refine_velocity_share and correction_iterations both make the frame's velocity \
+                 from the refinement's move: set one of them to 0"
                     .into(),
             );
         }
@@ -902,6 +929,13 @@ mod tests {
                     ..TrainConfig::default()
                 },
                 "correction_iterations",
+            ),
+            (
+                TrainConfig {
+                    refine_velocity_share: -0.5,
+                    ..TrainConfig::default()
+                },
+                "refine_velocity_share",
             ),
             (
                 TrainConfig {

@@ -1076,8 +1076,12 @@ impl Trainer {
         traffic.push(LoopTraffic::of(Phase::Refine, refine_iterations, start));
         let refine_moves = match grid_scale {
             Some(scale) => {
-                let moves = (self.state.gaussians.means.val().detach() - anchor)
-                    * self.cells_per_world_unit().reshape([1, 3]);
+                let moves = self.state.gaussians.means.val().detach() - anchor;
+                if config.refine_velocity_share > 0.0 {
+                    (velocity, unprojected) =
+                        self.with_refinement_moves(velocity, &scale, moves.clone());
+                }
+                let moves = moves * self.cells_per_world_unit().reshape([1, 3]);
                 let [n, _] = moves.dims();
                 let mut jumped = vec![0.0f32; n];
                 for &i in &moved {
@@ -1118,6 +1122,22 @@ impl Trainer {
             traffic,
             buoyancy: self.buoyancy_coefficient(),
         })
+    }
+
+    /// `velocity` with `refine_velocity_share` of the refinement's `moves` (world units, one
+    /// row per Gaussian `scale` was built for) added as a velocity at the grid's scale, then
+    /// projected: the projected and the unprojected sum.
+    fn with_refinement_moves(
+        &self,
+        velocity: Tensor<4>,
+        scale: &GridScale,
+        moves: Tensor<2>,
+    ) -> (Tensor<4>, Tensor<4>) {
+        let [nx, ny, nz] = self.grid.resolution();
+        let moved_by = scale.cell_means(moves).reshape([nx, ny, nz, 3])
+            * (self.config.refine_velocity_share / self.config.dt);
+        let unprojected = velocity + moved_by;
+        (self.project(unprojected.clone()), unprojected)
     }
 
     /// Fits Phi so that the frame's velocity carries the previous centres to where the
@@ -1663,6 +1683,68 @@ mod tests {
             after < 0.3 * before,
             "mean squared miss {after} after the correction, {before} before"
         );
+    }
+
+    /// A swirl of the centres (a move a velocity can make) comes back as that velocity,
+    /// scaled by `refine_velocity_share`, where the Gaussians are.
+    #[test]
+    fn the_refinement_moves_become_a_share_of_the_velocity() {
+        use gausmoke_data::synth::{SynthConfig, generate};
+        use gausmoke_model::sample_velocity;
+        use gausmoke_render::backends::device_by_name;
+        let dir = tempfile::tempdir().unwrap();
+        let data = dir.path().join("data");
+        generate(&SynthConfig::tiny(), &data).unwrap();
+        let device = device_by_name("flex").unwrap().autodiff();
+        for share in [1.0f32, 0.5] {
+            let config = TrainConfig {
+                gaussians: 3000,
+                grid_resolution: 8,
+                frames: Some(2),
+                refine_velocity_share: share,
+                ..TrainConfig::default()
+            };
+            let sequence = Sequence::open(&data, &config).unwrap();
+            let trainer = Trainer::new(sequence, config, device.clone()).unwrap();
+            let grid = trainer.grid;
+            let centres = trainer.state.gaussians.means.val().detach();
+            let [n, _] = centres.dims();
+            let middle = (grid.lo() + grid.hi()) * 0.5;
+            // A tenth of a cell per world unit from the axis, about y.
+            let rate = 0.1 * grid.cell_size().x;
+            let swirl: Vec<f32> = read_floats(centres.clone())
+                .chunks_exact(3)
+                .flat_map(|p| [-(p[2] - middle.z) * rate, 0.0, (p[0] - middle.x) * rate])
+                .collect();
+            let swirl = Tensor::<2>::from_data(TensorData::new(swirl, [n, 3]), &device);
+            let scale = GridScale::of(&grid, &trainer.state.gaussians.tensors());
+            let [nx, ny, nz] = grid.resolution();
+            let still = Tensor::<4>::zeros([nx, ny, nz, 3], &device);
+            let (velocity, _) = trainer.with_refinement_moves(still, &scale, swirl.clone());
+            let at_centres =
+                sample_velocity(&grid, &velocity, &centres, Interpolation::Trilinear).velocity;
+            // Away from the walls, which the swirl crosses near the box's corners and the
+            // projection does not let it.
+            let half = 0.3 * (grid.hi().x - grid.lo().x);
+            let inner: Vec<f32> = read_floats(centres.clone())
+                .chunks_exact(3)
+                .map(|p| {
+                    let inside = (p[0] - middle.x).abs() < half && (p[2] - middle.z).abs() < half;
+                    f32::from(u8::from(inside))
+                })
+                .collect();
+            let inner = Tensor::<2>::from_data(TensorData::new(inner, [n, 1]), &device);
+            let expected = swirl * share * inner.clone();
+            let miss = (at_centres * inner - expected.clone())
+                .powi_scalar(2)
+                .sum()
+                .into_scalar::<f32>();
+            let size = expected.powi_scalar(2).sum().into_scalar::<f32>();
+            assert!(
+                miss < 0.1 * size,
+                "share {share}: squared miss {miss} against the move's {size}"
+            );
+        }
     }
 
     /// The persistence of the refinement's moves is their correlation with the frame
