@@ -520,6 +520,7 @@ fn frame_report(
             .refine_moves
             .and_then(|m| m.persistence)
             .map(|[whole, _]| whole),
+        refine_move_flow_share: outcome.refine_moves.map(|m| m.flow_share),
         refine_move_grid_persistence: outcome
             .refine_moves
             .and_then(|m| m.persistence)

@@ -414,6 +414,7 @@ impl RunFolder {
                         per_frame("same moves shuffled", |r| r.refine_move_grid_share_shuffled),
                         per_frame("persistence", |r| r.refine_move_persistence),
                         per_frame("grid-scale persistence", |r| r.refine_move_grid_persistence),
+                        per_frame("share a flow can make", |r| r.refine_move_flow_share),
                     ],
                 },
             ),
@@ -483,7 +484,8 @@ speed.png          per frame: mean and max speed of the velocity (world units pe
 psnr.png           per frame: held-out PSNR (dB)
 refine_moves.png   per frame: share of the refinement's move at the velocity grid's scale,
                    the share the same moves shuffled among the Gaussians reach, and the
-                   moves' correlation with the frame before's (whole and grid-scale part)
+                   moves' correlation with the frame before's (whole and grid-scale part),
+                   and the share of their grid-scale field a divergence-free flow can make
 renders/VIEW/      per-frame renders of every camera (train and held-out)
 comparison/        per frame: held-out reference | render; comparison.gif and
                    comparison.mp4 (H.264, 10 frames per second) animate them

@@ -154,6 +154,10 @@ pub struct FrameReport {
     pub refine_move_persistence: Option<f64>,
     #[serde(default)]
     pub refine_move_grid_persistence: Option<f64>,
+    /// Share of the moves' grid-scale field that the projection keeps (the part a
+    /// divergence-free velocity can make).
+    #[serde(default)]
+    pub refine_move_flow_share: Option<f64>,
     /// The explicit buoyancy force's coefficient after the frame (`buoyancy_force`): the
     /// upward change of velocity per frame at the densest cell, world units per frame.
     #[serde(default)]

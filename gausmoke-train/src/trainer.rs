@@ -106,6 +106,10 @@ pub struct RefineMoves {
     /// moves do not persist. Gaussians that jumped this frame are left out; `None` at the
     /// first frame the trainer refines (after a start or a resume).
     pub persistence: Option<[f64; 2]>,
+    /// Share of the grid-scale move field (at each cell the mass-weighted mean move around
+    /// it) that the projection keeps: the part a divergence-free velocity can make; the rest
+    /// gathers or spreads the Gaussians.
+    pub flow_share: f64,
 }
 
 /// One frame's refinement moves (in cells) and their grid-scale parts, kept for the next
@@ -118,12 +122,14 @@ struct FrameMoves {
 
 /// [`RefineMoves`] of `moves` (`[n, 3]`, in cells), against the frame before's where there
 /// is one, leaving out the rows `jumped` marks (`[n]`, 1 for a row that jumped), in one read.
+/// `flow` holds the mean squares of the moves' cell field before and after the projection.
 /// Returns the frame's moves too, for the next frame.
 fn refine_moves(
     scale: &GridScale,
     moves: Tensor<2>,
     before: Option<&FrameMoves>,
     jumped: &Tensor<1>,
+    flow: [Tensor<1>; 2],
 ) -> (RefineMoves, FrameMoves) {
     let [n, _] = moves.dims();
     // A stride coprime to n shuffles the rows deterministically.
@@ -141,6 +147,7 @@ fn refine_moves(
         scale.mean_square(shuffled.clone()),
         scale.mean_square(scale.grid_part(shuffled)),
     ];
+    parts.extend(flow);
     let before = before.filter(|b| b.moves.dims() == [n, 3]);
     if let Some(before) = before {
         // Weighted dot products from mean squares: a.b = (|a + b|^2 - |a - b|^2) / 4.
@@ -174,13 +181,14 @@ fn refine_moves(
             0.0
         }
     };
-    let persistence = (v.len() == 12).then(|| [correlation(&v[4..8]), correlation(&v[8..12])]);
+    let persistence = (v.len() == 14).then(|| [correlation(&v[6..10]), correlation(&v[10..14])]);
     (
         RefineMoves {
             rms_cells: (v[0] as f64).sqrt(),
             grid_share: share(v[1], v[0]),
             shuffled_grid_share: share(v[3], v[2]),
             persistence,
+            flow_share: share(v[5], v[4]),
         },
         FrameMoves { moves, grid_part },
     )
@@ -1081,6 +1089,7 @@ impl Trainer {
                     (velocity, unprojected) =
                         self.with_refinement_moves(velocity, &scale, moves.clone());
                 }
+                let flow = self.move_field_and_flow(&scale, moves.clone());
                 let moves = moves * self.cells_per_world_unit().reshape([1, 3]);
                 let [n, _] = moves.dims();
                 let mut jumped = vec![0.0f32; n];
@@ -1089,7 +1098,7 @@ impl Trainer {
                 }
                 let jumped = Tensor::<1>::from_data(TensorData::new(jumped, [n]), &self.device);
                 let (report, frame_moves) =
-                    refine_moves(&scale, moves, self.last_moves.as_ref(), &jumped);
+                    refine_moves(&scale, moves, self.last_moves.as_ref(), &jumped, flow);
                 self.last_moves = Some(frame_moves);
                 Some(report)
             }
@@ -1122,6 +1131,17 @@ impl Trainer {
             traffic,
             buoyancy: self.buoyancy_coefficient(),
         })
+    }
+
+    /// The mean squares (cells per frame) of the grid-scale field of `moves` (world units,
+    /// one row per Gaussian `scale` was built for) and of its projection.
+    fn move_field_and_flow(&self, scale: &GridScale, moves: Tensor<2>) -> [Tensor<1>; 2] {
+        let [nx, ny, nz] = self.grid.resolution();
+        let field = scale.cell_means(moves).reshape([nx, ny, nz, 3]);
+        [
+            self.mean_square_in_cells(field.clone()),
+            self.mean_square_in_cells(self.project(field)),
+        ]
     }
 
     /// `velocity` with `refine_velocity_share` of the refinement's `moves` (world units, one
@@ -1734,7 +1754,7 @@ mod tests {
                 })
                 .collect();
             let inner = Tensor::<2>::from_data(TensorData::new(inner, [n, 1]), &device);
-            let expected = swirl * share * inner.clone();
+            let expected = swirl.clone() * share * inner.clone();
             let miss = (at_centres * inner - expected.clone())
                 .powi_scalar(2)
                 .sum()
@@ -1743,6 +1763,30 @@ mod tests {
             assert!(
                 miss < 0.1 * size,
                 "share {share}: squared miss {miss} against the move's {size}"
+            );
+            // The swirl is a flow, a gathering towards the middle is not.
+            let gathering: Vec<f32> = read_floats(centres.clone())
+                .chunks_exact(3)
+                .flat_map(|p| {
+                    [
+                        -(p[0] - middle.x) * rate,
+                        -(p[1] - middle.y) * rate,
+                        -(p[2] - middle.z) * rate,
+                    ]
+                })
+                .collect();
+            let gathering = Tensor::<2>::from_data(TensorData::new(gathering, [n, 3]), &device);
+            let flow_share = |moves: Tensor<2>| {
+                let [whole, kept] = trainer
+                    .move_field_and_flow(&scale, moves)
+                    .map(|t| t.into_scalar::<f32>());
+                kept / whole
+            };
+            let swirl_share = flow_share(swirl.clone());
+            let gathering_share = flow_share(gathering);
+            assert!(
+                swirl_share > 0.7 && gathering_share < 0.1,
+                "the projection keeps {swirl_share} of the swirl, {gathering_share} of the gathering"
             );
         }
     }
@@ -1766,12 +1810,16 @@ mod tests {
         let masses = Tensor::<1>::ones([n], &device);
         let scale = GridScale::new(&grid, centres, masses);
         let none = Tensor::<1>::zeros([n], &device);
+        // A field of mean square 4 of which the projection keeps 1.
+        let flow = || [4.0f32, 1.0].map(|v| Tensor::<1>::from_data([v], &device));
+        let report = refine_moves(&scale, moves.clone(), None, &none, flow()).0;
+        assert!((report.flow_share - 0.25).abs() < 1e-6, "{report:?}");
         let frame = |m: Tensor<2>| FrameMoves {
             grid_part: scale.grid_part(m.clone()),
             moves: m,
         };
         let persistence = |before: Option<&FrameMoves>, jumped: &Tensor<1>| {
-            refine_moves(&scale, moves.clone(), before, jumped)
+            refine_moves(&scale, moves.clone(), before, jumped, flow())
                 .0
                 .persistence
         };
@@ -1796,10 +1844,16 @@ mod tests {
         let first_half = Tensor::<2>::from_data(TensorData::new(half, [n, 1]), &device);
         let changed = moves.clone() * (first_half.clone().neg() + 1.0) + unrelated * first_half;
         let persistence_of = |jumped: &Tensor<1>| {
-            refine_moves(&scale, moves.clone(), Some(&frame(changed.clone())), jumped)
-                .0
-                .persistence
-                .expect("a frame before")[0]
+            refine_moves(
+                &scale,
+                moves.clone(),
+                Some(&frame(changed.clone())),
+                jumped,
+                flow(),
+            )
+            .0
+            .persistence
+            .expect("a frame before")[0]
         };
         assert!((persistence_of(&jumped) - 1.0).abs() < 1e-4);
         assert!(persistence_of(&none) < 0.8);
