@@ -112,6 +112,39 @@ pub struct RefineMoves {
     pub flow_share: f64,
 }
 
+/// The refinement's moves as a field on the velocity grid and how to project it, for
+/// [`RefineMoves::flow_share`].
+struct MoveField<'a> {
+    /// At each cell the mass-weighted mean move around it, world units, `[nx, ny, nz, 3]`.
+    field: Tensor<4>,
+    grid: &'a GridSpec,
+    projection: ProjectionOptions,
+}
+
+impl MoveField<'_> {
+    /// The share of the mean square (in cells) of `values`, this field read back, that the
+    /// exact projection keeps; projects `values` in place.
+    fn flow_share(&self, values: &mut [f32]) -> f64 {
+        let cell = self.grid.cell_size();
+        let mean_square = |values: &[f32]| -> f64 {
+            values
+                .chunks_exact(3)
+                .map(|u| {
+                    let (x, y, z) = (u[0] / cell.x, u[1] / cell.y, u[2] / cell.z);
+                    (x * x + y * y + z * z) as f64
+                })
+                .sum()
+        };
+        let whole = mean_square(values);
+        project_direct(self.grid, values, &self.projection);
+        if whole > 0.0 {
+            mean_square(values) / whole
+        } else {
+            0.0
+        }
+    }
+}
+
 /// One frame's refinement moves (in cells) and their grid-scale parts, kept for the next
 /// frame's [`RefineMoves::persistence`].
 #[derive(Debug, Clone)]
@@ -122,14 +155,14 @@ struct FrameMoves {
 
 /// [`RefineMoves`] of `moves` (`[n, 3]`, in cells), against the frame before's where there
 /// is one, leaving out the rows `jumped` marks (`[n]`, 1 for a row that jumped), in one read.
-/// `flow` holds the mean squares of the moves' cell field before and after the projection.
-/// Returns the frame's moves too, for the next frame.
+/// `field` is the moves' grid-scale field, read with the rest and projected on the host (a
+/// device solve would read its residuals). Returns the frame's moves too, for the next frame.
 fn refine_moves(
     scale: &GridScale,
     moves: Tensor<2>,
     before: Option<&FrameMoves>,
     jumped: &Tensor<1>,
-    flow: [Tensor<1>; 2],
+    field: &MoveField,
 ) -> (RefineMoves, FrameMoves) {
     let [n, _] = moves.dims();
     // A stride coprime to n shuffles the rows deterministically.
@@ -147,7 +180,6 @@ fn refine_moves(
         scale.mean_square(shuffled.clone()),
         scale.mean_square(scale.grid_part(shuffled)),
     ];
-    parts.extend(flow);
     let before = before.filter(|b| b.moves.dims() == [n, 3]);
     if let Some(before) = before {
         // Weighted dot products from mean squares: a.b = (|a + b|^2 - |a - b|^2) / 4.
@@ -165,7 +197,11 @@ fn refine_moves(
             ]);
         }
     }
-    let v = read_floats(Tensor::cat(parts, 0));
+    let scalars = parts.len();
+    let field_len = field.field.shape().num_elements();
+    parts.push(field.field.clone().reshape([field_len]));
+    let mut v = read_floats(Tensor::cat(parts, 0));
+    let flow_share = field.flow_share(&mut v[scalars..]);
     let share = |part: f32, whole: f32| {
         if whole > 0.0 {
             (part / whole) as f64
@@ -181,14 +217,14 @@ fn refine_moves(
             0.0
         }
     };
-    let persistence = (v.len() == 14).then(|| [correlation(&v[6..10]), correlation(&v[10..14])]);
+    let persistence = (scalars == 12).then(|| [correlation(&v[4..8]), correlation(&v[8..12])]);
     (
         RefineMoves {
             rms_cells: (v[0] as f64).sqrt(),
             grid_share: share(v[1], v[0]),
             shuffled_grid_share: share(v[3], v[2]),
             persistence,
-            flow_share: share(v[5], v[4]),
+            flow_share,
         },
         FrameMoves { moves, grid_part },
     )
@@ -1089,7 +1125,7 @@ impl Trainer {
                     (velocity, unprojected) =
                         self.with_refinement_moves(velocity, &scale, moves.clone());
                 }
-                let flow = self.move_field_and_flow(&scale, moves.clone());
+                let field = self.move_field(&scale, moves.clone());
                 let moves = moves * self.cells_per_world_unit().reshape([1, 3]);
                 let [n, _] = moves.dims();
                 let mut jumped = vec![0.0f32; n];
@@ -1098,7 +1134,7 @@ impl Trainer {
                 }
                 let jumped = Tensor::<1>::from_data(TensorData::new(jumped, [n]), &self.device);
                 let (report, frame_moves) =
-                    refine_moves(&scale, moves, self.last_moves.as_ref(), &jumped, flow);
+                    refine_moves(&scale, moves, self.last_moves.as_ref(), &jumped, &field);
                 self.last_moves = Some(frame_moves);
                 Some(report)
             }
@@ -1133,15 +1169,15 @@ impl Trainer {
         })
     }
 
-    /// The mean squares (cells per frame) of the grid-scale field of `moves` (world units,
-    /// one row per Gaussian `scale` was built for) and of its projection.
-    fn move_field_and_flow(&self, scale: &GridScale, moves: Tensor<2>) -> [Tensor<1>; 2] {
+    /// The grid-scale field of `moves` (world units, one row per Gaussian `scale` was built
+    /// for), with this run's walls and obstacles for its projection.
+    fn move_field(&self, scale: &GridScale, moves: Tensor<2>) -> MoveField<'_> {
         let [nx, ny, nz] = self.grid.resolution();
-        let field = scale.cell_means(moves).reshape([nx, ny, nz, 3]);
-        [
-            self.mean_square_in_cells(field.clone()),
-            self.mean_square_in_cells(self.project(field)),
-        ]
+        MoveField {
+            field: scale.cell_means(moves).reshape([nx, ny, nz, 3]),
+            grid: &self.grid,
+            projection: self.projection(),
+        }
     }
 
     /// `velocity` with `refine_velocity_share` of the refinement's `moves` (world units, one
@@ -1777,10 +1813,8 @@ mod tests {
                 .collect();
             let gathering = Tensor::<2>::from_data(TensorData::new(gathering, [n, 3]), &device);
             let flow_share = |moves: Tensor<2>| {
-                let [whole, kept] = trainer
-                    .move_field_and_flow(&scale, moves)
-                    .map(|t| t.into_scalar::<f32>());
-                kept / whole
+                let field = trainer.move_field(&scale, moves);
+                field.flow_share(&mut read_floats(field.field.clone()))
             };
             let swirl_share = flow_share(swirl.clone());
             let gathering_share = flow_share(gathering);
@@ -1810,16 +1844,24 @@ mod tests {
         let masses = Tensor::<1>::ones([n], &device);
         let scale = GridScale::new(&grid, centres, masses);
         let none = Tensor::<1>::zeros([n], &device);
-        // A field of mean square 4 of which the projection keeps 1.
-        let flow = || [4.0f32, 1.0].map(|v| Tensor::<1>::from_data([v], &device));
-        let report = refine_moves(&scale, moves.clone(), None, &none, flow()).0;
-        assert!((report.flow_share - 0.25).abs() < 1e-6, "{report:?}");
+        // The field's share is the swirl test's business; a still one has none.
+        let field = MoveField {
+            field: Tensor::<4>::zeros([8, 8, 8, 3], &device),
+            grid: &grid,
+            projection: ProjectionOptions::default(),
+        };
+        assert_eq!(
+            refine_moves(&scale, moves.clone(), None, &none, &field)
+                .0
+                .flow_share,
+            0.0
+        );
         let frame = |m: Tensor<2>| FrameMoves {
             grid_part: scale.grid_part(m.clone()),
             moves: m,
         };
         let persistence = |before: Option<&FrameMoves>, jumped: &Tensor<1>| {
-            refine_moves(&scale, moves.clone(), before, jumped, flow())
+            refine_moves(&scale, moves.clone(), before, jumped, &field)
                 .0
                 .persistence
         };
@@ -1849,7 +1891,7 @@ mod tests {
                 moves.clone(),
                 Some(&frame(changed.clone())),
                 jumped,
-                flow(),
+                &field,
             )
             .0
             .persistence
