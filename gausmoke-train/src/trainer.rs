@@ -122,11 +122,11 @@ struct MoveField<'a> {
 }
 
 impl MoveField<'_> {
-    /// The share of the mean square (in cells) of `values`, this field read back, that the
+    /// The share of the sum of squares (in cells) of `values`, this field read back, that the
     /// exact projection keeps; projects `values` in place.
     fn flow_share(&self, values: &mut [f32]) -> f64 {
         let cell = self.grid.cell_size();
-        let mean_square = |values: &[f32]| -> f64 {
+        let sum_of_squares = |values: &[f32]| -> f64 {
             values
                 .chunks_exact(3)
                 .map(|u| {
@@ -135,10 +135,10 @@ impl MoveField<'_> {
                 })
                 .sum()
         };
-        let whole = mean_square(values);
+        let whole = sum_of_squares(values);
         project_direct(self.grid, values, &self.projection);
         if whole > 0.0 {
-            mean_square(values) / whole
+            sum_of_squares(values) / whole
         } else {
             0.0
         }
@@ -787,6 +787,8 @@ impl Trainer {
 
     /// Frame 0: a static fit with per-attribute learning rates.
     pub fn fit_first_frame(&mut self) -> Result<FrameOutcome, TrainError> {
+        // A new sequence of refinements: no moves before the next one.
+        self.last_moves = None;
         let observations = self.sequence.train[0].clone();
         let targets: Vec<Tensor<3>> = observations
             .iter()
