@@ -318,7 +318,7 @@ pub struct TrainConfig {
     /// velocity as a velocity (ours; 0 = the paper's method): after the refinement, at each
     /// cell the mass-weighted mean move of the Gaussians around it, times this share over
     /// `dt`, is added and the sum projected again, so the motion the pictures asked for and
-    /// the velocity missed is carried on to the next frame. Phi is not changed.
+    /// the velocity missed is carried on to the next frame. Phi is not changed. In [0, 1].
     pub refine_velocity_share: f32,
     /// Time step of the velocity update and advection, in frames.
     pub dt: f32,
@@ -681,9 +681,9 @@ impl TrainConfig {
                     .into(),
             );
         }
-        if !(self.refine_velocity_share.is_finite() && self.refine_velocity_share >= 0.0) {
+        if !(0.0..=1.0).contains(&self.refine_velocity_share) {
             return bad(format!(
-                "refine_velocity_share must be >= 0, got {}",
+                "refine_velocity_share must be in [0, 1], got {}",
                 self.refine_velocity_share
             ));
         }

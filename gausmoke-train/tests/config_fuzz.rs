@@ -25,6 +25,7 @@ const KEYS: &[(&str, bool)] = &[
     ("refine_iterations", false),
     ("refine_views_per_step", true),
     ("correction_iterations", false),
+    ("refine_velocity_share", true),
     ("lr_velocity", true),
     ("lr_gaussians", true),
     ("lr_buoyancy", true),
