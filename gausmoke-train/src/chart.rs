@@ -173,11 +173,17 @@ pub fn draw(chart: &Chart, width: u32, height: u32) -> Picture {
         .unwrap_or(0);
     let has_legend =
         chart.series.len() > 1 || chart.series.first().is_some_and(|s| !s.label.is_empty());
-    let (left, right, top, bottom) = (
-        label_width + 8 + GLYPH + 10,
-        width as i64 - 12,
+    let (left, right) = (label_width + 8 + GLYPH + 10, width as i64 - 12);
+    let entry = |label: &str| text_width(label) + 30;
+    let legend = if has_legend {
+        let widths: Vec<i64> = chart.series.iter().map(|s| entry(&s.label)).collect();
+        legend_rows(&widths, right - left)
+    } else {
+        Vec::new()
+    };
+    let (top, bottom) = (
         if has_legend {
-            2 * GLYPH + 20
+            GLYPH + 10 + legend.len() as i64 * (GLYPH + 10)
         } else {
             GLYPH + 16
         },
@@ -269,26 +275,53 @@ pub fn draw(chart: &Chart, width: u32, height: u32) -> Picture {
         }
     }
 
-    // Legend: one row between the title and the axes, right-aligned, so it hides no data.
-    if has_legend {
-        let entry = |label: &str| text_width(label) + 30;
-        let mut x = right - chart.series.iter().map(|s| entry(&s.label)).sum::<i64>();
-        let y = GLYPH + 10;
-        for (s, series) in chart.series.iter().enumerate() {
+    // Legend: rows between the title and the axes, right-aligned, so it hides no data.
+    for (row, range) in legend.iter().enumerate() {
+        let series = &chart.series[range.clone()];
+        let mut x = right - series.iter().map(|s| entry(&s.label)).sum::<i64>();
+        let y = GLYPH + 10 + row as i64 * (GLYPH + 10);
+        for (s, one) in range.clone().zip(series) {
             let colour = SERIES_COLOURS[s % SERIES_COLOURS.len()];
             for dy in 3..5 {
                 line(&mut picture, (x, y + dy), (x + 16, y + dy), colour);
             }
-            draw_text(&mut picture, x + 20, y, &series.label, INK, false);
-            x += entry(&series.label);
+            draw_text(&mut picture, x + 20, y, &one.label, INK, false);
+            x += entry(&one.label);
         }
     }
     picture
 }
 
+/// The legend's entries (of `widths`, in pixels) split into rows no wider than `available`,
+/// in order; an entry wider than that gets a row of its own.
+fn legend_rows(widths: &[i64], available: i64) -> Vec<std::ops::Range<usize>> {
+    let mut rows = Vec::new();
+    let (mut start, mut used) = (0, 0);
+    for (i, &width) in widths.iter().enumerate() {
+        if i > start && used + width > available {
+            rows.push(start..i);
+            (start, used) = (i, 0);
+        }
+        used += width;
+    }
+    if start < widths.len() {
+        rows.push(start..widths.len());
+    }
+    rows
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_legend_wraps_into_rows_that_fit() {
+        assert_eq!(legend_rows(&[100, 100, 100], 400), [0..3]);
+        assert_eq!(legend_rows(&[200, 150, 100, 300], 400), [0..2, 2..4]);
+        assert_eq!(legend_rows(&[200, 150, 100, 301], 400), [0..2, 2..3, 3..4]);
+        assert_eq!(legend_rows(&[500, 50], 400), [0..1, 1..2]);
+        assert!(legend_rows(&[], 400).is_empty());
+    }
 
     #[test]
     fn ticks_are_round_numbers_inside_the_range() {
