@@ -405,7 +405,7 @@ impl RunFolder {
                 "refine_moves.png",
                 [640, 320],
                 Chart {
-                    title: "Refinement's move: grid-scale share, persistence".into(),
+                    title: "Refinement's moves: grid-scale share, persistence, flow share".into(),
                     x_label: "frame".into(),
                     y_label: "share of mean square; correlation".into(),
                     log_y: false,
