@@ -687,10 +687,10 @@ impl TrainConfig {
                 self.refine_velocity_share
             ));
         }
-        if self.refine_velocity_share > 0.0 && !self.refinement {
+        if self.refine_velocity_share > 0.0 && !(self.refinement && self.refine_iterations > 0) {
             return bad(
                 "refine_velocity_share adds the refinement's move to the velocity, and the \
-                 refinement is off: set refinement = true too"
+                 refinement is off: set refinement = true and refine_iterations > 0 too"
                     .into(),
             );
         }
@@ -936,6 +936,14 @@ mod tests {
                     ..TrainConfig::default()
                 },
                 "refine_velocity_share",
+            ),
+            (
+                TrainConfig {
+                    refine_velocity_share: 0.5,
+                    refine_iterations: 0,
+                    ..TrainConfig::default()
+                },
+                "refine_iterations",
             ),
             (
                 TrainConfig {
