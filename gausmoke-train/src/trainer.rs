@@ -145,6 +145,15 @@ impl MoveField<'_> {
     }
 }
 
+/// 1 for each of `n` rows listed in `rows`, 0 for the others.
+fn marked_rows(n: usize, rows: &[usize]) -> Vec<f32> {
+    let mut marked = vec![0.0; n];
+    for &i in rows {
+        marked[i] = 1.0;
+    }
+    marked
+}
+
 /// One frame's refinement moves (in cells) and their grid-scale parts, kept for the next
 /// frame's [`RefineMoves::persistence`].
 #[derive(Debug, Clone)]
@@ -1123,17 +1132,13 @@ impl Trainer {
         let refine_moves = match grid_scale {
             Some(scale) => {
                 let moves = self.state.gaussians.means.val().detach() - anchor;
-                if config.refine_velocity_share > 0.0 {
-                    (velocity, unprojected) =
-                        self.with_refinement_moves(velocity, &scale, moves.clone());
-                }
                 let field = self.move_field(&scale, moves.clone());
+                if config.refine_velocity_share > 0.0 {
+                    (velocity, unprojected) = self.with_refinement_moves(velocity, &field.field);
+                }
                 let moves = moves * self.cells_per_world_unit().reshape([1, 3]);
                 let [n, _] = moves.dims();
-                let mut jumped = vec![0.0f32; n];
-                for &i in &moved {
-                    jumped[i] = 1.0;
-                }
+                let jumped = marked_rows(n, &moved);
                 let jumped = Tensor::<1>::from_data(TensorData::new(jumped, [n]), &self.device);
                 let (report, frame_moves) =
                     refine_moves(&scale, moves, self.last_moves.as_ref(), &jumped, &field);
@@ -1182,19 +1187,16 @@ impl Trainer {
         }
     }
 
-    /// `velocity` with `refine_velocity_share` of the refinement's `moves` (world units, one
-    /// row per Gaussian `scale` was built for) added as a velocity at the grid's scale, then
-    /// projected: the projected and the unprojected sum.
+    /// `velocity` with `refine_velocity_share` of the refinement's move `field` (see
+    /// [`MoveField::field`]) added as a velocity, then projected: the projected and the
+    /// unprojected sum.
     fn with_refinement_moves(
         &self,
         velocity: Tensor<4>,
-        scale: &GridScale,
-        moves: Tensor<2>,
+        field: &Tensor<4>,
     ) -> (Tensor<4>, Tensor<4>) {
-        let [nx, ny, nz] = self.grid.resolution();
-        let moved_by = scale.cell_means(moves).reshape([nx, ny, nz, 3])
-            * (self.config.refine_velocity_share / self.config.dt);
-        let unprojected = velocity + moved_by;
+        let unprojected =
+            velocity + field.clone() * (self.config.refine_velocity_share / self.config.dt);
         (self.project(unprojected.clone()), unprojected)
     }
 
@@ -1220,14 +1222,13 @@ impl Trainer {
         let [n, _] = refined.means.dims();
         let previous = self.state.gaussians.tensors_at(previous_means.clone());
         let sigma_previous = density_grid(&previous, &self.grid, cutoff).detach();
-        let mut kept = vec![1.0f32; n];
-        for &i in moved {
-            kept[i] = 0.0;
-        }
-        if !kept.contains(&1.0) {
+        let jumped = marked_rows(n, moved);
+        if !jumped.contains(&0.0) {
             return Ok(None);
         }
-        let kept = Tensor::<1>::from_data(TensorData::new(kept, [n]), &self.device);
+        let kept = Tensor::<1>::from_data(TensorData::new(jumped, [n]), &self.device)
+            .neg()
+            .add_scalar(1.0);
         // The density counts the kept Gaussians only: the others' at (nearly) zero. Detached
         // again because burn 0.22 keeps an op on a detached parameter's value on the tape,
         // which the first step's backward would consume and the next step's refuse.
@@ -1778,7 +1779,8 @@ mod tests {
             let scale = GridScale::of(&grid, &trainer.state.gaussians.tensors());
             let [nx, ny, nz] = grid.resolution();
             let still = Tensor::<4>::zeros([nx, ny, nz, 3], &device);
-            let (velocity, _) = trainer.with_refinement_moves(still, &scale, swirl.clone());
+            let field = trainer.move_field(&scale, swirl.clone());
+            let (velocity, _) = trainer.with_refinement_moves(still, &field.field);
             let at_centres =
                 sample_velocity(&grid, &velocity, &centres, Interpolation::Trilinear).velocity;
             // Away from the walls, which the swirl crosses near the box's corners and the
