@@ -158,24 +158,14 @@ fn write_files(dir: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<
         path: dir.to_path_buf(),
         source,
     })?;
-    state
-        .gaussians
-        .clone()
-        .save_file(dir.join(GAUSSIANS_FILE))
-        .map_err(file_error(dir, GAUSSIANS_FILE))?;
-    state
-        .phi
-        .clone()
-        .save_file(dir.join(PHI_FILE))
-        .map_err(file_error(dir, PHI_FILE))?;
-    state
-        .gaussian_optim
-        .save(dir.join(GAUSSIAN_OPTIM_FILE))
-        .map_err(file_error(dir, GAUSSIAN_OPTIM_FILE))?;
-    state
-        .phi_optim
-        .save(dir.join(PHI_OPTIM_FILE))
-        .map_err(file_error(dir, PHI_OPTIM_FILE))?;
+    save_with_optim(
+        dir,
+        &state.gaussians,
+        &state.gaussian_optim,
+        GAUSSIANS_FILE,
+        GAUSSIAN_OPTIM_FILE,
+    )?;
+    save_with_optim(dir, &state.phi, &state.phi_optim, PHI_FILE, PHI_OPTIM_FILE)?;
     let mut files = TENSOR_FILES.to_vec();
     if let Some(statics) = &state.statics {
         save_with_optim(
@@ -227,7 +217,7 @@ fn file_error(dir: &Path, file: &str) -> impl FnOnce(burn::store::RecordError) -
     move |e| checkpoint_error(&path, e)
 }
 
-/// Writes an optional part of the state, a module and its optimiser, into `dir`.
+/// Writes a part of the state, a module and its optimiser, into `dir`.
 fn save_with_optim<M: Module>(
     dir: &Path,
     module: &M,
@@ -244,7 +234,7 @@ fn save_with_optim<M: Module>(
         .map_err(file_error(dir, optim_file))
 }
 
-/// Reads an optional part of the state, a module and its optimiser, from `dir`.
+/// Reads a part of the state, a module and its optimiser, from `dir`.
 fn load_with_optim<M: Module>(
     dir: &Path,
     module: M,
@@ -305,22 +295,15 @@ pub fn load(
 ) -> Result<(TrainState, CheckpointMeta), TrainError> {
     let meta = read_meta(dir)?;
     verify(dir, &meta)?;
-    let gaussians = state
-        .gaussians
-        .try_load_file(dir.join(GAUSSIANS_FILE))
-        .map_err(file_error(dir, GAUSSIANS_FILE))?;
-    let phi = state
-        .phi
-        .try_load_file(dir.join(PHI_FILE))
-        .map_err(file_error(dir, PHI_FILE))?;
-    let gaussian_optim = state
-        .gaussian_optim
-        .load(dir.join(GAUSSIAN_OPTIM_FILE))
-        .map_err(file_error(dir, GAUSSIAN_OPTIM_FILE))?;
-    let phi_optim = state
-        .phi_optim
-        .load(dir.join(PHI_OPTIM_FILE))
-        .map_err(file_error(dir, PHI_OPTIM_FILE))?;
+    let (gaussians, gaussian_optim) = load_with_optim(
+        dir,
+        state.gaussians,
+        state.gaussian_optim,
+        GAUSSIANS_FILE,
+        GAUSSIAN_OPTIM_FILE,
+    )?;
+    let (phi, phi_optim) =
+        load_with_optim(dir, state.phi, state.phi_optim, PHI_FILE, PHI_OPTIM_FILE)?;
     let statics = match state.statics {
         Some(StaticGaussians { gaussians, optim }) => {
             let (gaussians, optim) =
