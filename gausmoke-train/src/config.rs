@@ -318,8 +318,14 @@ pub struct TrainConfig {
     /// velocity as a velocity (ours; 0 = the paper's method): after the refinement, at each
     /// cell the mass-weighted mean move of the Gaussians around it, times this share over
     /// `dt`, is added and the sum projected again, so the motion the pictures asked for and
-    /// the velocity missed is carried on to the next frame. Phi is not changed. In [0, 1].
+    /// the velocity missed is carried on to the next frame. Phi is not changed. In [0, 1],
+    /// or up to 4 with `refine_velocity_blur` (the moves' large scale under-states the
+    /// velocity's error there: the refinement is tied to where transport put the Gaussians).
     pub refine_velocity_share: f32,
+    /// Width (standard deviation, in cells) of a Gaussian smoothing of that move field before
+    /// it is carried on (ours; 0 = none): only the moves' large scale follows the velocity's
+    /// error, their grid-scale detail does not. In [0, 8]; needs `refine_velocity_share`.
+    pub refine_velocity_blur: f32,
     /// Time step of the velocity update and advection, in frames.
     pub dt: f32,
     /// Channels of the U-Net's first level.
@@ -461,6 +467,7 @@ impl Default for TrainConfig {
             correction_iterations: 0,
             correction_target: CorrectionTarget::Centres,
             refine_velocity_share: 0.0,
+            refine_velocity_blur: 0.0,
             dt: 1.0,
             unet_channels: 16,
             time_frequencies: 4,
@@ -681,11 +688,30 @@ impl TrainConfig {
                     .into(),
             );
         }
-        if !(0.0..=1.0).contains(&self.refine_velocity_share) {
+        if !(0.0..=8.0).contains(&self.refine_velocity_blur) {
             return bad(format!(
-                "refine_velocity_share must be in [0, 1], got {}",
+                "refine_velocity_blur must be in [0, 8] cells, got {}",
+                self.refine_velocity_blur
+            ));
+        }
+        let most_share = if self.refine_velocity_blur > 0.0 {
+            4.0
+        } else {
+            1.0
+        };
+        if !(0.0..=most_share).contains(&self.refine_velocity_share) {
+            return bad(format!(
+                "refine_velocity_share must be in [0, 1] (up to 4 with refine_velocity_blur > \
+                 0), got {}",
                 self.refine_velocity_share
             ));
+        }
+        if self.refine_velocity_blur > 0.0 && self.refine_velocity_share == 0.0 {
+            return bad(
+                "refine_velocity_blur smooths the move field refine_velocity_share carries on, \
+                 and that share is 0: set refine_velocity_share > 0 too"
+                    .into(),
+            );
         }
         if self.refine_velocity_share > 0.0 && !(self.refinement && self.refine_iterations > 0) {
             return bad(
@@ -944,6 +970,28 @@ mod tests {
                     ..TrainConfig::default()
                 },
                 "refine_iterations",
+            ),
+            (
+                TrainConfig {
+                    refine_velocity_share: 2.0,
+                    ..TrainConfig::default()
+                },
+                "refine_velocity_blur",
+            ),
+            (
+                TrainConfig {
+                    refine_velocity_blur: 2.0,
+                    ..TrainConfig::default()
+                },
+                "refine_velocity_share",
+            ),
+            (
+                TrainConfig {
+                    refine_velocity_share: 1.0,
+                    refine_velocity_blur: f32::NAN,
+                    ..TrainConfig::default()
+                },
+                "refine_velocity_blur",
             ),
             (
                 TrainConfig {

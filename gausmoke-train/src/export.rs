@@ -229,13 +229,15 @@ fn npy(values: &[f32], shape: &[usize]) -> Vec<u8> {
     out
 }
 
-/// `density [nx, ny, nz]`, `velocity [nx, ny, nz, 3]`, `lo`, `hi` (world box) in one `.npz`:
+/// `density [nx, ny, nz]`, `velocity [nx, ny, nz, 3]`, `lo`, `hi` (world box) and each of
+/// `vectors` (a name and a `[nx, ny, nz, 3]` field) in one `.npz`:
 /// `np.load(path)["velocity"][i, j, k]` is the velocity of cell (i, j, k).
 pub fn write_npz(
     path: &Path,
     grid: &GridSpec,
     density: &[f32],
     velocity: &[f32],
+    vectors: &[(&str, &[f32])],
 ) -> Result<(), TrainError> {
     let [nx, ny, nz] = grid.resolution();
     let mut buffer = std::io::Cursor::new(Vec::new());
@@ -243,12 +245,17 @@ pub fn write_npz(
         let mut zip = zip::ZipWriter::new(&mut buffer);
         let options =
             zip::write::FileOptions::default().compression_method(zip::CompressionMethod::Stored);
-        let arrays: [(&str, Vec<u8>); 4] = [
-            ("density.npy", npy(density, &[nx, ny, nz])),
-            ("velocity.npy", npy(velocity, &[nx, ny, nz, 3])),
-            ("lo.npy", npy(&grid.lo().to_array(), &[3])),
-            ("hi.npy", npy(&grid.hi().to_array(), &[3])),
+        let mut arrays: Vec<(String, Vec<u8>)> = vec![
+            ("density.npy".into(), npy(density, &[nx, ny, nz])),
+            ("velocity.npy".into(), npy(velocity, &[nx, ny, nz, 3])),
+            ("lo.npy".into(), npy(&grid.lo().to_array(), &[3])),
+            ("hi.npy".into(), npy(&grid.hi().to_array(), &[3])),
         ];
+        arrays.extend(
+            vectors
+                .iter()
+                .map(|(name, values)| (format!("{name}.npy"), npy(values, &[nx, ny, nz, 3]))),
+        );
         for (name, data) in arrays {
             zip.start_file(name, options)
                 .and_then(|_| zip.write_all(&data).map_err(Into::into))

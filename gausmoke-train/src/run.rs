@@ -406,6 +406,7 @@ impl Run {
                 &state,
                 &views,
                 self.trainer.config.ply_axes,
+                outcome.refine_move_field.as_ref(),
             )?;
         }
 
@@ -521,6 +522,14 @@ fn frame_report(
             .and_then(|m| m.persistence)
             .map(|[whole, _]| whole),
         refine_move_flow_share: outcome.refine_moves.map(|m| m.flow_share),
+        refine_move_flow_persistence: outcome
+            .refine_moves
+            .and_then(|m| m.field_persistence)
+            .map(|[flow, _]| flow),
+        refine_move_gathering_persistence: outcome
+            .refine_moves
+            .and_then(|m| m.field_persistence)
+            .map(|[_, gathering]| gathering),
         refine_move_grid_persistence: outcome
             .refine_moves
             .and_then(|m| m.persistence)

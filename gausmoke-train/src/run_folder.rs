@@ -12,7 +12,7 @@ use crate::arrays::{HostArrays, read_arrays, take_array, write_arrays};
 use crate::config::{PlyAxes, TrainConfig};
 use crate::export::{self, write_atomic};
 pub use crate::state::PhaseSeconds;
-use crate::state::{FrameReport, LossRow};
+use crate::state::{FrameReport, LossRow, RefineMoveField};
 use crate::visuals::{self, Picture};
 use crate::{TrainError, checkpoint};
 
@@ -278,6 +278,7 @@ impl RunFolder {
         state: &FrameState,
         renders: &[ViewRender],
         ply_axes: PlyAxes,
+        refine_moves: Option<&RefineMoveField>,
     ) -> Result<(), TrainError> {
         for view in renders {
             let dir = self.root.join("renders").join(view.name);
@@ -318,11 +319,20 @@ impl RunFolder {
             &state.density,
             &state.velocity,
         )?;
+        let vectors: Vec<(&str, &[f32])> = refine_moves
+            .map(|m| {
+                vec![
+                    ("refine_move", &m.moves[..]),
+                    ("refine_move_flow", &m.flow[..]),
+                ]
+            })
+            .unwrap_or_default();
         export::write_npz(
             &dir.join(format!("grid_{t:03}.npz")),
             grid,
             &state.density,
             &state.velocity,
+            &vectors,
         )
     }
 
@@ -415,6 +425,12 @@ impl RunFolder {
                         per_frame("persistence", |r| r.refine_move_persistence),
                         per_frame("grid-scale persistence", |r| r.refine_move_grid_persistence),
                         per_frame("share a flow can make", |r| r.refine_move_flow_share),
+                        per_frame("field's flow part's persistence", |r| {
+                            r.refine_move_flow_persistence
+                        }),
+                        per_frame("field's gathering part's persistence", |r| {
+                            r.refine_move_gathering_persistence
+                        }),
                     ],
                 },
             ),
@@ -485,7 +501,8 @@ psnr.png           per frame: held-out PSNR (dB)
 refine_moves.png   per frame: share of the refinement's move at the velocity grid's scale,
                    the share the same moves shuffled among the Gaussians reach, and the
                    moves' correlation with the frame before's (whole and grid-scale part),
-                   and the share of their grid-scale field a divergence-free flow can make
+                   the share of their grid-scale field a divergence-free flow can make, and
+                   that field's flow and gathering parts' correlations with the frame before's
 renders/VIEW/      per-frame renders of every camera (train and held-out)
 comparison/        per frame: held-out reference | render; comparison.gif and
                    comparison.mp4 (H.264, 10 frames per second) animate them
@@ -495,7 +512,10 @@ slices/            per frame, middle z slice: density (grey) | speed (viridis, e
 exports/           per frame: gaussians_TTT.ply (3DGS layout; world axes, or y down for
                    splat viewers with ply_axes = 'y-down'), grid_TTT.vti (ParaView;
                    open grid.pvd to play them as a time series, time = frame index),
-                   grid_TTT.npz (density [nx,ny,nz], velocity [nx,ny,nz,3], lo, hi)
+                   grid_TTT.npz (density [nx,ny,nz], velocity [nx,ny,nz,3], lo, hi;
+                   with the refinement also refine_move [nx,ny,nz,3], its moves' grid-scale
+                   field in cells, and refine_move_flow, the part a divergence-free flow
+                   can make)
 frames/            per frame: Gaussians, velocity and density grids (safetensors), read by
                    `gausmoke-train eval`
 checkpoints/       the two newest complete frames; `--resume` continues from the newest

@@ -158,6 +158,13 @@ pub struct FrameReport {
     /// divergence-free velocity can make).
     #[serde(default)]
     pub refine_move_flow_share: Option<f64>,
+    /// Correlation over the cells of the move field's flow part with the frame before's,
+    /// and of its gathering part (the rest) with the frame before's (`None` where the
+    /// persistence is).
+    #[serde(default)]
+    pub refine_move_flow_persistence: Option<f64>,
+    #[serde(default)]
+    pub refine_move_gathering_persistence: Option<f64>,
     /// The explicit buoyancy force's coefficient after the frame (`buoyancy_force`): the
     /// upward change of velocity per frame at the densest cell, world units per frame.
     #[serde(default)]
@@ -169,6 +176,55 @@ pub struct FrameReport {
     /// Device reads and kernel launches of the frame's optimisation loops.
     #[serde(default)]
     pub device_traffic: Vec<LoopTraffic>,
+}
+
+/// The refinement's grid-scale move field at one frame, on the host, in cells of the
+/// velocity grid per frame (`[nx, ny, nz, 3]`, see `MoveField` in the trainer): the whole field and the
+/// part the exact projection keeps (a flow); the rest gathers or spreads the Gaussians.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RefineMoveField {
+    pub moves: Vec<f32>,
+    pub flow: Vec<f32>,
+}
+
+impl RefineMoveField {
+    /// The field less its flow part.
+    pub fn gathering(&self) -> Vec<f32> {
+        self.moves
+            .iter()
+            .zip(&self.flow)
+            .map(|(m, f)| m - f)
+            .collect()
+    }
+
+    /// The share of the field's sum of squares in its flow part.
+    pub(crate) fn flow_share(&self) -> f64 {
+        let whole = dot(&self.moves, &self.moves);
+        if whole > 0.0 {
+            dot(&self.flow, &self.flow) / whole
+        } else {
+            0.0
+        }
+    }
+
+    /// Correlations over the cells of the flow parts and of the gathering parts with
+    /// `before`'s (0 where a part is zero).
+    pub(crate) fn persistence(&self, before: &Self) -> [f64; 2] {
+        [
+            correlation(&self.flow, &before.flow),
+            correlation(&self.gathering(), &before.gathering()),
+        ]
+    }
+}
+
+fn dot(a: &[f32], b: &[f32]) -> f64 {
+    a.iter().zip(b).map(|(&x, &y)| x as f64 * y as f64).sum()
+}
+
+/// `a . b / (|a| |b|)`, 0 where either is zero.
+fn correlation(a: &[f32], b: &[f32]) -> f64 {
+    let norms = (dot(a, a) * dot(b, b)).sqrt();
+    if norms > 0.0 { dot(a, b) / norms } else { 0.0 }
 }
 
 #[cfg(test)]

@@ -57,7 +57,9 @@ use crate::respawn::{
 };
 use crate::sequence::{Observation, Sequence};
 use crate::split::{SplitReport, split_largest};
-use crate::state::{Buoyancy, LoopTraffic, LossRow, Phase, StaticGaussians, TrainState};
+use crate::state::{
+    Buoyancy, LoopTraffic, LossRow, Phase, RefineMoveField, StaticGaussians, TrainState,
+};
 use crate::step_log::{StepLog, StepLosses};
 
 /// What training one frame produced.
@@ -79,6 +81,8 @@ pub struct FrameOutcome {
     pub split: usize,
     /// How far and how coherently the refinement moved the centres (`None` without it).
     pub refine_moves: Option<RefineMoves>,
+    /// The refinement's grid-scale move field (`None` without refinement).
+    pub refine_move_field: Option<RefineMoveField>,
     /// Device reads and kernel launches of the frame's optimisation loops, loop by loop.
     pub traffic: Vec<LoopTraffic>,
     /// The explicit buoyancy force's coefficient after the frame (`buoyancy_force`).
@@ -110,6 +114,10 @@ pub struct RefineMoves {
     /// it) that the projection keeps: the part a divergence-free velocity can make; the rest
     /// gathers or spreads the Gaussians.
     pub flow_share: f64,
+    /// Correlation over the cells of the move field's flow part with the frame before's,
+    /// and the same for the rest (the gathering part): which of the two the refinement
+    /// asks for again. `None` where `persistence` is.
+    pub field_persistence: Option<[f64; 2]>,
 }
 
 /// The refinement's moves as a field on the velocity grid and how to project it, for
@@ -122,27 +130,62 @@ struct MoveField<'a> {
 }
 
 impl MoveField<'_> {
-    /// The share of the sum of squares (in cells) of `values`, this field read back, that the
-    /// exact projection keeps; projects `values` in place.
-    fn flow_share(&self, values: &mut [f32]) -> f64 {
-        let cell = self.grid.cell_size();
-        let sum_of_squares = |values: &[f32]| -> f64 {
+    /// `values`, this field read back, and the part the exact projection keeps, both in
+    /// cells (projected in world units: the divergence is the world's).
+    fn split(&self, values: Vec<f32>) -> RefineMoveField {
+        let mut flow = values.clone();
+        project_direct(self.grid, &mut flow, &self.projection);
+        let cell = self.grid.cell_size().to_array();
+        let in_cells = |mut values: Vec<f32>| {
             values
-                .chunks_exact(3)
-                .map(|u| {
-                    let (x, y, z) = (u[0] / cell.x, u[1] / cell.y, u[2] / cell.z);
-                    (x * x + y * y + z * z) as f64
-                })
-                .sum()
+                .chunks_exact_mut(3)
+                .for_each(|u| u.iter_mut().zip(cell).for_each(|(x, c)| *x /= c));
+            values
         };
-        let whole = sum_of_squares(values);
-        project_direct(self.grid, values, &self.projection);
-        if whole > 0.0 {
-            sum_of_squares(values) / whole
-        } else {
-            0.0
+        RefineMoveField {
+            moves: in_cells(values),
+            flow: in_cells(flow),
         }
     }
+}
+
+/// `values` (`[nx, ny, nz, 3]`, z fastest) smoothed by a Gaussian of `sigma` cells along each
+/// axis in turn, cut off at 3 sigma; near the walls the weights inside the grid are
+/// renormalised, so a uniform field stays uniform.
+fn smoothed(values: &[f32], resolution: [usize; 3], sigma: f32) -> Vec<f32> {
+    let reach = (3.0 * sigma).ceil() as isize;
+    let weights: Vec<f64> = (-reach..=reach)
+        .map(|d| (-0.5 * (d as f64 / sigma as f64).powi(2)).exp())
+        .collect();
+    let [nx, ny, nz] = resolution;
+    // The stride of one step along each axis, in rows of 3.
+    let strides = [ny * nz, nz, 1];
+    let mut field = values.to_vec();
+    for (axis, &stride) in strides.iter().enumerate() {
+        let size = resolution[axis] as isize;
+        let mut next = vec![0.0f32; field.len()];
+        for cell in 0..nx * ny * nz {
+            let at = ((cell / stride) % resolution[axis]) as isize;
+            let mut sum = [0.0f64; 3];
+            let mut total = 0.0;
+            for (d, &w) in (-reach..=reach).zip(&weights) {
+                let j = at + d;
+                if !(0..size).contains(&j) {
+                    continue;
+                }
+                let other = (cell as isize + (j - at) * stride as isize) as usize;
+                for (c, s) in sum.iter_mut().enumerate() {
+                    *s += w * field[3 * other + c] as f64;
+                }
+                total += w;
+            }
+            for (c, s) in sum.iter().enumerate() {
+                next[3 * cell + c] = (s / total) as f32;
+            }
+        }
+        field = next;
+    }
+    field
 }
 
 /// 1 for each of `n` rows listed in `rows`, 0 for the others.
@@ -154,12 +197,13 @@ fn marked_rows(n: usize, rows: &[usize]) -> Vec<f32> {
     marked
 }
 
-/// One frame's refinement moves (in cells) and their grid-scale parts, kept for the next
-/// frame's [`RefineMoves::persistence`].
+/// One frame's refinement moves (in cells), their grid-scale parts and their field, kept for
+/// the next frame's [`RefineMoves::persistence`] and [`RefineMoves::field_persistence`].
 #[derive(Debug, Clone)]
 struct FrameMoves {
     moves: Tensor<2>,
     grid_part: Tensor<2>,
+    field: RefineMoveField,
 }
 
 /// [`RefineMoves`] of `moves` (`[n, 3]`, in cells), against the frame before's where there
@@ -174,6 +218,7 @@ fn refine_moves(
     field: &MoveField,
 ) -> (RefineMoves, FrameMoves) {
     let [n, _] = moves.dims();
+    let field_before = before.map(|b| &b.field);
     // A stride coprime to n shuffles the rows deterministically.
     let stride = [7919usize, 7927, 7933, 7937]
         .into_iter()
@@ -210,7 +255,7 @@ fn refine_moves(
     let field_len = field.field.shape().num_elements();
     parts.push(field.field.clone().reshape([field_len]));
     let mut v = read_floats(Tensor::cat(parts, 0));
-    let flow_share = field.flow_share(&mut v[scalars..]);
+    let field = field.split(v.split_off(scalars));
     let share = |part: f32, whole: f32| {
         if whole > 0.0 {
             (part / whole) as f64
@@ -218,7 +263,7 @@ fn refine_moves(
             0.0
         }
     };
-    let correlation = |w: &[f32]| {
+    let weighted_correlation = |w: &[f32]| {
         let norms = (w[2] as f64 * w[3] as f64).sqrt();
         if norms > 0.0 {
             (w[0] as f64 - w[1] as f64) / 4.0 / norms
@@ -226,16 +271,26 @@ fn refine_moves(
             0.0
         }
     };
-    let persistence = (scalars == 12).then(|| [correlation(&v[4..8]), correlation(&v[8..12])]);
+    let persistence = (scalars == 12).then(|| {
+        [
+            weighted_correlation(&v[4..8]),
+            weighted_correlation(&v[8..12]),
+        ]
+    });
     (
         RefineMoves {
             rms_cells: (v[0] as f64).sqrt(),
             grid_share: share(v[1], v[0]),
             shuffled_grid_share: share(v[3], v[2]),
             persistence,
-            flow_share,
+            flow_share: field.flow_share(),
+            field_persistence: field_before.map(|b| field.persistence(b)),
         },
-        FrameMoves { moves, grid_part },
+        FrameMoves {
+            moves,
+            grid_part,
+            field,
+        },
     )
 }
 
@@ -817,6 +872,7 @@ impl Trainer {
             respawned: 0,
             split: 0,
             refine_moves: None,
+            refine_move_field: None,
             traffic,
             buoyancy: self.buoyancy_coefficient(),
         })
@@ -1129,25 +1185,27 @@ impl Trainer {
         }
         bar.finish_and_clear();
         traffic.push(LoopTraffic::of(Phase::Refine, refine_iterations, start));
-        let refine_moves = match grid_scale {
+        let (refine_moves, refine_move_field) = match grid_scale {
             Some(scale) => {
                 let moves = self.state.gaussians.means.val().detach() - anchor;
                 let field = self.move_field(&scale, moves.clone());
-                if config.refine_velocity_share > 0.0 {
-                    (velocity, unprojected) = self.with_refinement_moves(velocity, &field.field);
-                }
                 let moves = moves * self.cells_per_world_unit().reshape([1, 3]);
                 let [n, _] = moves.dims();
                 let jumped = marked_rows(n, &moved);
                 let jumped = Tensor::<1>::from_data(TensorData::new(jumped, [n]), &self.device);
                 let (report, frame_moves) =
                     refine_moves(&scale, moves, self.last_moves.as_ref(), &jumped, &field);
+                if config.refine_velocity_share > 0.0 {
+                    let carried = self.carried_moves(&field, &frame_moves.field);
+                    (velocity, unprojected) = self.with_refinement_moves(velocity, &carried);
+                }
+                let field = frame_moves.field.clone();
                 self.last_moves = Some(frame_moves);
-                Some(report)
+                (Some(report), Some(field))
             }
             None => {
                 self.last_moves = None;
-                None
+                (None, None)
             }
         };
         if config.correction_iterations > 0
@@ -1171,6 +1229,7 @@ impl Trainer {
             respawned: respawned.len(),
             split: split.parents.len(),
             refine_moves,
+            refine_move_field,
             traffic,
             buoyancy: self.buoyancy_coefficient(),
         })
@@ -1185,6 +1244,23 @@ impl Trainer {
             grid: &self.grid,
             projection: self.projection(),
         }
+    }
+
+    /// The move field `refine_velocity_share` carries on (world units): `field` itself, or
+    /// with `refine_velocity_blur` its host copy `read` (in cells) smoothed.
+    fn carried_moves(&self, field: &MoveField, read: &RefineMoveField) -> Tensor<4> {
+        let sigma = self.config.refine_velocity_blur;
+        if sigma == 0.0 {
+            return field.field.clone();
+        }
+        let resolution = self.grid.resolution();
+        let cell = self.grid.cell_size().to_array();
+        let mut smooth = smoothed(&read.moves, resolution, sigma);
+        smooth
+            .chunks_exact_mut(3)
+            .for_each(|u| u.iter_mut().zip(cell).for_each(|(x, c)| *x *= c));
+        let [nx, ny, nz] = resolution;
+        Tensor::from_data(TensorData::new(smooth, [nx, ny, nz, 3]), &self.device)
     }
 
     /// `velocity` with `refine_velocity_share` of the refinement's move `field` (see
@@ -1818,13 +1894,70 @@ mod tests {
             let gathering = Tensor::<2>::from_data(TensorData::new(gathering, [n, 3]), &device);
             let flow_share = |moves: Tensor<2>| {
                 let field = trainer.move_field(&scale, moves);
-                field.flow_share(&mut read_floats(field.field.clone()))
+                field.split(read_floats(field.field.clone())).flow_share()
             };
             let swirl_share = flow_share(swirl.clone());
-            let gathering_share = flow_share(gathering);
+            let gathering_share = flow_share(gathering.clone());
             assert!(
                 swirl_share > 0.7 && gathering_share < 0.1,
                 "the projection keeps {swirl_share} of the swirl, {gathering_share} of the gathering"
+            );
+            // The same swirl with the gathering reversed: the flow parts persist, the
+            // gathering parts turn round.
+            let split = |moves: Tensor<2>| {
+                let field = trainer.move_field(&scale, moves);
+                field.split(read_floats(field.field.clone()))
+            };
+            let [flow, gathers] = split(swirl.clone() + gathering.clone())
+                .persistence(&split(swirl.clone() - gathering));
+            assert!(
+                flow > 0.75 && gathers < -0.75,
+                "persistence of the flow parts {flow}, of the gathering parts {gathers}"
+            );
+        }
+    }
+
+    /// The smoothing keeps a uniform field, keeps an impulse's sum away from the walls and
+    /// spreads it by sigma along each axis, each component on its own.
+    #[test]
+    fn the_move_field_is_smoothed_by_a_gaussian_of_sigma_cells() {
+        // Wide enough that no cell the impulse reaches has a wall within reach.
+        let resolution = [23, 23, 23];
+        let cells = 23 * 23 * 23;
+        let uniform: Vec<f32> = (0..cells).flat_map(|_| [0.5, -1.0, 2.0]).collect();
+        let smooth = smoothed(&uniform, resolution, 2.0);
+        assert!(
+            smooth
+                .iter()
+                .zip(&uniform)
+                .all(|(a, b)| (a - b).abs() < 1e-5)
+        );
+        let index = |x: usize, y: usize, z: usize| (x * 23 + y) * 23 + z;
+        let mut impulse = vec![0.0f32; 3 * cells];
+        impulse[3 * index(11, 11, 11) + 1] = 1.0;
+        let sigma = 1.5;
+        let smooth = smoothed(&impulse, resolution, sigma);
+        let mut sum = 0.0f64;
+        let mut second = [0.0f64; 3];
+        for x in 0..23 {
+            for y in 0..23 {
+                for z in 0..23 {
+                    let v = smooth[3 * index(x, y, z) + 1] as f64;
+                    assert_eq!(smooth[3 * index(x, y, z)], 0.0);
+                    assert_eq!(smooth[3 * index(x, y, z) + 2], 0.0);
+                    sum += v;
+                    let d = [x as f64 - 11.0, y as f64 - 11.0, z as f64 - 11.0];
+                    second.iter_mut().zip(d).for_each(|(m, d)| *m += v * d * d);
+                }
+            }
+        }
+        assert!((sum - 1.0).abs() < 1e-5, "sum {sum}");
+        // A sampled Gaussian cut at 3 sigma has a variance a little under sigma^2.
+        for m in second {
+            assert!(
+                (m - 2.25).abs() < 0.1,
+                "variance {m} against {}",
+                sigma * sigma
             );
         }
     }
@@ -1863,6 +1996,7 @@ mod tests {
         let frame = |m: Tensor<2>| FrameMoves {
             grid_part: scale.grid_part(m.clone()),
             moves: m,
+            field: field.split(read_floats(field.field.clone())),
         };
         let persistence = |before: Option<&FrameMoves>, jumped: &Tensor<1>| {
             refine_moves(&scale, moves.clone(), before, jumped, &field)
@@ -1870,6 +2004,17 @@ mod tests {
                 .persistence
         };
         assert_eq!(persistence(None, &none), None);
+        let field_persistence = |before: Option<&FrameMoves>| {
+            refine_moves(&scale, moves.clone(), before, &none, &field)
+                .0
+                .field_persistence
+        };
+        assert_eq!(field_persistence(None), None);
+        // A still field has no parts to correlate.
+        assert_eq!(
+            field_persistence(Some(&frame(moves.clone()))),
+            Some([0.0, 0.0])
+        );
         let close = |got: Option<[f64; 2]>, want: f64, tolerance: f64| {
             let got = got.expect("a frame before");
             assert!(

@@ -26,6 +26,7 @@ const KEYS: &[(&str, bool)] = &[
     ("refine_views_per_step", true),
     ("correction_iterations", false),
     ("refine_velocity_share", true),
+    ("refine_velocity_blur", true),
     ("lr_velocity", true),
     ("lr_gaussians", true),
     ("lr_buoyancy", true),

@@ -154,6 +154,28 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
             expect(&file);
         }
     }
+    // The grid exports carry the refinement's move field where there was a refinement.
+    for t in 0..4 {
+        let file = std::fs::File::open(run.join(format!("exports/grid_{t:03}.npz"))).unwrap();
+        let archive = zip::ZipArchive::new(file).unwrap();
+        let mut names: Vec<&str> = archive.file_names().collect();
+        names.sort_unstable();
+        let mut want = vec!["density.npy", "hi.npy", "lo.npy", "velocity.npy"];
+        if t > 0 {
+            want.extend(["refine_move.npy", "refine_move_flow.npy"]);
+            want.sort_unstable();
+        }
+        assert_eq!(names, want, "frame {t}");
+    }
+    // The move field's persistence needs a frame refined before.
+    let field_persistence: Vec<bool> = reports
+        .iter()
+        .map(|r| {
+            r.refine_move_flow_persistence.is_some()
+                && r.refine_move_gathering_persistence.is_some()
+        })
+        .collect();
+    assert_eq!(field_persistence, [false, false, true, true]);
     expect("checkpoints/frame_003/state.json");
     assert!(
         !run.join("checkpoints/frame_001").exists(),

@@ -779,6 +779,8 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             "refine_move_persistence_per_frame": from_metrics("refine_move_persistence"),
             "refine_move_grid_persistence_per_frame": from_metrics("refine_move_grid_persistence"),
             "refine_move_flow_share_per_frame": from_metrics("refine_move_flow_share"),
+            "refine_move_flow_persistence_per_frame": from_metrics("refine_move_flow_persistence"),
+            "refine_move_gathering_persistence_per_frame": from_metrics("refine_move_gathering_persistence"),
             "independent": independent,
             "training_seconds": metrics["training_seconds"],
             "wall_seconds_with_outputs": wall_seconds,
