@@ -134,12 +134,18 @@ impl GridScale {
     /// The grid-scale part of `moves` (`[n, c]`): [`Self::cell_means`] sampled back at each
     /// Gaussian.
     pub fn grid_part(&self, moves: Tensor<2>) -> Tensor<2> {
-        let [n, c] = moves.dims();
-        let means = self.cell_means(moves);
-        (means.select(0, self.corners.clone()) * self.trilinear.clone())
-            .reshape([n, CORNERS, c])
+        self.sampled(self.cell_means(moves))
+    }
+
+    /// A cell field (`[cells, c]`, as [`Self::cell_means`] gives it) sampled trilinearly at
+    /// each Gaussian: `[n, c]`.
+    pub fn sampled(&self, field: Tensor<2>) -> Tensor<2> {
+        let [cells, c] = field.dims();
+        assert_eq!(cells, self.cells, "the field must have one row per cell");
+        (field.select(0, self.corners.clone()) * self.trilinear.clone())
+            .reshape([self.points, CORNERS, c])
             .sum_dim(1)
-            .reshape([n, c])
+            .reshape([self.points, c])
     }
 
     /// Mass-weighted mean over the Gaussians of the squared length of each row of `x`

@@ -208,8 +208,9 @@ struct FrameMoves {
 
 /// [`RefineMoves`] of `moves` (`[n, 3]`, in cells), against the frame before's where there
 /// is one, leaving out the rows `jumped` marks (`[n]`, 1 for a row that jumped), in one read.
-/// `field` is the moves' grid-scale field, read with the rest and projected on the host (a
-/// device solve would read its residuals). Returns the frame's moves too, for the next frame.
+/// `field` is the same moves' grid-scale field in world units (its grid part is sampled
+/// from it), read with the rest and projected on the host (a device solve would read its
+/// residuals). Returns the frame's moves too, for the next frame.
 fn refine_moves(
     scale: &GridScale,
     moves: Tensor<2>,
@@ -227,7 +228,10 @@ fn refine_moves(
     let order: Vec<i64> = (0..n).map(|i| ((i * stride) % n.max(1)) as i64).collect();
     let order = Tensor::<1, Int>::from_data(TensorData::new(order, [n]), &moves.device());
     let shuffled = moves.clone().select(0, order);
-    let grid_part = scale.grid_part(moves.clone());
+    let per_cell = field.grid.cell_size().recip().to_array().to_vec();
+    let per_cell = Tensor::<2>::from_data(TensorData::new(per_cell, [1, 3]), &moves.device());
+    let cells = field.grid.num_cells();
+    let grid_part = scale.sampled(field.field.clone().reshape([cells, 3]) * per_cell);
     let mut parts = vec![
         scale.mean_square(moves.clone()),
         scale.mean_square(grid_part.clone()),
@@ -1981,22 +1985,28 @@ mod tests {
         let masses = Tensor::<1>::ones([n], &device);
         let scale = GridScale::new(&grid, centres, masses);
         let none = Tensor::<1>::zeros([n], &device);
-        // The field's share is the swirl test's business; a still one has none.
-        let field = MoveField {
-            field: Tensor::<4>::zeros([8, 8, 8, 3], &device),
+        // Each frame's grid-scale field, in world units (a cell is an eighth of the box).
+        let field_of = |m: Tensor<2>| MoveField {
+            field: scale.cell_means(m / 8.0).reshape([8, 8, 8, 3]),
             grid: &grid,
             projection: ProjectionOptions::default(),
         };
+        let field = field_of(moves.clone());
+        // The field's share is the swirl test's business; still moves have none.
+        let still = moves.clone() * 0.0;
         assert_eq!(
-            refine_moves(&scale, moves.clone(), None, &none, &field)
+            refine_moves(&scale, still.clone(), None, &none, &field_of(still))
                 .0
                 .flow_share,
             0.0
         );
-        let frame = |m: Tensor<2>| FrameMoves {
-            grid_part: scale.grid_part(m.clone()),
-            moves: m,
-            field: field.split(read_floats(field.field.clone())),
+        let frame = |m: Tensor<2>| {
+            let before = field_of(m.clone());
+            FrameMoves {
+                grid_part: scale.grid_part(m.clone()),
+                moves: m,
+                field: before.split(read_floats(before.field.clone())),
+            }
         };
         let persistence = |before: Option<&FrameMoves>, jumped: &Tensor<1>| {
             refine_moves(&scale, moves.clone(), before, jumped, &field)
@@ -2010,11 +2020,6 @@ mod tests {
                 .field_persistence
         };
         assert_eq!(field_persistence(None), None);
-        // A still field has no parts to correlate.
-        assert_eq!(
-            field_persistence(Some(&frame(moves.clone()))),
-            Some([0.0, 0.0])
-        );
         let close = |got: Option<[f64; 2]>, want: f64, tolerance: f64| {
             let got = got.expect("a frame before");
             assert!(
@@ -2024,6 +2029,9 @@ mod tests {
         };
         close(persistence(Some(&frame(moves.clone())), &none), 1.0, 1e-4);
         close(persistence(Some(&frame(-moves.clone())), &none), -1.0, 1e-4);
+        // Both parts of the field, the flow and the gathering, follow the moves.
+        close(field_persistence(Some(&frame(moves.clone()))), 1.0, 1e-4);
+        close(field_persistence(Some(&frame(-moves.clone()))), -1.0, 1e-4);
         close(
             persistence(Some(&frame(unrelated.clone())), &none),
             0.0,

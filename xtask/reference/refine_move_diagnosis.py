@@ -8,12 +8,13 @@ in cells per frame; `velocity` in world units per frame) and the scene's truth. 
 FIRST..LAST (default 2..70; LAST + 1 must exist), averaged over blocks of frames, prints:
 
 - where the move field sits: the share of its sum of squares (whole, flow part, gathering
-  part = the rest) in the source's rows (the bottom 10% of the box), below the middle and
-  above it (these three add up to 1), and outside the true smoke (density under 1% of its
-  maximum); and the mean upward move inside the smoke;
+  part = the rest) in the source's rows (the bottom 10% of the box), in the top eighth, and
+  between (these three add up to 1; beside them the true density's shares of the same
+  rows), and outside the true smoke (density under 1% of its maximum); and the mean upward
+  move inside the smoke;
 - whether the moves point where the velocity errs: inside the true smoke, the correlation
   of the move field (and its flow part) with the truth's velocity less ours, in cells per
-  frame;
+  frame; and the horizontal flow's error relative to the truth's;
 - whether the next frame's velocity takes the flow part over or undoes it: the regression
   coefficient of the change of velocity from frame t to t+1 on frame t's flow part,
   `<u(t+1) - u(t), f(t)> / <f(t), f(t)>` over the whole grid (0: left as it was; with
@@ -62,19 +63,26 @@ def frame_figures(run, data, t):
     n = move.shape[1]
     smoke = density > 0.01 * density.max()
     rows = np.arange(n)[None, :, None]
+    source, top = max(1, round(0.1 * n)), n - max(1, n // 8)
     regions = {
-        "source": np.broadcast_to(rows < max(1, round(0.1 * n)), smoke.shape),
-        "low": np.broadcast_to((rows >= round(0.1 * n)) & (rows < n // 2), smoke.shape),
-        "high": np.broadcast_to(rows >= n // 2, smoke.shape),
+        "source": np.broadcast_to(rows < source, smoke.shape),
+        "between": np.broadcast_to((rows >= source) & (rows < top), smoke.shape),
+        "top": np.broadcast_to(rows >= top, smoke.shape),
         "outside": ~smoke,
     }
     figures = {}
+    for region in ("source", "between", "top"):
+        figures[f"true density {region}"] = density[regions[region]].sum() / density.sum()
     for name, field in (("whole", move), ("flow", flow), ("gathering", gathering)):
         total = dot(field, field)
         for region, mask in regions.items():
             figures[f"{name} {region}"] = dot(field[mask], field[mask]) / total if total else 0.0
     figures["upward move"] = move[smoke][:, 1].mean()
     error = truth - now["velocity"]
+    # The horizontal flow's error, relative to the truth's (1: as bad as none at all).
+    figures["horizontal error"] = np.sqrt(
+        (error[smoke][:, [0, 2]] ** 2).sum() / (truth[smoke][:, [0, 2]] ** 2).sum()
+    )
     figures["corr(move, error)"] = correlation(move[smoke], error[smoke])
     figures["corr(flow, error)"] = correlation(flow[smoke], error[smoke])
     change = after["velocity"] - now["velocity"]
