@@ -1,6 +1,6 @@
 """What the refinement's moves are, against a synthetic scene's truth (issue 18).
 
-  python refine_move_diagnosis.py RUN_DIR DATA_DIR [FIRST LAST]     (needs numpy)
+  python refine_move_diagnosis.py RUN_DIR DATA_DIR [FIRST LAST]     (needs numpy and scipy)
 
 Reads the run's `exports/grid_TTT.npz` (a run with `output_every = 1`: `refine_move`, the
 refinement's grid-scale move field, and `refine_move_flow`, its divergence-free part, both
@@ -14,7 +14,8 @@ FIRST..LAST (default 2..70; LAST + 1 must exist), averaged over blocks of frames
   move inside the smoke;
 - whether the moves point where the velocity errs: inside the true smoke, the correlation
   of the move field (and its flow part) with the truth's velocity less ours, in cells per
-  frame; and the horizontal flow's error relative to the truth's;
+  frame; and the horizontal flow's error relative to the truth's, beside the same for the
+  truth blurred by a Gaussian of 2 cells (what a field as smooth as ours could reach);
 - whether the next frame's velocity takes the flow part over or undoes it: the regression
   coefficient of the change of velocity from frame t to t+1 on frame t's flow part,
   `<u(t+1) - u(t), f(t)> / <f(t), f(t)>` over the whole grid (0: left as it was; with
@@ -26,6 +27,7 @@ FIRST..LAST (default 2..70; LAST + 1 must exist), averaged over blocks of frames
 import sys
 
 import numpy as np
+from scipy.ndimage import gaussian_filter
 
 from scene_truth import read_truth
 
@@ -79,9 +81,15 @@ def frame_figures(run, data, t):
             figures[f"{name} {region}"] = dot(field[mask], field[mask]) / total if total else 0.0
     figures["upward move"] = move[smoke][:, 1].mean()
     error = truth - now["velocity"]
-    # The horizontal flow's error, relative to the truth's (1: as bad as none at all).
+    # The horizontal flow's error, relative to the truth's (1: as bad as none at all), and
+    # the same for the truth blurred by 2 cells (what a field as smooth as ours could reach).
+    horizontal = truth[smoke][:, [0, 2]]
     figures["horizontal error"] = np.sqrt(
-        (error[smoke][:, [0, 2]] ** 2).sum() / (truth[smoke][:, [0, 2]] ** 2).sum()
+        (error[smoke][:, [0, 2]] ** 2).sum() / (horizontal ** 2).sum()
+    )
+    blurred = np.stack([gaussian_filter(truth[..., c], 2.0) for c in (0, 2)], -1)[smoke]
+    figures["horizontal, truth blurred"] = np.sqrt(
+        ((blurred - horizontal) ** 2).sum() / (horizontal ** 2).sum()
     )
     figures["corr(move, error)"] = correlation(move[smoke], error[smoke])
     figures["corr(flow, error)"] = correlation(flow[smoke], error[smoke])
