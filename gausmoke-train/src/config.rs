@@ -296,6 +296,12 @@ pub struct TrainConfig {
     /// the grid at each iteration) is taken out, so the velocity may accelerate where there
     /// is smoke, as buoyancy does, at no cost, while any other change still pays.
     pub buoyancy_free_increment: bool,
+    /// Weight of the increment's horizontal components (x and z, across the upward y) in the
+    /// inertia prior, against 1 for the vertical one (ours; 1 = all alike): above 1 the
+    /// velocity's horizontal flow changes mostly through `Pi`, as continuity makes it from
+    /// the vertical flow, rather than freely where the views do not pin it. In [0, 1000];
+    /// needs `lambda_increment`.
+    pub increment_horizontal_weight: f32,
     /// Add an explicit buoyancy force to the velocity update (ours; `false` = the paper's
     /// method): `u^t = Pi(u' + Phi(u', sigma, t) + b sigma / max(sigma) e_y)`, `u'` the
     /// previous velocity (transported with `transport_velocity`), `sigma` the previous
@@ -462,6 +468,7 @@ impl Default for TrainConfig {
             transport_velocity: false,
             lambda_increment: 0.0,
             buoyancy_free_increment: false,
+            increment_horizontal_weight: 1.0,
             buoyancy_force: false,
             lr_buoyancy: 3e-4,
             correction_iterations: 0,
@@ -680,6 +687,19 @@ impl TrainConfig {
             if !(value.is_finite() && value >= 0.0) {
                 return bad(format!("{name} must be >= 0, got {value}"));
             }
+        }
+        if !(0.0..=1000.0).contains(&self.increment_horizontal_weight) {
+            return bad(format!(
+                "increment_horizontal_weight must be in [0, 1000], got {}",
+                self.increment_horizontal_weight
+            ));
+        }
+        if self.increment_horizontal_weight != 1.0 && self.lambda_increment == 0.0 {
+            return bad(
+                "increment_horizontal_weight weighs the inertia prior, which is off: set \
+                 lambda_increment > 0 too"
+                    .into(),
+            );
         }
         if self.buoyancy_free_increment && self.lambda_increment == 0.0 {
             return bad(
@@ -970,6 +990,21 @@ mod tests {
                     ..TrainConfig::default()
                 },
                 "refine_iterations",
+            ),
+            (
+                TrainConfig {
+                    increment_horizontal_weight: 10.0,
+                    ..TrainConfig::default()
+                },
+                "lambda_increment",
+            ),
+            (
+                TrainConfig {
+                    increment_horizontal_weight: -1.0,
+                    lambda_increment: 0.01,
+                    ..TrainConfig::default()
+                },
+                "increment_horizontal_weight",
             ),
             (
                 TrainConfig {

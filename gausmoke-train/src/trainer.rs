@@ -540,8 +540,9 @@ impl Trainer {
         (field * in_cells).powi_scalar(2).sum_dim(3).mean()
     }
 
-    /// `lambda_increment` times the mean square of Phi's increment `delta` in cells per frame,
-    /// less what a multiple of the density `sigma` explains in its upward component with
+    /// `lambda_increment` times the mean square of Phi's increment `delta` in cells per frame
+    /// (its horizontal components weighted by `increment_horizontal_weight`), less what a
+    /// multiple of the density `sigma` explains in its upward component with
     /// `buoyancy_free_increment`.
     fn inertia_prior(&self, delta: Tensor<4>, sigma: Tensor<3>) -> Tensor<1> {
         let counted = if self.config.buoyancy_free_increment {
@@ -549,7 +550,17 @@ impl Trainer {
         } else {
             delta
         };
-        self.mean_square_in_cells(counted) * self.config.lambda_increment
+        let cell = self.grid.cell_size();
+        let across = self.config.increment_horizontal_weight.sqrt();
+        let weights = Tensor::<1>::from_data(
+            TensorData::new(vec![across / cell.x, 1.0 / cell.y, across / cell.z], [3]),
+            &self.device,
+        );
+        (counted * weights.reshape([1, 1, 1, 3]))
+            .powi_scalar(2)
+            .sum_dim(3)
+            .mean()
+            * self.config.lambda_increment
     }
 
     /// `1 / cell size` per axis, `[3]`: world lengths to cell lengths.
@@ -1917,6 +1928,51 @@ mod tests {
             assert!(
                 flow > 0.75 && gathers < -0.75,
                 "persistence of the flow parts {flow}, of the gathering parts {gathers}"
+            );
+        }
+    }
+
+    /// `increment_horizontal_weight` scales what a sideways increment pays in the inertia
+    /// prior and leaves what an upward one pays.
+    #[test]
+    fn the_inertia_prior_weighs_horizontal_increments_apart() {
+        use gausmoke_data::synth::{SynthConfig, generate};
+        use gausmoke_render::backends::device_by_name;
+        let dir = tempfile::tempdir().unwrap();
+        let data = dir.path().join("data");
+        generate(&SynthConfig::tiny(), &data).unwrap();
+        let device = device_by_name("flex").unwrap();
+        let prior = |weight: f32, component: usize| {
+            let config = TrainConfig {
+                gaussians: 100,
+                grid_resolution: 8,
+                frames: Some(2),
+                lambda_increment: 0.5,
+                increment_horizontal_weight: weight,
+                ..TrainConfig::default()
+            };
+            let sequence = Sequence::open(&data, &config).unwrap();
+            let trainer = Trainer::new(sequence, config, device.clone()).unwrap();
+            let cell = trainer.grid.cell_size().to_array()[component];
+            let mut values = vec![0.0f32; 8 * 8 * 8 * 3];
+            // One cell moves one cell's length along `component`.
+            values[component] = cell;
+            let delta = Tensor::<4>::from_data(TensorData::new(values, [8, 8, 8, 3]), &device);
+            let sigma = Tensor::<3>::zeros([8, 8, 8], &device);
+            read_scalar(trainer.inertia_prior(delta, sigma))
+        };
+        let one = 0.5 / 512.0;
+        for (component, weight, want) in [
+            (0, 1.0, one),
+            (0, 10.0, 10.0 * one),
+            (2, 10.0, 10.0 * one),
+            (1, 10.0, one),
+            (2, 0.0, 0.0),
+        ] {
+            let got = prior(weight, component);
+            assert!(
+                (got - want).abs() < 1e-6 * want.max(1.0),
+                "component {component}, weight {weight}: {got} against {want}"
             );
         }
     }

@@ -45,6 +45,7 @@ const KEYS: &[(&str, bool)] = &[
     ("lookahead_frames", true),
     ("lambda_kinetic", true),
     ("lambda_increment", true),
+    ("increment_horizontal_weight", true),
     ("dt", true),
     ("unet_channels", false),
     ("time_frequencies", true),
