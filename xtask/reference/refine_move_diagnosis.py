@@ -15,7 +15,9 @@ FIRST..LAST (default 2..70; LAST + 1 must exist), averaged over blocks of frames
 - whether the moves point where the velocity errs: inside the true smoke, the correlation
   of the move field (and its flow part) with the truth's velocity less ours, in cells per
   frame; and the horizontal flow's error relative to the truth's, beside the same for the
-  truth blurred by a Gaussian of 2 cells (what a field as smooth as ours could reach);
+  previous frame's velocity carried along itself (before the frame's increment: what the
+  increment fitted to the frame's pictures changes) and for the truth blurred by a
+  Gaussian of 2 cells (what a field as smooth as ours could reach);
 - whether the next frame's velocity takes the flow part over or undoes it: the regression
   coefficient of the change of velocity from frame t to t+1 on frame t's flow part,
   `<u(t+1) - u(t), f(t)> / <f(t), f(t)>` over the whole grid (0: left as it was; with
@@ -30,6 +32,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from scene_truth import read_truth
+from velocity_persistence import transported
 
 
 def load(run, t):
@@ -86,6 +89,12 @@ def frame_figures(run, data, t):
     horizontal = truth[smoke][:, [0, 2]]
     figures["horizontal error"] = np.sqrt(
         (error[smoke][:, [0, 2]] ** 2).sum() / (horizontal ** 2).sum()
+    )
+    # The previous frame's velocity carried along itself, before this frame's increment:
+    # how much the increment (fitted to this frame's pictures) changes that error.
+    carried = transported(before["velocity"])[smoke][:, [0, 2]]
+    figures["horizontal error carried"] = np.sqrt(
+        ((carried - horizontal) ** 2).sum() / (horizontal ** 2).sum()
     )
     blurred = np.stack([gaussian_filter(truth[..., c], 2.0) for c in (0, 2)], -1)[smoke]
     figures["horizontal, truth blurred"] = np.sqrt(
