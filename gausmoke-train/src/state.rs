@@ -159,8 +159,8 @@ pub struct FrameReport {
     #[serde(default)]
     pub refine_move_flow_share: Option<f64>,
     /// Correlation over the cells of the move field's flow part with the frame before's,
-    /// and of its gathering part (the rest) with the frame before's (`None` where the
-    /// persistence is).
+    /// and of its gathering part (the rest) with the frame before's (`None` at the first
+    /// frame refined after a start or a resume, and without refinement).
     #[serde(default)]
     pub refine_move_flow_persistence: Option<f64>,
     #[serde(default)]

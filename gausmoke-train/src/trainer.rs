@@ -116,7 +116,8 @@ pub struct RefineMoves {
     pub flow_share: f64,
     /// Correlation over the cells of the move field's flow part with the frame before's,
     /// and the same for the rest (the gathering part): which of the two the refinement
-    /// asks for again. `None` where `persistence` is.
+    /// asks for again. `None` at the first frame the trainer refines (after a start or a
+    /// resume); unlike `persistence`, kept when the number of Gaussians changed.
     pub field_persistence: Option<[f64; 2]>,
 }
 
