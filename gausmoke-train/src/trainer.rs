@@ -1836,16 +1836,22 @@ mod tests {
         );
     }
 
+    /// The tiny synthetic scene in a temporary folder (kept while the first value lives).
+    fn tiny_scene() -> (tempfile::TempDir, std::path::PathBuf) {
+        use gausmoke_data::synth::{SynthConfig, generate};
+        let dir = tempfile::tempdir().unwrap();
+        let data = dir.path().join("data");
+        generate(&SynthConfig::tiny(), &data).unwrap();
+        (dir, data)
+    }
+
     /// A swirl of the centres (a move a velocity can make) comes back as that velocity,
     /// scaled by `refine_velocity_share`, where the Gaussians are.
     #[test]
     fn the_refinement_moves_become_a_share_of_the_velocity() {
-        use gausmoke_data::synth::{SynthConfig, generate};
         use gausmoke_model::sample_velocity;
         use gausmoke_render::backends::device_by_name;
-        let dir = tempfile::tempdir().unwrap();
-        let data = dir.path().join("data");
-        generate(&SynthConfig::tiny(), &data).unwrap();
+        let (_dir, data) = tiny_scene();
         let device = device_by_name("flex").unwrap().autodiff();
         for share in [1.0f32, 0.5] {
             let config = TrainConfig {
@@ -1937,11 +1943,8 @@ mod tests {
     /// prior and leaves what an upward one pays.
     #[test]
     fn the_inertia_prior_weighs_horizontal_increments_apart() {
-        use gausmoke_data::synth::{SynthConfig, generate};
         use gausmoke_render::backends::device_by_name;
-        let dir = tempfile::tempdir().unwrap();
-        let data = dir.path().join("data");
-        generate(&SynthConfig::tiny(), &data).unwrap();
+        let (_dir, data) = tiny_scene();
         let device = device_by_name("flex").unwrap();
         let prior = |weight: f32, component: usize| {
             let config = TrainConfig {
