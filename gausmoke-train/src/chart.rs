@@ -6,14 +6,18 @@ use font8x8::UnicodeFonts;
 
 use crate::visuals::Picture;
 
-/// Distinct colours of the series, in order (matplotlib's "tab10" start).
-pub const SERIES_COLOURS: [[u8; 3]; 6] = [
+/// Distinct colours of the series, in order (matplotlib's "tab10").
+pub const SERIES_COLOURS: [[u8; 3]; 10] = [
     [31, 119, 180],
     [255, 127, 14],
     [44, 160, 44],
     [214, 39, 40],
     [148, 103, 189],
     [140, 86, 75],
+    [227, 119, 194],
+    [127, 127, 127],
+    [188, 189, 34],
+    [23, 190, 207],
 ];
 
 const INK: [u8; 3] = [40, 40, 40];
