@@ -136,18 +136,31 @@ impl MoveField<'_> {
     fn split(&self, values: Vec<f32>) -> RefineMoveField {
         let mut flow = values.clone();
         project_direct(self.grid, &mut flow, &self.projection);
-        let cell = self.grid.cell_size().to_array();
-        let in_cells = |mut values: Vec<f32>| {
-            values
-                .chunks_exact_mut(3)
-                .for_each(|u| u.iter_mut().zip(cell).for_each(|(x, c)| *x /= c));
-            values
-        };
+        let in_cells = |values| per_axis(values, self.grid, |x, cell| x / cell);
         RefineMoveField {
             moves: in_cells(values),
             flow: in_cells(flow),
         }
     }
+}
+
+/// `values` (rows of 3, one per cell) with `f(value, cell size along its axis)` applied to
+/// each: world lengths to cells and back.
+fn per_axis(mut values: Vec<f32>, grid: &GridSpec, f: impl Fn(f32, f32) -> f32) -> Vec<f32> {
+    let cell = grid.cell_size().to_array();
+    values
+        .chunks_exact_mut(3)
+        .for_each(|u| u.iter_mut().zip(cell).for_each(|(x, c)| *x = f(*x, c)));
+    values
+}
+
+/// `1 / cell size` per axis, `[3]`: world lengths to cell lengths.
+fn cells_per_world_unit(grid: &GridSpec, device: &Device) -> Tensor<1> {
+    let cell = grid.cell_size();
+    Tensor::<1>::from_data(
+        TensorData::new(vec![1.0 / cell.x, 1.0 / cell.y, 1.0 / cell.z], [3]),
+        device,
+    )
 }
 
 /// `values` (`[nx, ny, nz, 3]`, z fastest) smoothed by a Gaussian of `sigma` cells along each
@@ -229,8 +242,7 @@ fn refine_moves(
     let order: Vec<i64> = (0..n).map(|i| ((i * stride) % n.max(1)) as i64).collect();
     let order = Tensor::<1, Int>::from_data(TensorData::new(order, [n]), &moves.device());
     let shuffled = moves.clone().select(0, order);
-    let per_cell = field.grid.cell_size().recip().to_array().to_vec();
-    let per_cell = Tensor::<2>::from_data(TensorData::new(per_cell, [1, 3]), &moves.device());
+    let per_cell = cells_per_world_unit(field.grid, &moves.device()).reshape([1, 3]);
     let cells = field.grid.num_cells();
     let grid_part = scale.sampled(field.field.clone().reshape([cells, 3]) * per_cell);
     let mut parts = vec![
@@ -566,11 +578,7 @@ impl Trainer {
 
     /// `1 / cell size` per axis, `[3]`: world lengths to cell lengths.
     fn cells_per_world_unit(&self) -> Tensor<1> {
-        let cell = self.grid.cell_size();
-        Tensor::<1>::from_data(
-            TensorData::new(vec![1.0 / cell.x, 1.0 / cell.y, 1.0 / cell.z], [3]),
-            &self.device,
-        )
+        cells_per_world_unit(&self.grid, &self.device)
     }
 
     /// One optimizer step of Phi on the gradients of a loss.
@@ -1270,11 +1278,8 @@ impl Trainer {
             return field.field.clone();
         }
         let resolution = self.grid.resolution();
-        let cell = self.grid.cell_size().to_array();
-        let mut smooth = smoothed(&read.moves, resolution, sigma);
-        smooth
-            .chunks_exact_mut(3)
-            .for_each(|u| u.iter_mut().zip(cell).for_each(|(x, c)| *x *= c));
+        let smooth = smoothed(&read.moves, resolution, sigma);
+        let smooth = per_axis(smooth, &self.grid, |x, cell| x * cell);
         let [nx, ny, nz] = resolution;
         Tensor::from_data(TensorData::new(smooth, [nx, ny, nz, 3]), &self.device)
     }
