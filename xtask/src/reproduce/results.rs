@@ -102,6 +102,27 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
         };
         settings.push(("split_fraction", format!("split {fraction} a frame{above}")));
     }
+    if let Some(views) = config["refine_views_per_step"].as_u64().filter(|&n| n > 0) {
+        let steps = config["refine_iterations"].as_u64().unwrap_or(0);
+        let per = if views == 1 { "view" } else { "views" };
+        settings.push((
+            "refine_views_per_step",
+            format!("K' = {steps} of {views} {per} a step"),
+        ));
+    }
+    if let Some(w) = weight("lambda_refine_grid") {
+        settings.push(("lambda_refine_grid", format!("grid-scale tie {w}")));
+    }
+    if let Some(w) = config["increment_horizontal_weight"]
+        .as_f64()
+        .map(|w| w as f32)
+        .filter(|&w| w != 1.0)
+    {
+        settings.push((
+            "increment_horizontal_weight",
+            format!("horizontal increments x{w}"),
+        ));
+    }
     let faces = open_faces(record);
     if !faces.is_empty() {
         settings.push(("open_faces", format!("open faces {}", faces.join(" "))));
@@ -659,6 +680,20 @@ mod tests {
         );
         let none = json!({"variant": "full method", "config": {"split_fraction": 0.0}});
         assert_eq!(variant(&none), "full method");
+        // The one-view refinement, its tie and the horizontal weight, as a preset sets them.
+        let refined = json!({"variant": "full method",
+                             "config": {"refine_iterations": 40, "refine_views_per_step": 1,
+                                        "lambda_refine_grid": 3.0,
+                                        "increment_horizontal_weight": 3.0}});
+        assert_eq!(
+            variant(&refined),
+            "full method, K' = 40 of 1 view a step, grid-scale tie 3, horizontal increments x3"
+        );
+        let paper = json!({"variant": "full method",
+                           "config": {"refine_iterations": 5, "refine_views_per_step": 0,
+                                      "lambda_refine_grid": 0.0,
+                                      "increment_horizontal_weight": 1.0}});
+        assert_eq!(variant(&paper), "full method");
     }
 
     #[test]
