@@ -190,7 +190,7 @@ fn with_one_view_refinement(config: TrainConfig) -> TrainConfig {
     }
 }
 
-/// K' of the quick presets' one-view refinement steps (`refine_views_per_step = 1`).
+/// K' of the long plume's quick preset, in one-view refinement steps.
 const ONE_VIEW_REFINE_ITERATIONS: usize = 40;
 
 /// Around the synthetic solver's source disc, on the floor at the box's centre.
