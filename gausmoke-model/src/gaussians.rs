@@ -10,6 +10,10 @@ use gausmoke_render::{Gaussian, GaussianTensors, Gaussians, HostGaussians};
 /// so a 0.5-unit box starts mostly transparent.
 pub const INITIAL_RAW_DENSITY: f32 = -2.0;
 
+/// The log-scales an optimiser step may leave: the renderer's accepted range.
+const MIN_LOG_SCALE: f32 = -12.0;
+const MAX_LOG_SCALE: f32 = 4.0;
+
 /// Trainable Gaussian parameters, in the renderer's parameterisation (see [`Gaussians`]):
 /// world-space centres, quaternions (w first), log standard deviations, raw densities
 /// (`sigma = softplus(raw)`), linear RGB colours.
@@ -174,13 +178,22 @@ impl GaussianModel {
     /// Keeps colours in `[0, 1]` and log-scales in the renderer's accepted range after an
     /// optimiser step (a projection onto the feasible set, not a reparameterisation).
     pub fn clamped(self) -> Self {
+        self.clamped_above(MIN_LOG_SCALE)
+    }
+
+    /// [`Self::clamped`] with no standard deviation below `exp(min_log_scale)` (raised to
+    /// the renderer's own floor when lower).
+    pub fn clamped_above(self, min_log_scale: f32) -> Self {
         let colors_id = self.colors.id;
         let scales_id = self.log_scales.id;
         let colors = self.colors.val().clamp(0.0, 1.0).detach().require_grad();
         let log_scales = self
             .log_scales
             .val()
-            .clamp(-12.0, 4.0)
+            .clamp(
+                min_log_scale.clamp(MIN_LOG_SCALE, MAX_LOG_SCALE),
+                MAX_LOG_SCALE,
+            )
             .detach()
             .require_grad();
         Self {

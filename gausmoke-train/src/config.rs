@@ -394,6 +394,12 @@ pub struct TrainConfig {
     /// Split only into rows on a box face (Gaussians that left the box), not into invisible
     /// ones.
     pub split_into_faces_only: bool,
+    /// From frame 1 on, no smoke Gaussian's standard deviation falls below this multiple of
+    /// the initialisation's (`0.5 (V / N)^(1/3)`, as for `split_size_factor`) after an
+    /// optimiser step; frame 0's fit, and so the independent per-frame baseline, has no
+    /// floor. 0 (the default, the paper's method) sets none. A prior against detail the
+    /// training views cannot place in depth. In [0, 10].
+    pub min_size_factor: f32,
     /// Seed of the Gaussians' initialisation.
     pub seed: u64,
     /// Write renders, exports and velocity slices every this many frames (1 = all).
@@ -496,6 +502,7 @@ impl Default for TrainConfig {
             split_fraction: 0.0,
             split_size_factor: 1.0,
             split_into_faces_only: false,
+            min_size_factor: 0.0,
             seed: 2026,
             output_every: 1,
             log_every: 10,
@@ -770,6 +777,12 @@ impl TrainConfig {
             return bad(format!(
                 "split_size_factor must be a positive number, got {}",
                 self.split_size_factor
+            ));
+        }
+        if !(0.0..=10.0).contains(&self.min_size_factor) {
+            return bad(format!(
+                "min_size_factor must be in [0, 10], got {}",
+                self.min_size_factor
             ));
         }
         if !(0.0..=1.0).contains(&self.respawn_near_smoke) {

@@ -395,12 +395,13 @@ impl ListCapacities {
 }
 
 /// One Adam step per attribute of `model` with its own learning rate (0 skips it), the
-/// gradients taken from `grads`.
+/// gradients taken from `grads`; no log-scale ends below `min_log_scale`.
 fn adam_per_attribute(
     mut model: GaussianModel,
     optim: &mut ModuleOptimizer,
     grads: &mut Gradients,
     learning_rates: Gaussians<f64>,
+    min_log_scale: f32,
 ) -> GaussianModel {
     for (id, lr) in model.param_ids().zip(learning_rates).into_array() {
         let params = GradientsParams::from_params(grads, &model, &[id]);
@@ -409,7 +410,7 @@ fn adam_per_attribute(
             model = optim.step(lr, model, params);
         }
     }
-    model.clamped()
+    model.clamped_above(min_log_scale)
 }
 
 /// Which Gaussians a fit to still images trains (see [`Trainer::fit_to_images`]).
@@ -710,6 +711,7 @@ impl Trainer {
                 raw_densities: lr,
                 colors: lr,
             },
+            f32::NEG_INFINITY,
         );
     }
 
@@ -795,9 +797,11 @@ impl Trainer {
                         &mut statics.optim,
                         &mut grads,
                         learning_rates,
+                        f32::NEG_INFINITY,
                     );
                 }
-                _ => self.step_gaussians(&mut grads, learning_rates),
+                // Frame 0 fits with no size floor (`min_size_factor`).
+                _ => self.step_gaussians(&mut grads, learning_rates, f32::NEG_INFINITY),
             }
             if log.due() || iteration + 1 == iterations {
                 read_log(&mut log, &mut losses, &bar, None)?;
@@ -823,12 +827,18 @@ impl Trainer {
     }
 
     /// One Adam step per Gaussian attribute, each with its own learning rate (0 skips it).
-    fn step_gaussians(&mut self, grads: &mut Gradients, learning_rates: Gaussians<f64>) {
+    fn step_gaussians(
+        &mut self,
+        grads: &mut Gradients,
+        learning_rates: Gaussians<f64>,
+        min_log_scale: f32,
+    ) {
         self.state.gaussians = adam_per_attribute(
             self.state.gaussians.clone(),
             &mut self.state.gaussian_optim,
             grads,
             learning_rates,
+            min_log_scale,
         );
         // Only a step that moved the centres can have moved one into an obstacle.
         if learning_rates.means > 0.0 {
@@ -1102,12 +1112,14 @@ impl Trainer {
             };
             self.step_phi(&mut grads, lr_velocity);
             self.step_buoyancy(&mut grads, config.lr_buoyancy * factor);
+            let min_log_scale = self.min_log_scale();
             self.step_gaussians(
                 &mut grads,
                 Gaussians {
                     means: 0.0,
                     ..rates
                 },
+                min_log_scale,
             );
             self.step_statics(&mut grads, lr_gaussians);
             if log.due() || iteration + 1 == config.advect_iterations {
@@ -1199,7 +1211,8 @@ impl Trainer {
                 let _phase = phase!("backward (all ops)");
                 loss.backward()
             };
-            self.step_gaussians(&mut grads, rates);
+            let min_log_scale = self.min_log_scale();
+            self.step_gaussians(&mut grads, rates, min_log_scale);
             self.step_statics(&mut grads, lr_gaussians);
             if log.due() || iteration + 1 == refine_iterations {
                 read_log(&mut log, &mut losses, &bar, None)?;
@@ -1471,6 +1484,16 @@ impl Trainer {
             lo: self.grid.lo(),
             hi: self.grid.hi(),
             resolution: self.grid.resolution(),
+        }
+    }
+
+    /// The smoke Gaussians' smallest log standard deviation (`min_size_factor`); minus
+    /// infinity leaves only the renderer's range.
+    fn min_log_scale(&self) -> f32 {
+        if self.config.min_size_factor > 0.0 {
+            (self.config.min_size_factor * self.initial_std()).ln()
+        } else {
+            f32::NEG_INFINITY
         }
     }
 

@@ -57,6 +57,7 @@ const KEYS: &[(&str, bool)] = &[
     ("respawn_near_smoke", true),
     ("split_fraction", true),
     ("split_size_factor", true),
+    ("min_size_factor", true),
     ("seed", true),
     ("output_every", true),
     ("log_every", true),

@@ -1776,3 +1776,63 @@ fn a_multi_view_dnerf_scene_groups_its_cameras_and_trains() {
         "{reports:?}"
     );
 }
+
+/// The smoke Gaussians' log standard deviations after `config` trains on `data` (flex), and
+/// the initialisation's standard deviation, the run in `dir/name`.
+fn log_scales_after(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> (Vec<f32>, f32) {
+    let scene = Sequence::open(data, &config).unwrap();
+    let device = device_by_name("flex").unwrap().autodiff();
+    let gaussians = config.gaussians as f32;
+    let mut run = Run::new(scene, config, device, &dir.join(name), false)
+        .unwrap()
+        .quiet(true);
+    run.run().unwrap();
+    let extent = run.trainer.grid.hi() - run.trainer.grid.lo();
+    let initial_std = 0.5 * (extent.x * extent.y * extent.z / gaussians).cbrt();
+    let log_scales = run.trainer.state.gaussians.log_scales.val().into_data();
+    (log_scales.try_into_vec_as::<f32>().unwrap(), initial_std)
+}
+
+/// `min_size_factor` leaves every smoke Gaussian at or above that multiple of the
+/// initialisation's size after a run that recycles and splits, where without it some end
+/// below; frame 0's fit is the same with and without it.
+#[test]
+fn the_size_floor_holds_every_smoke_gaussian_after_frame_0() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let base = TrainConfig {
+        respawn_fraction: 0.05,
+        respawn_threshold: 0.01,
+        split_fraction: 0.05,
+        ..joint_terms_config()
+    };
+    let (free, initial_std) = log_scales_after(&data, dir.path(), base.clone(), "free");
+    let floor = (1.5 * initial_std).ln();
+    let below = free.iter().filter(|&&s| s < floor - 1e-4).count();
+    assert!(
+        below > 0,
+        "without a floor no Gaussian was smaller: the test cannot fail"
+    );
+    let config = TrainConfig {
+        min_size_factor: 1.5,
+        ..base.clone()
+    };
+    let first_frame = |config: TrainConfig, name: &str| -> Vec<f32> {
+        let run = after_frame_0(&data, dir.path(), config, name);
+        let log_scales = run.trainer.state.gaussians.log_scales.val().into_data();
+        log_scales.try_into_vec_as::<f32>().unwrap()
+    };
+    assert_eq!(
+        first_frame(base.clone(), "free-0"),
+        first_frame(config.clone(), "floored-0"),
+        "the floor changed frame 0's fit"
+    );
+    let (floored, _) = log_scales_after(&data, dir.path(), config, "floored");
+    let smallest = floored.iter().cloned().fold(f32::INFINITY, f32::min);
+    assert!(
+        smallest >= floor - 1e-5,
+        "smallest std {} below the floor {} ({below} below it without one)",
+        smallest.exp(),
+        floor.exp()
+    );
+}
