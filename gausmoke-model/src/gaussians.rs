@@ -175,15 +175,10 @@ impl GaussianModel {
         }
     }
 
-    /// Keeps colours in `[0, 1]` and log-scales in the renderer's accepted range after an
-    /// optimiser step (a projection onto the feasible set, not a reparameterisation).
-    pub fn clamped(self) -> Self {
-        self.clamped_above(MIN_LOG_SCALE)
-    }
-
-    /// [`Self::clamped`] with no standard deviation below `exp(min_log_scale)` (raised to
-    /// the renderer's own floor when lower).
-    pub fn clamped_above(self, min_log_scale: f32) -> Self {
+    /// Keeps colours in `[0, 1]` and log-scales in the renderer's accepted range, and none
+    /// below `min_log_scale` (minus infinity: the range alone), after an optimiser step (a
+    /// projection onto the feasible set, not a reparameterisation).
+    pub fn clamped(self, min_log_scale: f32) -> Self {
         let colors_id = self.colors.id;
         let scales_id = self.log_scales.id;
         let colors = self.colors.val().clamp(0.0, 1.0).detach().require_grad();

@@ -410,7 +410,7 @@ fn adam_per_attribute(
             model = optim.step(lr, model, params);
         }
     }
-    model.clamped_above(min_log_scale)
+    model.clamped(min_log_scale)
 }
 
 /// Which Gaussians a fit to still images trains (see [`Trainer::fit_to_images`]).
