@@ -400,6 +400,12 @@ pub struct TrainConfig {
     /// floor. 0 (the default, the paper's method) sets none. A prior against detail the
     /// training views cannot place in depth. In [0, 10].
     pub min_size_factor: f32,
+    /// One colour for every smoke Gaussian, fitted like the per-Gaussian ones (their mean is
+    /// what renders, so each step moves all alike): an emission-absorption medium of one
+    /// albedo under even light, as the synthetic scenes are rendered, leaves the views only
+    /// the density to explain. Off (the default, the paper's method): a colour per Gaussian.
+    /// Frame 0 and so the independent per-frame baseline use it too.
+    pub uniform_color: bool,
     /// Seed of the Gaussians' initialisation.
     pub seed: u64,
     /// Write renders, exports and velocity slices every this many frames (1 = all).
@@ -503,6 +509,7 @@ impl Default for TrainConfig {
             split_size_factor: 1.0,
             split_into_faces_only: false,
             min_size_factor: 0.0,
+            uniform_color: false,
             seed: 2026,
             output_every: 1,
             log_every: 10,

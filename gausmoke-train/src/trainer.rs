@@ -35,7 +35,7 @@ use gausmoke_model::{
     Interpolation, PenaltyOptions, ProjectionOptions, ProjectionReport, SolidCells, SplatOptions,
     UNetConfig, VelocityUNet, advect, advection_loss, density_and_gradient_grid, density_grid,
     divergence_loss_of, penalty_projection, project_direct, project_velocity, refine_loss,
-    settle_deferred_solves, transport_velocity,
+    settle_deferred_solves, transport_velocity, uniform_color,
 };
 use gausmoke_render::cpu::TILE_SIZE;
 use gausmoke_render::device_traffic::{
@@ -680,9 +680,18 @@ impl Trainer {
         ))
     }
 
-    /// What the renders composite: the smoke Gaussians `smoke` and, when there are any, the
-    /// static ones after them, tracked for their optimiser when `learn_statics`.
+    /// What the renders composite: the smoke Gaussians `smoke` (in their mean colour with
+    /// `uniform_color`) and, when there are any, the static ones after them, tracked for
+    /// their optimiser when `learn_statics`.
     fn scene(&self, smoke: GaussianTensors, learn_statics: bool) -> GaussianTensors {
+        let smoke = if self.config.uniform_color {
+            Gaussians {
+                colors: uniform_color(smoke.colors),
+                ..smoke
+            }
+        } else {
+            smoke
+        };
         match &self.state.statics {
             Some(statics) => {
                 let fixed = statics.gaussians.tensors();
@@ -840,6 +849,10 @@ impl Trainer {
             learning_rates,
             min_log_scale,
         );
+        if self.config.uniform_color {
+            // Every row holds the colour that renders (exports, checkpoints, novel views).
+            self.state.gaussians = self.state.gaussians.clone().with_uniform_color();
+        }
         // Only a step that moved the centres can have moved one into an obstacle.
         if learning_rates.means > 0.0 {
             self.keep_out_of_obstacles();

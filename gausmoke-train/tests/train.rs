@@ -1836,3 +1836,76 @@ fn the_size_floor_holds_every_smoke_gaussian_after_frame_0() {
         floor.exp()
     );
 }
+
+/// The colours after training `config` on `data` (flex), the run in `dir/name`, per row.
+fn colors_after(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Vec<[f32; 3]> {
+    let scene = Sequence::open(data, &config).unwrap();
+    let device = device_by_name("flex").unwrap().autodiff();
+    let mut run = Run::new(scene, config, device, &dir.join(name), false)
+        .unwrap()
+        .quiet(true);
+    run.run().unwrap();
+    let colors = run.trainer.state.gaussians.colors.val().into_data();
+    let colors = colors.try_into_vec_as::<f32>().unwrap();
+    colors.chunks(3).map(|c| [c[0], c[1], c[2]]).collect()
+}
+
+/// `uniform_color` leaves every smoke Gaussian with one colour after a run that recycles
+/// and splits (rows that jumped included), fitted away from where it started; without it
+/// the rows differ.
+#[test]
+fn a_uniform_colour_stays_one_colour_through_recycling_and_splits() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let base = TrainConfig {
+        respawn_fraction: 0.05,
+        respawn_threshold: 0.01,
+        split_fraction: 0.05,
+        ..joint_terms_config()
+    };
+    let spread = |colors: &[[f32; 3]]| -> f32 {
+        (0..3)
+            .map(|c| {
+                let values = colors.iter().map(|row| row[c]);
+                let hi = values.clone().fold(f32::NEG_INFINITY, f32::max);
+                hi - values.fold(f32::INFINITY, f32::min)
+            })
+            .fold(0.0, f32::max)
+    };
+    let free = colors_after(&data, dir.path(), base.clone(), "free");
+    assert!(
+        spread(&free) > 0.05,
+        "without it the colours hardly differ ({}): the test cannot fail",
+        spread(&free)
+    );
+    let config = TrainConfig {
+        uniform_color: true,
+        ..base.clone()
+    };
+    let uniform = colors_after(&data, dir.path(), config.clone(), "uniform");
+    assert!(
+        spread(&uniform) < 1e-5,
+        "rows differ by {}",
+        spread(&uniform)
+    );
+    let initial = Run::new(
+        Sequence::open(&data, &config).unwrap(),
+        config,
+        device_by_name("flex").unwrap().autodiff(),
+        &dir.path().join("initial"),
+        false,
+    )
+    .unwrap()
+    .trainer
+    .state
+    .gaussians
+    .colors
+    .val()
+    .mean()
+    .into_scalar::<f32>();
+    assert!(
+        (uniform[0][0] - initial).abs() > 0.01,
+        "the colour was not fitted: {} from {initial}",
+        uniform[0][0]
+    );
+}

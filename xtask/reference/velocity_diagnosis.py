@@ -8,7 +8,8 @@ the mean cosine between it and the truth, the ratio of their mean speeds and the
 correlation of each component; and two yardsticks computed from the
 truth alone: the best uniform velocity (the smoke's mean flow) and the truth blurred by a
 Gaussian of 1, 2 and 4 cells (how well a field that smooth could do). Also the truth's rms
-displacement per frame in cells. Arrays are read from the safetensors files directly:
+displacement per frame in cells. A second line splits the error by height (bands of grid
+rows, bottom to top): each band's relative error and its share of the error's energy. Arrays are read from the safetensors files directly:
 the run's `frames/frame_TTT.safetensors` (velocity [nx, ny, nz, 3], x slowest) and the
 scene's `gt/frame_TTT.safetensors` (velocity [z, y, x, 3], x fastest), both in world units
 per frame on the same box (the grids must have the same resolution).
@@ -25,6 +26,25 @@ from scene_truth import read_run_and_truth
 def relative(x, truth):
     """RMS of `x - truth` over the RMS of `truth`."""
     return np.sqrt(((x - truth) ** 2).sum() / (truth ** 2).sum())
+
+
+def by_height(ours, truth, smoke):
+    """Relative error and share of the error energy inside `smoke`, per band of rows (the
+    box's quarters, the top quarter split in two)."""
+    n = smoke.shape[1]
+    total = ((ours - truth)[smoke] ** 2).sum()
+    bands = []
+    for lo, hi in ((0, n // 4), (n // 4, n // 2), (n // 2, 3 * n // 4), (3 * n // 4, 7 * n // 8),
+                   (7 * n // 8, n)):
+        inside = np.zeros_like(smoke)
+        inside[:, lo:hi, :] = smoke[:, lo:hi, :]
+        if inside.sum() < 20:
+            bands.append(f"rows {lo}-{hi - 1}: -")
+            continue
+        error = ((ours - truth)[inside] ** 2).sum()
+        bands.append(f"rows {lo}-{hi - 1}: {np.sqrt(error / (truth[inside] ** 2).sum()):.2f} "
+                     f"({error / total:.2f})")
+    return ", ".join(bands)
 
 
 def main(run, data, frames):
@@ -52,6 +72,7 @@ def main(run, data, frames):
               + f" | truth: uniform mean flow {uniform:.2f}, blurred 1/2/4 cells "
               + "/".join(f"{v:.2f}" for v in blurred)
               + f", rms displacement {cells:.2f} cells/frame")
+        print("           by height " + by_height(ours, velocity, smoke))
 
 
 if __name__ == "__main__":
