@@ -400,6 +400,12 @@ pub struct TrainConfig {
     /// floor. 0 (the default, the paper's method) sets none. A prior against detail the
     /// training views cannot place in depth. In [0, 10].
     pub min_size_factor: f32,
+    /// From frame 1 on, no smoke Gaussian's standard deviation grows above this multiple of
+    /// the initialisation's after an optimiser step (frame 0, and so the independent
+    /// per-frame baseline, has no ceiling). 0 (the default, the paper's method) sets none.
+    /// Against the carried Gaussians' growth, which smooths the density over a video. 0 or
+    /// in [1, 100], and not below `min_size_factor`.
+    pub max_size_factor: f32,
     /// One colour for every smoke Gaussian, fitted like the per-Gaussian ones (their mean is
     /// what renders, so each step moves all alike): an emission-absorption medium of one
     /// albedo under even light, as the synthetic scenes are rendered, leaves the views only
@@ -509,6 +515,7 @@ impl Default for TrainConfig {
             split_size_factor: 1.0,
             split_into_faces_only: false,
             min_size_factor: 0.0,
+            max_size_factor: 0.0,
             uniform_color: false,
             seed: 2026,
             output_every: 1,
@@ -789,6 +796,18 @@ impl TrainConfig {
         if !(0.0..=10.0).contains(&self.min_size_factor) {
             return bad(format!(
                 "min_size_factor must be in [0, 10], got {}",
+                self.min_size_factor
+            ));
+        }
+        let ceiling = self.max_size_factor;
+        if !(ceiling == 0.0 || (1.0..=100.0).contains(&ceiling)) {
+            return bad(format!(
+                "max_size_factor must be 0 (none) or in [1, 100], got {ceiling}"
+            ));
+        }
+        if ceiling > 0.0 && ceiling < self.min_size_factor {
+            return bad(format!(
+                "max_size_factor ({ceiling}) must not be below min_size_factor ({})",
                 self.min_size_factor
             ));
         }

@@ -32,10 +32,10 @@ use gausmoke_data::Obstacle;
 use gausmoke_model::penalty::penalty_projection_with_report;
 use gausmoke_model::{
     BuoyancyForce, GaussianModel, GridScale, GridSpec, INITIAL_RAW_DENSITY, Integrator,
-    Interpolation, PenaltyOptions, ProjectionOptions, ProjectionReport, SolidCells, SplatOptions,
-    UNetConfig, VelocityUNet, advect, advection_loss, density_and_gradient_grid, density_grid,
-    divergence_loss_of, penalty_projection, project_direct, project_velocity, refine_loss,
-    settle_deferred_solves, transport_velocity, uniform_color,
+    Interpolation, NO_SIZE_BOUNDS, PenaltyOptions, ProjectionOptions, ProjectionReport, SolidCells,
+    SplatOptions, UNetConfig, VelocityUNet, advect, advection_loss, density_and_gradient_grid,
+    density_grid, divergence_loss_of, penalty_projection, project_direct, project_velocity,
+    refine_loss, settle_deferred_solves, transport_velocity, uniform_color,
 };
 use gausmoke_render::cpu::TILE_SIZE;
 use gausmoke_render::device_traffic::{
@@ -395,13 +395,13 @@ impl ListCapacities {
 }
 
 /// One Adam step per attribute of `model` with its own learning rate (0 skips it), the
-/// gradients taken from `grads`; no log-scale ends below `min_log_scale`.
+/// gradients taken from `grads`; every log-scale ends within `log_scale_bounds`.
 fn adam_per_attribute(
     mut model: GaussianModel,
     optim: &mut ModuleOptimizer,
     grads: &mut Gradients,
     learning_rates: Gaussians<f64>,
-    min_log_scale: f32,
+    log_scale_bounds: [f32; 2],
 ) -> GaussianModel {
     for (id, lr) in model.param_ids().zip(learning_rates).into_array() {
         let params = GradientsParams::from_params(grads, &model, &[id]);
@@ -410,7 +410,7 @@ fn adam_per_attribute(
             model = optim.step(lr, model, params);
         }
     }
-    model.clamped(min_log_scale)
+    model.clamped(log_scale_bounds)
 }
 
 /// Which Gaussians a fit to still images trains (see [`Trainer::fit_to_images`]).
@@ -720,7 +720,7 @@ impl Trainer {
                 raw_densities: lr,
                 colors: lr,
             },
-            f32::NEG_INFINITY,
+            NO_SIZE_BOUNDS,
         );
     }
 
@@ -806,11 +806,11 @@ impl Trainer {
                         &mut statics.optim,
                         &mut grads,
                         learning_rates,
-                        f32::NEG_INFINITY,
+                        NO_SIZE_BOUNDS,
                     );
                 }
-                // Frame 0 fits with no size floor (`min_size_factor`).
-                _ => self.step_gaussians(&mut grads, learning_rates, f32::NEG_INFINITY),
+                // Frame 0 fits with no size bounds (`min_size_factor`, `max_size_factor`).
+                _ => self.step_gaussians(&mut grads, learning_rates, NO_SIZE_BOUNDS),
             }
             if log.due() || iteration + 1 == iterations {
                 read_log(&mut log, &mut losses, &bar, None)?;
@@ -840,14 +840,14 @@ impl Trainer {
         &mut self,
         grads: &mut Gradients,
         learning_rates: Gaussians<f64>,
-        min_log_scale: f32,
+        log_scale_bounds: [f32; 2],
     ) {
         self.state.gaussians = adam_per_attribute(
             self.state.gaussians.clone(),
             &mut self.state.gaussian_optim,
             grads,
             learning_rates,
-            min_log_scale,
+            log_scale_bounds,
         );
         if self.config.uniform_color {
             // Every row holds the colour that renders (exports, checkpoints, novel views).
@@ -1125,14 +1125,14 @@ impl Trainer {
             };
             self.step_phi(&mut grads, lr_velocity);
             self.step_buoyancy(&mut grads, config.lr_buoyancy * factor);
-            let min_log_scale = self.min_log_scale();
+            let log_scale_bounds = self.log_scale_bounds();
             self.step_gaussians(
                 &mut grads,
                 Gaussians {
                     means: 0.0,
                     ..rates
                 },
-                min_log_scale,
+                log_scale_bounds,
             );
             self.step_statics(&mut grads, lr_gaussians);
             if log.due() || iteration + 1 == config.advect_iterations {
@@ -1224,8 +1224,8 @@ impl Trainer {
                 let _phase = phase!("backward (all ops)");
                 loss.backward()
             };
-            let min_log_scale = self.min_log_scale();
-            self.step_gaussians(&mut grads, rates, min_log_scale);
+            let log_scale_bounds = self.log_scale_bounds();
+            self.step_gaussians(&mut grads, rates, log_scale_bounds);
             self.step_statics(&mut grads, lr_gaussians);
             if log.due() || iteration + 1 == refine_iterations {
                 read_log(&mut log, &mut losses, &bar, None)?;
@@ -1500,14 +1500,20 @@ impl Trainer {
         }
     }
 
-    /// The smoke Gaussians' smallest log standard deviation (`min_size_factor`); minus
-    /// infinity leaves only the renderer's range.
-    fn min_log_scale(&self) -> f32 {
-        if self.config.min_size_factor > 0.0 {
-            (self.config.min_size_factor * self.initial_std()).ln()
-        } else {
-            f32::NEG_INFINITY
-        }
+    /// The smoke Gaussians' smallest and largest log standard deviation after frame 0
+    /// (`min_size_factor`, `max_size_factor`); infinite bounds leave the renderer's range.
+    fn log_scale_bounds(&self) -> [f32; 2] {
+        let bound = |factor: f32, none: f32| {
+            if factor > 0.0 {
+                (factor * self.initial_std()).ln()
+            } else {
+                none
+            }
+        };
+        [
+            bound(self.config.min_size_factor, f32::NEG_INFINITY),
+            bound(self.config.max_size_factor, f32::INFINITY),
+        ]
     }
 
     /// The Gaussians' standard deviation at initialisation (see `GaussianModel::init_in_box`).

@@ -58,6 +58,7 @@ const KEYS: &[(&str, bool)] = &[
     ("split_fraction", true),
     ("split_size_factor", true),
     ("min_size_factor", true),
+    ("max_size_factor", true),
     ("seed", true),
     ("output_every", true),
     ("log_every", true),

@@ -1909,3 +1909,49 @@ fn a_uniform_colour_stays_one_colour_through_recycling_and_splits() {
         uniform[0][0]
     );
 }
+
+/// `max_size_factor` keeps every smoke Gaussian at or below that multiple of the
+/// initialisation's size after a run that recycles and splits, where without it some end
+/// above; frame 0's fit is the same with and without it.
+#[test]
+fn the_size_ceiling_holds_every_smoke_gaussian_after_frame_0() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let base = TrainConfig {
+        respawn_fraction: 0.05,
+        respawn_threshold: 0.01,
+        split_fraction: 0.05,
+        ..joint_terms_config()
+    };
+    let (free, initial_std) = log_scales_after(&data, dir.path(), base.clone(), "free");
+    let factor = 1.0;
+    let ceiling = (factor * initial_std).ln();
+    let above = free.iter().filter(|&&s| s > ceiling + 1e-4).count();
+    assert!(
+        above > 0,
+        "without a ceiling no Gaussian was larger ({}): the test cannot fail",
+        free.iter().cloned().fold(f32::NEG_INFINITY, f32::max).exp() / initial_std
+    );
+    let config = TrainConfig {
+        max_size_factor: factor,
+        ..base.clone()
+    };
+    let first_frame = |config: TrainConfig, name: &str| -> Vec<f32> {
+        let run = after_frame_0(&data, dir.path(), config, name);
+        let log_scales = run.trainer.state.gaussians.log_scales.val().into_data();
+        log_scales.try_into_vec_as::<f32>().unwrap()
+    };
+    assert_eq!(
+        first_frame(base.clone(), "free-0"),
+        first_frame(config.clone(), "capped-0"),
+        "the ceiling changed frame 0's fit"
+    );
+    let (capped, _) = log_scales_after(&data, dir.path(), config, "capped");
+    let largest = capped.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
+    assert!(
+        largest <= ceiling + 1e-5,
+        "largest std {} above the ceiling {} ({above} above it without one)",
+        largest.exp(),
+        ceiling.exp()
+    );
+}
