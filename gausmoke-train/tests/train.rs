@@ -946,12 +946,7 @@ fn after_frame_0(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Ru
 
 /// The velocity grid after training `config` on `data` (flex), the run in `dir/name`.
 fn velocity_after(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Vec<f32> {
-    let scene = Sequence::open(data, &config).unwrap();
-    let device = device_by_name("flex").unwrap().autodiff();
-    let mut run = Run::new(scene, config, device, &dir.join(name), false)
-        .unwrap()
-        .quiet(true);
-    run.run().unwrap();
+    let run = trained(data, dir, config, name);
     let velocity = run.trainer.state.velocity.clone().into_data();
     velocity.try_into_vec_as::<f32>().unwrap()
 }
@@ -1780,42 +1775,71 @@ fn a_multi_view_dnerf_scene_groups_its_cameras_and_trains() {
 /// The smoke Gaussians' log standard deviations after `config` trains on `data` (flex), and
 /// the initialisation's standard deviation, the run in `dir/name`.
 fn log_scales_after(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> (Vec<f32>, f32) {
-    let scene = Sequence::open(data, &config).unwrap();
-    let device = device_by_name("flex").unwrap().autodiff();
     let gaussians = config.gaussians as f32;
-    let mut run = Run::new(scene, config, device, &dir.join(name), false)
-        .unwrap()
-        .quiet(true);
-    run.run().unwrap();
+    let run = trained(data, dir, config, name);
     let extent = run.trainer.grid.hi() - run.trainer.grid.lo();
     let initial_std = 0.5 * (extent.x * extent.y * extent.z / gaussians).cbrt();
     let log_scales = run.trainer.state.gaussians.log_scales.val().into_data();
     (log_scales.try_into_vec_as::<f32>().unwrap(), initial_std)
 }
 
-/// `min_size_factor` leaves every smoke Gaussian at or above that multiple of the
-/// initialisation's size after a run that recycles and splits, where without it some end
-/// below; frame 0's fit is the same with and without it.
-#[test]
-fn the_size_floor_holds_every_smoke_gaussian_after_frame_0() {
-    let dir = tempfile::tempdir().unwrap();
-    let data = tiny_scene(dir.path());
-    let base = TrainConfig {
+/// A run of `config` on `data` (flex, quiet) in `dir/name`, trained to its last frame.
+fn trained(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Run {
+    let scene = Sequence::open(data, &config).unwrap();
+    let device = device_by_name("flex").unwrap().autodiff();
+    let mut run = Run::new(scene, config, device, &dir.join(name), false)
+        .unwrap()
+        .quiet(true);
+    run.run().unwrap();
+    run
+}
+
+/// `joint_terms_config` with recycling and splitting, so rows jump between frames.
+fn recycling_and_splitting_config() -> TrainConfig {
+    TrainConfig {
         respawn_fraction: 0.05,
         respawn_threshold: 0.01,
         split_fraction: 0.05,
         ..joint_terms_config()
-    };
+    }
+}
+
+/// Which bound on the smoke Gaussians' size a test sets.
+#[derive(Clone, Copy, Debug)]
+enum SizeBound {
+    /// `min_size_factor`.
+    Floor,
+    /// `max_size_factor`.
+    Ceiling,
+}
+
+/// The bound at `factor` times the initialisation's size leaves every smoke Gaussian on its
+/// side after a run that recycles and splits, where without it some end beyond it; frame 0's
+/// fit is the same with and without it.
+fn assert_size_bound_holds_after_frame_0(bound: SizeBound, factor: f32) {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let base = recycling_and_splitting_config();
     let (free, initial_std) = log_scales_after(&data, dir.path(), base.clone(), "free");
-    let floor = (1.5 * initial_std).ln();
-    let below = free.iter().filter(|&&s| s < floor - 1e-4).count();
+    let limit = (factor * initial_std).ln();
+    let beyond = |log_scale: f32, slack: f32| match bound {
+        SizeBound::Floor => log_scale < limit - slack,
+        SizeBound::Ceiling => log_scale > limit + slack,
+    };
+    let outside = free.iter().filter(|&&s| beyond(s, 1e-4)).count();
     assert!(
-        below > 0,
-        "without a floor no Gaussian was smaller: the test cannot fail"
+        outside > 0,
+        "{bound:?}: without it no Gaussian was beyond it, the test cannot fail"
     );
-    let config = TrainConfig {
-        min_size_factor: 1.5,
-        ..base.clone()
+    let config = match bound {
+        SizeBound::Floor => TrainConfig {
+            min_size_factor: factor,
+            ..base.clone()
+        },
+        SizeBound::Ceiling => TrainConfig {
+            max_size_factor: factor,
+            ..base.clone()
+        },
     };
     let first_frame = |config: TrainConfig, name: &str| -> Vec<f32> {
         let run = after_frame_0(&data, dir.path(), config, name);
@@ -1824,27 +1848,32 @@ fn the_size_floor_holds_every_smoke_gaussian_after_frame_0() {
     };
     assert_eq!(
         first_frame(base.clone(), "free-0"),
-        first_frame(config.clone(), "floored-0"),
-        "the floor changed frame 0's fit"
+        first_frame(config.clone(), "bounded-0"),
+        "{bound:?} changed frame 0's fit"
     );
-    let (floored, _) = log_scales_after(&data, dir.path(), config, "floored");
-    let smallest = floored.iter().cloned().fold(f32::INFINITY, f32::min);
-    assert!(
-        smallest >= floor - 1e-5,
-        "smallest std {} below the floor {} ({below} below it without one)",
-        smallest.exp(),
-        floor.exp()
+    let (bounded, _) = log_scales_after(&data, dir.path(), config, "bounded");
+    let worst = bounded.iter().filter(|&&s| beyond(s, 1e-5)).count();
+    assert_eq!(
+        worst,
+        0,
+        "{bound:?}: {worst} Gaussians beyond std {} ({outside} without it)",
+        limit.exp()
     );
+}
+
+#[test]
+fn the_size_floor_holds_every_smoke_gaussian_after_frame_0() {
+    assert_size_bound_holds_after_frame_0(SizeBound::Floor, 1.5);
+}
+
+#[test]
+fn the_size_ceiling_holds_every_smoke_gaussian_after_frame_0() {
+    assert_size_bound_holds_after_frame_0(SizeBound::Ceiling, 1.0);
 }
 
 /// The colours after training `config` on `data` (flex), the run in `dir/name`, per row.
 fn colors_after(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Vec<[f32; 3]> {
-    let scene = Sequence::open(data, &config).unwrap();
-    let device = device_by_name("flex").unwrap().autodiff();
-    let mut run = Run::new(scene, config, device, &dir.join(name), false)
-        .unwrap()
-        .quiet(true);
-    run.run().unwrap();
+    let run = trained(data, dir, config, name);
     let colors = run.trainer.state.gaussians.colors.val().into_data();
     let colors = colors.try_into_vec_as::<f32>().unwrap();
     colors.chunks(3).map(|c| [c[0], c[1], c[2]]).collect()
@@ -1857,12 +1886,7 @@ fn colors_after(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Vec
 fn a_uniform_colour_stays_one_colour_through_recycling_and_splits() {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
-    let base = TrainConfig {
-        respawn_fraction: 0.05,
-        respawn_threshold: 0.01,
-        split_fraction: 0.05,
-        ..joint_terms_config()
-    };
+    let base = recycling_and_splitting_config();
     let spread = |colors: &[[f32; 3]]| -> f32 {
         (0..3)
             .map(|c| {
@@ -1907,51 +1931,5 @@ fn a_uniform_colour_stays_one_colour_through_recycling_and_splits() {
         (uniform[0][0] - initial).abs() > 0.01,
         "the colour was not fitted: {} from {initial}",
         uniform[0][0]
-    );
-}
-
-/// `max_size_factor` keeps every smoke Gaussian at or below that multiple of the
-/// initialisation's size after a run that recycles and splits, where without it some end
-/// above; frame 0's fit is the same with and without it.
-#[test]
-fn the_size_ceiling_holds_every_smoke_gaussian_after_frame_0() {
-    let dir = tempfile::tempdir().unwrap();
-    let data = tiny_scene(dir.path());
-    let base = TrainConfig {
-        respawn_fraction: 0.05,
-        respawn_threshold: 0.01,
-        split_fraction: 0.05,
-        ..joint_terms_config()
-    };
-    let (free, initial_std) = log_scales_after(&data, dir.path(), base.clone(), "free");
-    let factor = 1.0;
-    let ceiling = (factor * initial_std).ln();
-    let above = free.iter().filter(|&&s| s > ceiling + 1e-4).count();
-    assert!(
-        above > 0,
-        "without a ceiling no Gaussian was larger ({}): the test cannot fail",
-        free.iter().cloned().fold(f32::NEG_INFINITY, f32::max).exp() / initial_std
-    );
-    let config = TrainConfig {
-        max_size_factor: factor,
-        ..base.clone()
-    };
-    let first_frame = |config: TrainConfig, name: &str| -> Vec<f32> {
-        let run = after_frame_0(&data, dir.path(), config, name);
-        let log_scales = run.trainer.state.gaussians.log_scales.val().into_data();
-        log_scales.try_into_vec_as::<f32>().unwrap()
-    };
-    assert_eq!(
-        first_frame(base.clone(), "free-0"),
-        first_frame(config.clone(), "capped-0"),
-        "the ceiling changed frame 0's fit"
-    );
-    let (capped, _) = log_scales_after(&data, dir.path(), config, "capped");
-    let largest = capped.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
-    assert!(
-        largest <= ceiling + 1e-5,
-        "largest std {} above the ceiling {} ({above} above it without one)",
-        largest.exp(),
-        ceiling.exp()
     );
 }

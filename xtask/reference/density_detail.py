@@ -16,7 +16,7 @@ With `--alone`, the same for the frames fitted alone (`ALONE/frame_TTT/frames/fr
 The box is the synthetic scenes' [-0.5, 0.5] x [0, 1] x [-0.5, 0.5].
 """
 
-import sys
+import argparse
 
 import numpy as np
 
@@ -61,12 +61,10 @@ def main(run, data, frames, alone):
 
 
 if __name__ == "__main__":
-    args = sys.argv[1:]
-    alone = None
-    if "--alone" in args:
-        i = args.index("--alone")
-        alone = args[i + 1]
-        del args[i : i + 2]
-    if len(args) != 3:
-        sys.exit(__doc__)
-    main(args[0], args[1], [int(t) for t in args[2].split(",")], alone)
+    parser = argparse.ArgumentParser(usage=__doc__)
+    parser.add_argument("run")
+    parser.add_argument("data")
+    parser.add_argument("frames")
+    parser.add_argument("--alone")
+    args = parser.parse_args()
+    main(args.run, args.data, [int(t) for t in args.frames.split(",")], args.alone)
