@@ -947,6 +947,8 @@ impl Trainer {
             raw_densities: own_or_shared(config.lr_raw_densities),
             ..Gaussians::default().map(|_, ()| lr_gaussians)
         };
+        // The count is fixed, so the bounds hold for the whole frame.
+        let log_scale_bounds = self.log_scale_bounds();
         let last_frame = (self.sequence.frames() - 1).max(1) as f32;
         let time = t as f32 / last_frame;
         let previous_means = self.state.gaussians.means.val().detach();
@@ -1125,7 +1127,6 @@ impl Trainer {
             };
             self.step_phi(&mut grads, lr_velocity);
             self.step_buoyancy(&mut grads, config.lr_buoyancy * factor);
-            let log_scale_bounds = self.log_scale_bounds();
             self.step_gaussians(
                 &mut grads,
                 Gaussians {
@@ -1224,7 +1225,6 @@ impl Trainer {
                 let _phase = phase!("backward (all ops)");
                 loss.backward()
             };
-            let log_scale_bounds = self.log_scale_bounds();
             self.step_gaussians(&mut grads, rates, log_scale_bounds);
             self.step_statics(&mut grads, lr_gaussians);
             if log.due() || iteration + 1 == refine_iterations {

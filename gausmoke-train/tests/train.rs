@@ -933,13 +933,18 @@ fn joint_terms_config() -> TrainConfig {
     }
 }
 
-/// A run of `config` on `data` (flex, quiet) in `dir/name`, frame 0 fitted.
-fn after_frame_0(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Run {
+/// A run of `config` on `data` (flex, quiet) in `dir/name`, not trained yet.
+fn quiet_run(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Run {
     let scene = Sequence::open(data, &config).unwrap();
     let device = device_by_name("flex").unwrap().autodiff();
-    let mut run = Run::new(scene, config, device, &dir.join(name), false)
+    Run::new(scene, config, device, &dir.join(name), false)
         .unwrap()
-        .quiet(true);
+        .quiet(true)
+}
+
+/// A run of `config` on `data` (flex, quiet) in `dir/name`, frame 0 fitted.
+fn after_frame_0(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Run {
+    let mut run = quiet_run(data, dir, config, name);
     run.trainer.fit_first_frame().unwrap();
     run
 }
@@ -1785,11 +1790,7 @@ fn log_scales_after(data: &Path, dir: &Path, config: TrainConfig, name: &str) ->
 
 /// A run of `config` on `data` (flex, quiet) in `dir/name`, trained to its last frame.
 fn trained(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Run {
-    let scene = Sequence::open(data, &config).unwrap();
-    let device = device_by_name("flex").unwrap().autodiff();
-    let mut run = Run::new(scene, config, device, &dir.join(name), false)
-        .unwrap()
-        .quiet(true);
+    let mut run = quiet_run(data, dir, config, name);
     run.run().unwrap();
     run
 }
@@ -1912,21 +1913,14 @@ fn a_uniform_colour_stays_one_colour_through_recycling_and_splits() {
         "rows differ by {}",
         spread(&uniform)
     );
-    let initial = Run::new(
-        Sequence::open(&data, &config).unwrap(),
-        config,
-        device_by_name("flex").unwrap().autodiff(),
-        &dir.path().join("initial"),
-        false,
-    )
-    .unwrap()
-    .trainer
-    .state
-    .gaussians
-    .colors
-    .val()
-    .mean()
-    .into_scalar::<f32>();
+    let initial = quiet_run(&data, dir.path(), config, "initial")
+        .trainer
+        .state
+        .gaussians
+        .colors
+        .val()
+        .mean()
+        .into_scalar::<f32>();
     assert!(
         (uniform[0][0] - initial).abs() > 0.01,
         "the colour was not fitted: {} from {initial}",
