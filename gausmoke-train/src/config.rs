@@ -353,6 +353,11 @@ pub struct TrainConfig {
     /// Box faces the flow may cross (`x-`, `x+`, `y-`, `y+`, `z-`, `z+`; `y+` is the top of
     /// a box with y up); the others are solid walls. Exact projection only.
     pub open_faces: Vec<String>,
+    /// The velocity on the open faces as a fraction of the cell's inside them, in (0, 1]:
+    /// 1 (the default) a zero-gradient outflow; 0.5 the mean of the cell's velocity and a
+    /// still cell's outside, the discrete top of a collocated solver that reads zero velocity
+    /// above an open face (the synthetic generator's). Needs open faces.
+    pub open_face_flow: f32,
     /// Obstacles described by the data set: `"solid"` (default; no flow into them, exact
     /// projection only) or `"ignore"`.
     pub obstacles: Obstacles,
@@ -503,6 +508,7 @@ impl Default for TrainConfig {
             projection_max_iterations: 400,
             penalty_steps: 20,
             open_faces: Vec::new(),
+            open_face_flow: 1.0,
             obstacles: Obstacles::Solid,
             physics_losses: true,
             refinement: true,
@@ -604,15 +610,19 @@ impl TrainConfig {
         Ok(config)
     }
 
+    /// The faces of `open_faces` with `open_face_flow` (validated by
+    /// [`TrainConfig::validate`]).
+    pub fn open_faces(&self) -> Result<OpenFaces, TrainError> {
+        OpenFaces::from_names(&self.open_faces)
+            .map(|faces| faces.with_flow(self.open_face_flow))
+            .map_err(|reason| TrainError::Config {
+                origin: "open_faces".into(),
+                reason,
+            })
+    }
+
     /// The keys whose values differ between `self` and `other` (nested ones as
     /// `table.key`), each with both values, in key order.
-    /// The faces of `open_faces` (validated by [`TrainConfig::validate`]).
-    pub fn open_faces(&self) -> Result<OpenFaces, TrainError> {
-        OpenFaces::from_names(&self.open_faces).map_err(|reason| TrainError::Config {
-            origin: "open_faces".into(),
-            reason,
-        })
-    }
 
     pub fn differences(&self, other: &TrainConfig) -> Vec<(String, String, String)> {
         fn flatten(prefix: &str, table: &toml::Table, out: &mut BTreeMap<String, String>) {
@@ -896,6 +906,15 @@ impl TrainConfig {
         if let Err(reason) = OpenFaces::from_names(&self.open_faces) {
             return bad(format!("open_faces: {reason}"));
         }
+        let flow = self.open_face_flow;
+        if !(flow > 0.0 && flow <= 1.0) {
+            return bad(format!("open_face_flow must be in (0, 1], got {flow}"));
+        }
+        if flow != 1.0 && self.open_faces.is_empty() {
+            return bad(format!(
+                "open_face_flow = {flow} has no effect with no open faces: set open_faces too"
+            ));
+        }
         if !self.open_faces.is_empty() && self.projection != ProjectionKind::Exact {
             return bad(
                 "open_faces needs projection = \"exact\" (the penalty form has solid \
@@ -1074,6 +1093,29 @@ mod tests {
                 },
                 "lookahead_frames",
             ),
+            (
+                TrainConfig {
+                    open_face_flow: 0.5,
+                    ..TrainConfig::default()
+                },
+                "set open_faces",
+            ),
+            (
+                TrainConfig {
+                    open_faces: vec!["y+".into()],
+                    open_face_flow: 1.5,
+                    ..TrainConfig::default()
+                },
+                "open_face_flow",
+            ),
+            (
+                TrainConfig {
+                    open_faces: vec!["y+".into()],
+                    open_face_flow: f32::NAN,
+                    ..TrainConfig::default()
+                },
+                "open_face_flow",
+            ),
         ];
         for (config, named) in invalid {
             let err = config.validate().unwrap_err();
@@ -1095,6 +1137,13 @@ mod tests {
         }
         let err = region("[0.3, 0, 0.3, 0.7, 0.15, 0.7]", "0").unwrap_err();
         assert!(err.to_string().contains("respawn_fraction"), "{err}");
+        // A half-open top reaches the projection's faces.
+        let half_open = TrainConfig::default()
+            .with_overrides(&["open_faces=[\"y+\"]".into(), "open_face_flow=0.5".into()])
+            .unwrap();
+        half_open.validate().unwrap();
+        let faces = half_open.open_faces().unwrap();
+        assert_eq!(faces.face_flows(), [0.0, 0.0, 0.0, 0.5, 0.0, 0.0]);
     }
 
     #[test]

@@ -198,9 +198,11 @@ impl Solver {
 
     /// Projects the velocity towards divergence-free: collocated central differences, the
     /// matching wide-stencil Poisson equation solved by Jacobi iterations, closed walls on
-    /// the sides and floor (zero normal velocity, zero-gradient pressure), open top
-    /// (pressure 0 above); obstacle cells hold no velocity and their faces are walls like
-    /// the sides. A fixed number of Jacobi iterations leaves a residual; the generator records
+    /// the sides and floor (zero normal velocity, zero-gradient pressure), a half-open top
+    /// (pressure 0 above it, and the divergence reads zero velocity there: a still cell past
+    /// the face, `open_face_flow = 0.5` in the trainer's terms, which lets only part of the
+    /// flow through); obstacle cells hold no velocity and their faces are walls like the
+    /// sides. A fixed number of Jacobi iterations leaves a residual; the generator records
     /// the mean |div u| per frame.
     fn project(&mut self) {
         let n = self.cfg.grid;

@@ -5,8 +5,8 @@
 //!
 //! * velocities live at cell centres (`[nx, ny, nz, 3]`, see [`crate::grid`]);
 //! * the discrete divergence `D` takes face velocities as the mean of the two adjacent cells,
-//!   zero on the solid box faces (no normal flow) and the inner cell's velocity on open ones
-//!   ([`OpenFaces`]), divided by the cell size;
+//!   zero on the solid box faces (no normal flow) and the inner cell's velocity (times the
+//!   faces' `flow`) on open ones ([`OpenFaces`]), divided by the cell size;
 //! * `Pi u = u - D^T p` with `D D^T p = D u`, solved matrix-free by conjugate gradients with a
 //!   Jacobi preconditioner, in f64 on the host. (`-D^T` is the discrete gradient, so this is
 //!   `u - grad p` with `p` solving the Poisson equation.) `D D^T` is singular (constants and
@@ -132,15 +132,42 @@ impl PartialEq for SolidCells {
     }
 }
 
-/// Which faces of the box let the flow through. A solid face (the default) has zero normal
-/// velocity; an open face takes its face velocity from the cell inside it (zero normal
-/// gradient, outflow or inflow), which makes the pressure zero there in effect: a plume can
-/// leave through it instead of recirculating.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Hash)]
+/// Which faces of the box let the flow through, and how freely. A solid face (the default)
+/// has zero normal velocity; an open face takes its face velocity from the cell inside it,
+/// times `flow` (1: zero normal gradient, outflow or inflow, which makes the pressure zero
+/// there in effect, so a plume can leave through it instead of recirculating).
+#[derive(Debug, Clone, Copy)]
 pub struct OpenFaces {
     /// Per axis (x, y, z): the low face (`x-`, at the box's minimum) and the high face.
     pub low: [bool; 3],
     pub high: [bool; 3],
+    /// The velocity on an open face as a fraction of the cell's inside it, in (0, 1]: 1 a
+    /// zero-gradient outflow; 0.5 the mean of the cell and a still cell outside the box, which
+    /// is what a collocated solver that reads zero velocity past an open face (with zero
+    /// pressure there) has, the synthetic generator's top among them.
+    pub flow: f32,
+}
+
+impl PartialEq for OpenFaces {
+    fn eq(&self, other: &Self) -> bool {
+        self.low == other.low
+            && self.high == other.high
+            && self.flow.to_bits() == other.flow.to_bits()
+    }
+}
+
+impl Eq for OpenFaces {}
+
+impl std::hash::Hash for OpenFaces {
+    fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
+        (self.low, self.high, self.flow.to_bits()).hash(state);
+    }
+}
+
+impl Default for OpenFaces {
+    fn default() -> Self {
+        Self::NONE
+    }
 }
 
 impl OpenFaces {
@@ -148,7 +175,24 @@ impl OpenFaces {
     pub const NONE: Self = Self {
         low: [false; 3],
         high: [false; 3],
+        flow: 1.0,
     };
+
+    /// The same faces with `flow` (see the field).
+    pub fn with_flow(self, flow: f32) -> Self {
+        Self { flow, ..self }
+    }
+
+    /// The face velocity on the low (`high == false`) or high face of `axis` as a fraction of
+    /// the cell inside it: `flow` when the face is open, 0 when solid.
+    pub fn face_flow(&self, axis: usize, high: bool) -> f64 {
+        let open = if high {
+            self.high[axis]
+        } else {
+            self.low[axis]
+        };
+        if open { f64::from(self.flow) } else { 0.0 }
+    }
 
     /// Parses names such as `y+` (the high y face) and `x-`.
     pub fn from_names<S: AsRef<str>>(names: &[S]) -> Result<Self, String> {
@@ -179,12 +223,10 @@ impl OpenFaces {
         Ok(faces)
     }
 
-    /// The faces as a bit set (bit `2 a` the low face of axis `a`, bit `2 a + 1` the high),
-    /// for the kernels.
-    pub fn bits(&self) -> u32 {
-        (0..3)
-            .map(|a| (self.low[a] as u32) << (2 * a) | (self.high[a] as u32) << (2 * a + 1))
-            .sum()
+    /// [`Self::face_flow`] of every face (`2 a` the low face of axis `a`, `2 a + 1` the
+    /// high), for the kernels.
+    pub fn face_flows(&self) -> [f32; 6] {
+        std::array::from_fn(|i| self.face_flow(i / 2, i % 2 == 1) as f32)
     }
 }
 
@@ -351,7 +393,7 @@ impl Divergence {
     /// Row `c` of `D` along `axis`: the coefficient (times `h`) on the cell's own velocity
     /// (0 when pinned), and how many free neighbour components it reaches across interior
     /// faces (each with `+-1/2`). An interior face adds `+-1/2` to the own coefficient, an
-    /// open boundary face `+-1`, a solid one (a box wall or an obstacle's face) nothing.
+    /// open boundary face `+-flow`, a solid one (a box wall or an obstacle's face) nothing.
     fn axis_row(&self, axis: usize, c: usize) -> (f64, usize) {
         let i = self.coord(c, axis);
         let n = self.resolution[axis];
@@ -359,14 +401,14 @@ impl Divergence {
         let after = self.fluid_neighbour(c, axis, true);
         let before = self.fluid_neighbour(c, axis, false);
         let (after_box, before_box) = (i + 1 >= n, i == 0);
-        let plus = match (after, after_box && self.open.high[axis]) {
+        let plus = match (after, after_box) {
             (true, _) => 0.5,
-            (false, true) => 1.0,
+            (false, true) => self.open.face_flow(axis, true),
             (false, false) => 0.0,
         };
-        let minus = match (before, before_box && self.open.low[axis]) {
+        let minus = match (before, before_box) {
             (true, _) => 0.5,
-            (false, true) => 1.0,
+            (false, true) => self.open.face_flow(axis, false),
             (false, false) => 0.0,
         };
         let own = if self.component_is_free(c, axis) {
@@ -418,15 +460,15 @@ impl Divergence {
                 let own = self.free_component(u, c, a);
                 let plus = if self.fluid_neighbour(c, a, true) {
                     0.5 * (own + self.free_component(u, c + s, a))
-                } else if i + 1 >= cells && self.open.high[a] {
-                    own
+                } else if i + 1 >= cells {
+                    self.open.face_flow(a, true) * own
                 } else {
                     0.0
                 };
                 let minus = if self.fluid_neighbour(c, a, false) {
                     0.5 * (own + self.free_component(u, c - s, a))
-                } else if i == 0 && self.open.low[a] {
-                    own
+                } else if i == 0 {
+                    self.open.face_flow(a, false) * own
                 } else {
                     0.0
                 };
@@ -449,17 +491,17 @@ impl Divergence {
                 let s = self.stride(a);
                 // u_c appears with weight +1/2h in D at c's + face and in the cell above, and
                 // -1/2h at c's - face and in the cell below (interior faces); with +-1/h at
-                // c's own open boundary faces.
+                // c's own open boundary faces (times their flow).
                 let mut acc = 0.0;
                 if self.fluid_neighbour(c, a, true) {
                     acc += 0.5 * (p[c] - p[c + s]);
-                } else if i + 1 >= n[a] && self.open.high[a] {
-                    acc += p[c];
+                } else if i + 1 >= n[a] {
+                    acc += self.open.face_flow(a, true) * p[c];
                 }
                 if self.fluid_neighbour(c, a, false) {
                     acc -= 0.5 * (p[c] - p[c - s]);
-                } else if i == 0 && self.open.low[a] {
-                    acc -= p[c];
+                } else if i == 0 {
+                    acc -= self.open.face_flow(a, false) * p[c];
                 }
                 o[a] = acc / self.cell[a];
             }

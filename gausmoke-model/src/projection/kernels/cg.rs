@@ -98,7 +98,7 @@ pub fn operator_direction_kernel(
     tolerance_squared: f32,
     floor_squared: f32,
     inverse_cell: &[f32],
-    open_faces: u32,
+    face_flow: &[f32],
     fluid: &[f32],
     has_solids: u32,
     nx: u32,
@@ -120,7 +120,7 @@ pub fn operator_direction_kernel(
             cell,
             direction,
             inverse_cell,
-            open_faces,
+            face_flow,
             fluid,
             has_solids,
             nx,
@@ -160,7 +160,7 @@ pub fn step_kernel(
     curvature_slot: u32,
     tolerance_squared: f32,
     floor_squared: f32,
-    open_faces: u32,
+    face_flow: &[f32],
     fluid: &[f32],
     has_solids: u32,
     nx: u32,
@@ -187,16 +187,7 @@ pub fn step_kernel(
         pressure[c] += step * direction[c];
         r = residual[c] - step * operator_direction[c];
         residual[c] = r;
-        z = r * inverse_diagonal(
-            cell,
-            inverse_cell,
-            open_faces,
-            fluid,
-            has_solids,
-            nx,
-            ny,
-            nz,
-        );
+        z = r * inverse_diagonal(cell, inverse_cell, face_flow, fluid, has_solids, nx, ny, nz);
         preconditioned[c] = z;
     }
     cube_partial(r * r, partials, 0u32);

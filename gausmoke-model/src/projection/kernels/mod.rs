@@ -29,7 +29,7 @@ use gausmoke_render::kernels::buffers::{buffer, contiguous_f32};
 
 use super::DeferredSolves;
 use super::host::{
-    ConvergenceTests, ProjectionOptions, ProjectionReport, ProjectionSpec, SolveKind,
+    ConvergenceTests, OpenFaces, ProjectionOptions, ProjectionReport, ProjectionSpec, SolveKind,
 };
 use cg::{
     CELL_BLOCK, direction_kernel, dot_partials_kernel, finish_sums_kernel,
@@ -76,7 +76,7 @@ struct IterationHints;
 
 /// Grid resolution, open faces, obstacles (their fingerprint), stopping rule and kind of a
 /// solve.
-type HintKey = ([u32; 3], u32, u64, u64, usize, SolveKind);
+type HintKey = ([u32; 3], OpenFaces, u64, u64, usize, SolveKind);
 
 /// What the solves of one key needed.
 #[derive(Debug, Clone, Copy, Default)]
@@ -288,8 +288,8 @@ struct Solver {
     /// Any tensor on the solve's device (for its client and device).
     like: CubeTensor,
     inverse_cell: CubeTensor,
-    /// `OpenFaces::bits` of the box.
-    open_faces: u32,
+    /// `OpenFaces::face_flows` of the box (6 values).
+    face_flow: CubeTensor,
     /// Per cell 1 (fluid) or 0 (obstacle); read only when `has_solids` is 1.
     fluid: CubeTensor,
     has_solids: u32,
@@ -334,7 +334,7 @@ impl Solver {
             buffer(velocity),
             buffer(output),
             buffer(&self.inverse_cell),
-            self.open_faces,
+            buffer(&self.face_flow),
             buffer(&self.fluid),
             self.has_solids,
             nx,
@@ -352,7 +352,7 @@ impl Solver {
             buffer(pressure),
             buffer(output),
             buffer(&self.inverse_cell),
-            self.open_faces,
+            buffer(&self.face_flow),
             buffer(&self.fluid),
             self.has_solids,
             nx,
@@ -464,6 +464,13 @@ pub fn project_velocity(
             &velocity.device,
         )
     };
+    let face_flow = {
+        use burn::backend::ops::FloatTensorOps;
+        burn_cubecl::CubeBackend::float_from_data(
+            burn::tensor::TensorData::new(open_faces.face_flows().to_vec(), [6]),
+            &velocity.device,
+        )
+    };
     let dims = spec.resolution.map(|n| {
         u32::try_from(n).expect("grid resolution checked by GridSpec (under 8 GiB per tensor)")
     });
@@ -495,7 +502,7 @@ pub fn project_velocity(
     let solver = Solver {
         like: velocity.clone(),
         inverse_cell,
-        open_faces: open_faces.bits(),
+        face_flow,
         fluid,
         has_solids: solids.is_some() as u32,
         dims,
@@ -539,7 +546,7 @@ pub fn project_velocity(
         buffer(&preconditioned),
         buffer(&direction),
         buffer(&solver.inverse_cell),
-        solver.open_faces,
+        buffer(&solver.face_flow),
         buffer(&solver.fluid),
         solver.has_solids,
         nx,
@@ -555,7 +562,7 @@ pub fn project_velocity(
     let stopping = StoppingRule::new(rel_tolerance, spec.cell);
     let hint_key = (
         dims,
-        solver.open_faces,
+        open_faces,
         solids.as_ref().map_or(0, |s| s.fingerprint()),
         rel_tolerance.to_bits(),
         max_iterations,
@@ -591,7 +598,7 @@ pub fn project_velocity(
             stopping.tolerance_squared,
             stopping.floor_squared,
             buffer(&solver.inverse_cell),
-            solver.open_faces,
+            buffer(&solver.face_flow),
             buffer(&solver.fluid),
             solver.has_solids,
             nx,
@@ -617,7 +624,7 @@ pub fn project_velocity(
             curvature as u32,
             stopping.tolerance_squared,
             stopping.floor_squared,
-            solver.open_faces,
+            buffer(&solver.face_flow),
             buffer(&solver.fluid),
             solver.has_solids,
             nx,

@@ -45,11 +45,12 @@ fn axis_cells(axis: u32, nx: u32, ny: u32, nz: u32) -> u32 {
     cells
 }
 
-/// Whether bit `2 axis + side` of `open_faces` is set (side 0 the low face, 1 the high), as
-/// `OpenFaces::bits`.
+/// The face velocity on the box face of `axis` (side 0 the low face, 1 the high) as a
+/// fraction of the cell inside it: `face_flow[2 axis + side]`, as `OpenFaces::face_flows`
+/// (0 on a solid face).
 #[cube]
-fn face_is_open(open_faces: u32, axis: u32, side: u32) -> bool {
-    ((open_faces >> (2 * axis + side)) & 1) == 1
+fn box_face_flow(face_flow: &[f32], axis: u32, side: u32) -> f32 {
+    face_flow[(2 * axis + side) as usize]
 }
 
 /// Whether `cell` holds fluid (see the module's notes on obstacles).
@@ -121,7 +122,7 @@ fn fluid_neighbours(
 pub fn inverse_diagonal(
     cell: u32,
     inverse_cell: &[f32],
-    open_faces: u32,
+    face_flow: &[f32],
     fluid: &[f32],
     has_solids: u32,
     nx: u32,
@@ -143,16 +144,16 @@ pub fn inverse_diagonal(
                 if component_is_free(cell + stride, axis, fluid, has_solids, nx, ny, nz) {
                     interior += 1.0;
                 }
-            } else if i + 1 >= n && face_is_open(open_faces, axis, 1) {
-                own += 1.0;
+            } else if i + 1 >= n {
+                own += box_face_flow(face_flow, axis, 1);
             }
             if low {
                 own -= 0.5;
                 if component_is_free(cell - stride, axis, fluid, has_solids, nx, ny, nz) {
                     interior += 1.0;
                 }
-            } else if i == 0 && face_is_open(open_faces, axis, 0) {
-                own -= 1.0;
+            } else if i == 0 {
+                own -= box_face_flow(face_flow, axis, 0);
             }
             if !component_is_free(cell, axis, fluid, has_solids, nx, ny, nz) {
                 own = 0.0;
@@ -170,7 +171,8 @@ pub fn inverse_diagonal(
 
 /// The net outflow along one axis of a cell whose velocity component is `own`, with `high` and
 /// `low` its neighbours' (read only where `high_fluid` / `low_fluid`): face velocity = mean of
-/// its two cells, zero on solid walls and obstacle faces, the inner cell's on open faces.
+/// its two cells, zero on solid walls and obstacle faces, the inner cell's times the face's
+/// flow on open faces.
 #[cube]
 #[allow(clippy::too_many_arguments)]
 fn axis_flux(
@@ -181,19 +183,19 @@ fn axis_flux(
     low_fluid: bool,
     i: u32,
     n: u32,
-    open_faces: u32,
+    face_flow: &[f32],
     axis: u32,
 ) -> f32 {
     let mut flux = 0.0f32;
     if high_fluid {
         flux += 0.5 * (own + high);
-    } else if i + 1 >= n && face_is_open(open_faces, axis, 1) {
-        flux += own;
+    } else if i + 1 >= n {
+        flux += box_face_flow(face_flow, axis, 1) * own;
     }
     if low_fluid {
         flux -= 0.5 * (own + low);
-    } else if i == 0 && face_is_open(open_faces, axis, 0) {
-        flux -= own;
+    } else if i == 0 {
+        flux -= box_face_flow(face_flow, axis, 0) * own;
     }
     flux
 }
@@ -208,7 +210,7 @@ fn velocity_component(
     axis: u32,
     source: &[f32],
     inverse_cell: &[f32],
-    open_faces: u32,
+    face_flow: &[f32],
     fluid: &[f32],
     has_solids: u32,
     nx: u32,
@@ -222,7 +224,7 @@ fn velocity_component(
             axis,
             source,
             inverse_cell,
-            open_faces,
+            face_flow,
             fluid,
             has_solids,
             nx,
@@ -247,7 +249,7 @@ pub fn divergence_at(
     cell: u32,
     source: &[f32],
     inverse_cell: &[f32],
-    open_faces: u32,
+    face_flow: &[f32],
     fluid: &[f32],
     has_solids: u32,
     nx: u32,
@@ -268,7 +270,7 @@ pub fn divergence_at(
                 axis,
                 source,
                 inverse_cell,
-                open_faces,
+                face_flow,
                 fluid,
                 has_solids,
                 nx,
@@ -283,7 +285,7 @@ pub fn divergence_at(
                     axis,
                     source,
                     inverse_cell,
-                    open_faces,
+                    face_flow,
                     fluid,
                     has_solids,
                     nx,
@@ -299,7 +301,7 @@ pub fn divergence_at(
                     axis,
                     source,
                     inverse_cell,
-                    open_faces,
+                    face_flow,
                     fluid,
                     has_solids,
                     nx,
@@ -308,9 +310,8 @@ pub fn divergence_at(
                     of_gradient,
                 );
             }
-            total += axis_flux(
-                own, high, low, high_fluid, low_fluid, i, n, open_faces, axis,
-            ) * inverse_cell[axis as usize];
+            total += axis_flux(own, high, low, high_fluid, low_fluid, i, n, face_flow, axis)
+                * inverse_cell[axis as usize];
             axis += 1;
         }
     }
@@ -324,7 +325,7 @@ pub fn divergence_kernel(
     velocity: &[f32],
     divergence: &mut [f32],
     inverse_cell: &[f32],
-    open_faces: u32,
+    face_flow: &[f32],
     fluid: &[f32],
     has_solids: u32,
     nx: u32,
@@ -339,7 +340,7 @@ pub fn divergence_kernel(
         cell,
         velocity,
         inverse_cell,
-        open_faces,
+        face_flow,
         fluid,
         has_solids,
         nx,
@@ -358,7 +359,7 @@ fn gradient_component(
     axis: u32,
     pressure: &[f32],
     inverse_cell: &[f32],
-    open_faces: u32,
+    face_flow: &[f32],
     fluid: &[f32],
     has_solids: u32,
     nx: u32,
@@ -374,13 +375,13 @@ fn gradient_component(
         let (high, low) = fluid_neighbours(cell, i, n, stride, fluid, has_solids);
         if high {
             value += 0.5 * (own - pressure[(cell + stride) as usize]);
-        } else if i + 1 >= n && face_is_open(open_faces, axis, 1) {
-            value += own;
+        } else if i + 1 >= n {
+            value += box_face_flow(face_flow, axis, 1) * own;
         }
         if low {
             value -= 0.5 * (own - pressure[(cell - stride) as usize]);
-        } else if i == 0 && face_is_open(open_faces, axis, 0) {
-            value -= own;
+        } else if i == 0 {
+            value -= box_face_flow(face_flow, axis, 0) * own;
         }
         value *= inverse_cell[axis as usize];
     }
@@ -394,7 +395,7 @@ pub fn divergence_transpose_kernel(
     pressure: &[f32],
     output: &mut [f32],
     inverse_cell: &[f32],
-    open_faces: u32,
+    face_flow: &[f32],
     fluid: &[f32],
     has_solids: u32,
     nx: u32,
@@ -412,7 +413,7 @@ pub fn divergence_transpose_kernel(
             axis,
             pressure,
             inverse_cell,
-            open_faces,
+            face_flow,
             fluid,
             has_solids,
             nx,
@@ -431,7 +432,7 @@ pub fn precondition_kernel(
     preconditioned: &mut [f32],
     direction: &mut [f32],
     inverse_cell: &[f32],
-    open_faces: u32,
+    face_flow: &[f32],
     fluid: &[f32],
     has_solids: u32,
     nx: u32,
@@ -443,16 +444,7 @@ pub fn precondition_kernel(
         terminate!();
     }
     let z = residual[cell as usize]
-        * inverse_diagonal(
-            cell,
-            inverse_cell,
-            open_faces,
-            fluid,
-            has_solids,
-            nx,
-            ny,
-            nz,
-        );
+        * inverse_diagonal(cell, inverse_cell, face_flow, fluid, has_solids, nx, ny, nz);
     preconditioned[cell as usize] = z;
     direction[cell as usize] = z;
 }
