@@ -623,7 +623,6 @@ impl TrainConfig {
 
     /// The keys whose values differ between `self` and `other` (nested ones as
     /// `table.key`), each with both values, in key order.
-
     pub fn differences(&self, other: &TrainConfig) -> Vec<(String, String, String)> {
         fn flatten(prefix: &str, table: &toml::Table, out: &mut BTreeMap<String, String>) {
             for (key, value) in table {
