@@ -456,49 +456,36 @@ pub fn project_velocity(
         ref solids,
         convergence_tests,
     } = spec.options;
-    let inverse_cell = {
+    let upload = |values: Vec<f32>| {
         use burn::backend::ops::FloatTensorOps;
-        let values: Vec<f32> = spec.cell.iter().map(|h| (1.0 / h) as f32).collect();
+        let len = values.len();
         burn_cubecl::CubeBackend::float_from_data(
-            burn::tensor::TensorData::new(values, [3]),
+            burn::tensor::TensorData::new(values, [len]),
             &velocity.device,
         )
     };
-    let face_flow = {
-        use burn::backend::ops::FloatTensorOps;
-        burn_cubecl::CubeBackend::float_from_data(
-            burn::tensor::TensorData::new(open_faces.face_flows().to_vec(), [6]),
-            &velocity.device,
-        )
-    };
+    let inverse_cell = upload(spec.cell.iter().map(|h| (1.0 / h) as f32).collect());
+    let face_flow = upload(open_faces.face_flows().to_vec());
     let dims = spec.resolution.map(|n| {
         u32::try_from(n).expect("grid resolution checked by GridSpec (under 8 GiB per tensor)")
     });
     // One flag per cell, uploaded with the solve (a write, not a read); a placeholder the
     // kernels never read without obstacles.
-    let fluid = {
-        use burn::backend::ops::FloatTensorOps;
-        let flags: Vec<f32> = match solids {
-            Some(solids) => {
-                assert_eq!(
-                    solids.resolution(),
-                    spec.resolution,
-                    "obstacle cells must be on the projected grid"
-                );
-                solids
-                    .flags()
-                    .iter()
-                    .map(|&s| if s { 0.0 } else { 1.0 })
-                    .collect()
-            }
-            None => vec![1.0],
-        };
-        let len = flags.len();
-        burn_cubecl::CubeBackend::float_from_data(
-            burn::tensor::TensorData::new(flags, [len]),
-            &velocity.device,
-        )
-    };
+    let fluid = upload(match solids {
+        Some(solids) => {
+            assert_eq!(
+                solids.resolution(),
+                spec.resolution,
+                "obstacle cells must be on the projected grid"
+            );
+            solids
+                .flags()
+                .iter()
+                .map(|&s| if s { 0.0 } else { 1.0 })
+                .collect()
+        }
+        None => vec![1.0],
+    });
     let solver = Solver {
         like: velocity.clone(),
         inverse_cell,
