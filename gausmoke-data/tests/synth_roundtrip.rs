@@ -183,6 +183,53 @@ fn long_plume_leaves_through_the_top() {
     assert!(mass(&s) > halfway, "{} -> {}", halfway, mass(&s));
 }
 
+#[test]
+fn turning_plume_turns_about_its_axis() {
+    // The smoke's mean angular velocity about the source's axis, in degrees per frame
+    // (density-weighted, cells at least 2 from the axis).
+    let turn = |cfg: &SynthConfig| {
+        let mut s = Solver::new(cfg).unwrap();
+        for _ in 0..20 {
+            s.step_frame();
+        }
+        let n = s.density.n;
+        let centre = 0.5 * n as f32;
+        let (mut mass, mut turning) = (0.0f64, 0.0f64);
+        for (i, &d) in s.density.data.iter().enumerate() {
+            let (x, z) = (i % n, i / (n * n));
+            let (dx, dz) = (x as f32 + 0.5 - centre, z as f32 + 0.5 - centre);
+            let r2 = dx * dx + dz * dz;
+            if r2 < 4.0 {
+                continue;
+            }
+            let along = (s.velocity[0].data[i] * dz - s.velocity[2].data[i] * dx) / r2;
+            mass += d as f64;
+            turning += (d * along) as f64;
+        }
+        ((turning / mass) as f32).to_degrees()
+    };
+    let still = turn(&SynthConfig::long_plume());
+    let turning = SynthConfig::turning_plume();
+    let turns = turn(&turning);
+    assert!(
+        still.abs() < 0.3,
+        "the long plume turns {still} degrees/frame"
+    );
+    assert!(
+        turns > 0.5 * turning.swirl_degrees && turns < 1.1 * turning.swirl_degrees,
+        "the turning plume turns {turns} degrees/frame, set {}",
+        turning.swirl_degrees
+    );
+    let backwards = turn(&SynthConfig {
+        swirl_degrees: -turning.swirl_degrees,
+        ..turning
+    });
+    assert!(
+        (backwards + turns).abs() < 0.5,
+        "{backwards} against {turns}"
+    );
+}
+
 /// No smoke and no velocity in the `solid` cells of `s` after `frame`.
 fn assert_nothing_in(s: &Solver, solid: &[usize], frame: usize) {
     for &i in solid {

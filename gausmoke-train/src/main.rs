@@ -4,7 +4,7 @@
 //! * `train --data DIR --out DIR [--config FILE] [--set KEY=VALUE]...`: Algorithm 1;
 //! * `eval --run DIR`: held-out metrics, divergence, ground-truth errors;
 //! * `inspect DATASET`: what a data set holds, and a contact sheet with the box drawn in;
-//! * `synth tiny|long|scalarflow|obstacle|ball OUT`: write a synthetic scene with ground truth;
+//! * `synth tiny|long|turning|scalarflow|obstacle|ball OUT`: write a synthetic scene with ground truth;
 //! * `render`: render a procedural plume (checks the build and the renderer).
 
 use std::path::{Path, PathBuf};
@@ -82,6 +82,9 @@ enum SynthPreset {
     Tiny,
     /// 32^3, 5 views, 72 frames at 64x96; the plume leaves through the open top.
     Long,
+    /// The long plume turning about its vertical axis (about 3 degrees per frame), so the
+    /// cameras see each rising structure from changing directions.
+    Turning,
     /// 64^3, 5 views, 120 frames at 270x480, ScalarFlow-sized.
     Scalarflow,
     /// The long plume's settings for 48 frames, rising past a solid sphere (not drawn; its
@@ -262,6 +265,7 @@ fn run_command(cli: Cli) -> Result<()> {
             let mut config = match preset {
                 SynthPreset::Tiny => SynthConfig::tiny(),
                 SynthPreset::Long => SynthConfig::long_plume(),
+                SynthPreset::Turning => SynthConfig::turning_plume(),
                 SynthPreset::Scalarflow => SynthConfig::scalarflow(),
                 SynthPreset::Obstacle => SynthConfig::obstacle_plume(),
                 SynthPreset::Ball => SynthConfig::ball_plume(),

@@ -2,7 +2,8 @@
 //!
 //! A small 3D smoke solver (buoyant plume from a source disc near the floor, semi-Lagrangian
 //! advection with trilinear sampling, vorticity confinement, pressure projection by Jacobi
-//! iterations, seeded inflow noise) is rendered from cameras on an arc by an independent Beer-Lambert ray
+//! iterations, seeded inflow noise, optionally a swirl that turns the smoke about the
+//! source's vertical axis) is rendered from cameras on an arc by an independent Beer-Lambert ray
 //! marcher (not the Gaussian renderer), and written as a PINF / HyFluid data set:
 //! `info.json`, one folder of PNG frames per camera (`view00/000.png`, ...), and the ground
 //! truth per frame in `gt/frame_000.safetensors` (`density` `[n, n, n]` and `velocity`
@@ -71,6 +72,11 @@ pub struct SynthConfig {
     pub noise: f32,
     /// Vorticity confinement strength (Fedkiw et al. 2001), in cells; 0 disables it.
     pub vorticity: f32,
+    /// Turning of the smoke about the source's vertical axis, in degrees per frame
+    /// (counter-clockwise seen from above): each substep the smoke's tangential velocity
+    /// relaxes towards this solid-body rotation, in proportion to its density (capped at 1).
+    /// 0 (every preset but [`SynthConfig::turning_plume`]) leaves the solver as it was.
+    pub swirl_degrees: f32,
     /// Extinction per unit density per world unit.
     pub density_scale: f32,
     pub camera_distance: f32,
@@ -115,6 +121,7 @@ impl SynthConfig {
             inflow_speed: 2.0,
             noise: 0.3,
             vorticity: 0.3,
+            swirl_degrees: 0.0,
             density_scale: 5.0,
             camera_distance: 2.0,
             arc_degrees: 120.0,
@@ -153,6 +160,18 @@ impl SynthConfig {
             buoyancy: 0.2,
             inflow_speed: 1.0,
             ..Self::tiny()
+        }
+    }
+
+    /// The long plume turning about its vertical axis (relaxed towards 5 degrees per frame,
+    /// it turns about 3 by frame 20), so that what the cameras saw of a rising structure they
+    /// later see from other directions (some 75 degrees over the 25 frames a structure takes
+    /// to rise through the box): a scene on which transport can carry what earlier frames'
+    /// views saw to where no view of the present frame looks (issue 18).
+    pub fn turning_plume() -> Self {
+        Self {
+            swirl_degrees: 5.0,
+            ..Self::long_plume()
         }
     }
 
@@ -258,6 +277,7 @@ impl SynthConfig {
         }
         let finite = [
             self.vorticity,
+            self.swirl_degrees,
             self.buoyancy,
             self.inflow_speed,
             self.noise,

@@ -1,5 +1,6 @@
 //! The small smoke solver behind the synthetic scenes: a buoyant plume from a source disc,
-//! semi-Lagrangian advection, vorticity confinement, Jacobi pressure projection, solids.
+//! semi-Lagrangian advection, vorticity confinement, an optional swirl, Jacobi pressure
+//! projection, solids.
 
 use gausmoke_core::SplitMix64;
 use gausmoke_core::glam::Vec3;
@@ -102,6 +103,7 @@ impl Solver {
         for _ in 0..self.cfg.substeps {
             self.inflow(dt);
             self.add_buoyancy(dt);
+            self.add_swirl(dt);
             self.confine_vorticity(dt);
             let vel = self.velocity.clone();
             for c in 0..3 {
@@ -145,6 +147,41 @@ impl Solver {
         let b = self.cfg.buoyancy * dt;
         for (v, d) in self.velocity[1].data.iter_mut().zip(&self.density.data) {
             *v += b * d;
+        }
+    }
+
+    /// Relaxes the smoke's velocity about the source's vertical axis towards the solid-body
+    /// rotation of [`SynthConfig::swirl_degrees`]: `u += min(d, 1) dt (omega r - u_t) t`, with
+    /// `t` the unit tangent and `u_t` the velocity along it. Radial and vertical flow are left
+    /// alone; the projection that follows keeps the whole divergence-free.
+    fn add_swirl(&mut self, dt: f32) {
+        if self.cfg.swirl_degrees == 0.0 {
+            return;
+        }
+        let n = self.cfg.grid;
+        let omega = self.cfg.swirl_degrees.to_radians();
+        let centre = 0.5 * n as f32;
+        for z in 0..n {
+            for y in 0..n {
+                for x in 0..n {
+                    let i = self.density.idx(x, y, z);
+                    let weight = self.density.data[i].min(1.0) * dt;
+                    if weight <= 0.0 || self.solid[i] {
+                        continue;
+                    }
+                    let (dx, dz) = (x as f32 + 0.5 - centre, z as f32 + 0.5 - centre);
+                    let r = (dx * dx + dz * dz).sqrt();
+                    if r < 1e-6 {
+                        continue;
+                    }
+                    // Counter-clockwise seen from +y: the tangent of (dx, dz) is (dz, -dx)/r.
+                    let (tx, tz) = (dz / r, -dx / r);
+                    let along = self.velocity[0].data[i] * tx + self.velocity[2].data[i] * tz;
+                    let push = weight * (omega * r - along);
+                    self.velocity[0].data[i] += push * tx;
+                    self.velocity[2].data[i] += push * tz;
+                }
+            }
         }
     }
 
