@@ -92,6 +92,11 @@ pub struct ReproduceArgs {
     /// get `-r<fraction>` keys.
     #[arg(long)]
     respawn: Option<f32>,
+    /// The turning plume's swirl, degrees per frame (default: the preset's 5, which turns the
+    /// smoke about 3 degrees per frame). Data in `<out>/data-synthetic-turning-swirl<D>`,
+    /// runs under `-swirl<D>` keys.
+    #[arg(long, value_name = "DEGREES")]
+    swirl: Option<f32>,
     /// Train the quick presets of scalar-real and synthetic-long with the paper's update
     /// (Algorithm 1 as written, K = 20) instead of ours. Runs get `-paper` keys.
     #[arg(long)]
@@ -259,6 +264,12 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
     }
     if let Some(fraction) = args.respawn {
         suffix += &format!("-r{fraction}");
+    }
+    if let Some(degrees) = args.swirl {
+        if args.target != Target::Turning {
+            bail!("--swirl: only the turning plume has a swirl to set");
+        }
+        suffix += &format!("-swirl{degrees}");
     }
     let inflow = match (args.target, args.quick) {
         (Target::ScalarReal, true) => Some(SCALAR_REAL_INFLOW),
@@ -537,6 +548,9 @@ fn command_line(args: &ReproduceArgs) -> String {
     if let Some(fraction) = args.respawn {
         line += &format!(" --respawn {fraction}");
     }
+    if let Some(degrees) = args.swirl {
+        line += &format!(" --swirl {degrees}");
+    }
     if args.paper_update {
         line += " --paper-update";
     }
@@ -684,6 +698,16 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
                     },
                 ),
                 _ => ("scalarflow", SynthConfig::scalarflow()),
+            };
+            let (preset, config) = match args.swirl {
+                Some(degrees) => (
+                    format!("{preset}-swirl{degrees}"),
+                    SynthConfig {
+                        swirl_degrees: degrees,
+                        ..config
+                    },
+                ),
+                None => (preset.to_string(), config),
             };
             let path = args.out.join(format!("data-synthetic-{preset}"));
             if !is_data_set(&path) {
@@ -887,6 +911,7 @@ mod tests {
             lpips_weights: None,
             seed: None,
             respawn: None,
+            swirl: None,
             paper_update: false,
             overrides: Vec::new(),
             tag: None,
@@ -943,6 +968,21 @@ mod tests {
             command_line(&turning(Target::Turning))
                 .ends_with("reproduce turning --quick --seed 2 --independent 18,36")
         );
+        let faster = ReproduceArgs {
+            swirl: Some(15.0),
+            ..turning(Target::Turning)
+        };
+        let list = variants(&faster).unwrap();
+        assert_eq!(list[0].key, "turning-quick-swirl15-s2");
+        assert_eq!(list[0].config, long.config);
+        assert!(command_line(&faster).contains("--seed 2 --swirl 15 --independent"));
+        let err = variants(&ReproduceArgs {
+            swirl: Some(15.0),
+            ..quick_args(Target::SyntheticLong)
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("--swirl"), "{err}");
     }
 
     /// The quick presets of the two scenes with an inflow train with our update, each
