@@ -97,8 +97,8 @@ pub struct ReproduceArgs {
     /// runs under `-swirl<D>` keys.
     #[arg(long, value_name = "DEGREES")]
     swirl: Option<f32>,
-    /// Train the quick presets of scalar-real and synthetic-long with the paper's update
-    /// (Algorithm 1 as written, K = 20) instead of ours. Runs get `-paper` keys.
+    /// Train the quick presets of scalar-real, synthetic-long and turning with the paper's
+    /// update (Algorithm 1 as written, K = 20) instead of ours. Runs get `-paper` keys.
     #[arg(long)]
     paper_update: bool,
     /// Override a configuration value of every variant (`gausmoke-train --set` syntax,
@@ -279,8 +279,8 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
     if args.paper_update {
         if inflow.is_none() {
             bail!(
-                "--paper-update: only the quick presets of scalar-real and synthetic-long use \
-                 our update; this one trains with the paper's already"
+                "--paper-update: only the quick presets of scalar-real, synthetic-long and \
+                 turning use our update; this one trains with the paper's already"
             );
         }
         suffix += "-paper";
