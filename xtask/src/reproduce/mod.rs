@@ -269,6 +269,13 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
         if args.target != Target::Turning {
             bail!("--swirl: only the turning plume has a swirl to set");
         }
+        if let Some(data) = &args.data {
+            bail!(
+                "--swirl sets the swirl of the scene reproduce generates; {} is read as it is \
+                 (drop --data or --swirl)",
+                data.display()
+            );
+        }
         suffix += &format!("-swirl{degrees}");
     }
     let inflow = match (args.target, args.quick) {
@@ -983,6 +990,16 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(err.contains("--swirl"), "{err}");
+        let err = variants(&ReproduceArgs {
+            data: Some(PathBuf::from("scenes/mine")),
+            ..faster
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.contains("--swirl") && err.contains("scenes/mine"),
+            "{err}"
+        );
     }
 
     /// The quick presets of the two scenes with an inflow train with our update, each
