@@ -90,6 +90,19 @@ pub enum LookaheadVelocity {
     Predicted,
 }
 
+/// When the Gaussians' Adam state (its moment estimates) starts afresh (see
+/// `gaussian_optimizer_reset`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OptimizerReset {
+    /// Never: one state from frame 0's fit to the last frame.
+    Never,
+    /// Once, after frame 0's fit.
+    AfterFirstFrame,
+    /// At the start of every frame after frame 0.
+    EveryFrame,
+}
+
 /// What the velocity correction fits the frame's velocity to (see `correction_iterations`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -417,6 +430,19 @@ pub struct TrainConfig {
     /// the density to explain. Off (the default, the paper's method): a colour per Gaussian.
     /// Frame 0 and so the independent per-frame baseline use it too.
     pub uniform_color: bool,
+    /// When the smoke Gaussians' Adam state starts afresh (ours): `"never"` (the default),
+    /// `"after_first_frame"` or `"every_frame"`. Adam divides each step by a running mean of
+    /// the squared gradients with a memory of about a thousand steps; kept from frame 0's
+    /// fit, whose first steps' gradients are the largest of the run, it slows the steps of
+    /// the frames after it until it has forgotten them.
+    pub gaussian_optimizer_reset: OptimizerReset,
+    /// A diagnostic for synthetic scenes (ours; off by default): from frame 1 on, the joint
+    /// iterations carry the Gaussians along the data set's true velocity of frame t
+    /// (`gt/frame_TTT.safetensors`, on a grid of `grid_resolution` cells) instead of Phi's,
+    /// and it is the frame's velocity; everything else trains as configured (Phi too, but
+    /// it carries nothing). What a perfect velocity would give the rest of the method.
+    /// Refused for a data set without that ground truth.
+    pub velocity_from_ground_truth: bool,
     /// Seed of the Gaussians' initialisation.
     pub seed: u64,
     /// Write renders, exports and velocity slices every this many frames (1 = all).
@@ -523,6 +549,8 @@ impl Default for TrainConfig {
             min_size_factor: 0.0,
             max_size_factor: 0.0,
             uniform_color: false,
+            gaussian_optimizer_reset: OptimizerReset::Never,
+            velocity_from_ground_truth: false,
             seed: 2026,
             output_every: 1,
             log_every: 10,

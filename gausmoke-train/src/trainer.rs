@@ -48,9 +48,10 @@ use gausmoke_render::{
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::TrainError;
+use crate::arrays::{read_arrays, take_array};
 use crate::config::{
     CorrectionTarget, IntegratorKind, InterpolationKind, LookaheadVelocity, Obstacles,
-    ProjectionKind, TrainConfig,
+    OptimizerReset, ProjectionKind, TrainConfig,
 };
 use crate::respawn::{
     DeficitView, RespawnOptions, RespawnReport, SpawnLattice, recycling_candidates, respawn,
@@ -467,6 +468,14 @@ impl Trainer {
                      (0 renders all of them)",
                     config.refine_views_per_step
                 ),
+            });
+        }
+        if config.velocity_from_ground_truth && sequence.ground_truth.is_none() {
+            return Err(TrainError::Config {
+                origin: "configuration".into(),
+                reason: "velocity_from_ground_truth needs a data set with ground truth \
+                         (gt/frame_TTT.safetensors, as the synthetic scenes have)"
+                    .into(),
             });
         }
         // Each frame reports its loops' kernel launches (no-op without a cube backend).
@@ -910,6 +919,9 @@ impl Trainer {
         // The statics were fitted first; frame 0 fits the smoke in front of them.
         losses.extend(self.fit_to_images(StillFit::FirstFrame, &observations, &targets)?);
         let traffic = vec![LoopTraffic::of(Phase::Init, losses.len(), start)];
+        if self.config.gaussian_optimizer_reset == OptimizerReset::AfterFirstFrame {
+            self.state.gaussian_optim = gaussian_optimizer();
+        }
         Ok(FrameOutcome {
             frame: 0,
             train_l1: losses.last().map_or(f32::NAN, |r| r.render) as f64,
@@ -928,6 +940,9 @@ impl Trainer {
     /// Frames `t-1 -> t`: K joint iterations, then K' refinement iterations.
     pub fn advance_to(&mut self, t: usize) -> Result<FrameOutcome, TrainError> {
         let config = self.config.clone();
+        if config.gaussian_optimizer_reset == OptimizerReset::EveryFrame {
+            self.state.gaussian_optim = gaussian_optimizer();
+        }
         let observations = &self.sequence.train[t];
         let cameras: Vec<Camera> = observations.iter().map(|o| o.camera).collect();
         let targets: Vec<Tensor<3>> = observations
@@ -985,6 +1000,12 @@ impl Trainer {
             })
             .collect();
 
+        let true_velocity = if config.velocity_from_ground_truth {
+            Some(self.true_velocity(t)?)
+        } else {
+            None
+        };
+
         // K joint iterations (Algorithm 1, lines 3-9).
         let mut velocity = previous_velocity.clone();
         let mut unprojected = previous_velocity.clone();
@@ -1020,7 +1041,10 @@ impl Trainer {
                 delta.clone(),
                 sigma_previous.clone(),
             );
-            let projected = self.project(update.clone());
+            let projected = match &true_velocity {
+                Some(truth) => truth.clone(),
+                None => self.project(update.clone()),
+            };
             let moved = advect(
                 &self.grid,
                 &projected,
@@ -1154,9 +1178,12 @@ impl Trainer {
         )];
         if config.advect_iterations == 0 {
             // No joint iterations: carry the Gaussians along the previous velocity.
+            if let Some(truth) = &true_velocity {
+                velocity = truth.clone();
+            }
             let moved = advect(
                 &self.grid,
-                &previous_velocity,
+                &velocity,
                 &previous_means,
                 config.dt,
                 self.integrator(),
@@ -1283,6 +1310,52 @@ impl Trainer {
             traffic,
             buoyancy: self.buoyancy_coefficient(),
         })
+    }
+
+    /// The data set's true velocity of frame `t` on the grid (`velocity_from_ground_truth`).
+    fn true_velocity(&self, t: usize) -> Result<Tensor<4>, TrainError> {
+        let dir = self
+            .sequence
+            .ground_truth
+            .as_ref()
+            .expect("checked when the trainer was made");
+        let path = dir.join(format!(
+            "frame_{:03}.safetensors",
+            self.sequence.first_frame + t
+        ));
+        let mut arrays = read_arrays(&path)?;
+        let n = self.config.grid_resolution;
+        let found = arrays.get("velocity").map(|(shape, _)| shape.clone());
+        if found
+            .as_ref()
+            .is_some_and(|shape| shape[..] != [n, n, n, 3])
+        {
+            return Err(TrainError::Config {
+                origin: "configuration".into(),
+                reason: format!(
+                    "velocity_from_ground_truth: {} holds a velocity of shape {:?}, but \
+                     grid_resolution is {n}; set grid_resolution to the ground truth's",
+                    path.display(),
+                    found.unwrap_or_default()
+                ),
+            });
+        }
+        let truth = take_array(&mut arrays, "velocity", &[n, n, n, 3], &path)?;
+        // The ground truth is [z][y][x] with x fastest, the grid [x][y][z] with z fastest.
+        let mut values = vec![0.0; truth.len()];
+        for z in 0..n {
+            for y in 0..n {
+                for x in 0..n {
+                    let from = 3 * ((z * n + y) * n + x);
+                    let to = 3 * ((x * n + y) * n + z);
+                    values[to..to + 3].copy_from_slice(&truth[from..from + 3]);
+                }
+            }
+        }
+        Ok(Tensor::from_data(
+            TensorData::new(values, [n, n, n, 3]),
+            &self.device,
+        ))
     }
 
     /// The grid-scale field of `moves` (world units, one row per Gaussian `scale` was built
@@ -1772,14 +1845,19 @@ fn fresh_state(
         }),
         velocity: Tensor::zeros([nx, ny, nz, 3], device),
         phi: VelocityUNet::new(&unet, device),
-        // 3DGS practice: a tiny epsilon, so rarely-seen Gaussians still move.
-        gaussian_optim: AdamConfig::new().with_epsilon(1e-15).init(),
+        gaussian_optim: gaussian_optimizer(),
         phi_optim: AdamConfig::new().init(),
         buoyancy: config.buoyancy_force.then(|| Buoyancy {
             force: BuoyancyForce::new(0.0, device),
             optim: AdamConfig::new().init(),
         }),
     }
+}
+
+/// A fresh Adam state for the smoke Gaussians.
+fn gaussian_optimizer() -> ModuleOptimizer {
+    // 3DGS practice: a tiny epsilon, so rarely-seen Gaussians still move.
+    AdamConfig::new().with_epsilon(1e-15).init()
 }
 
 #[cfg(test)]

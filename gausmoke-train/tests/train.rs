@@ -1099,6 +1099,122 @@ fn each_attribute_can_have_its_own_learning_rate_after_frame_0() {
     assert!(free > 0.0, "unset, the refinement did not move the centres");
 }
 
+/// `gaussian_optimizer_reset` starts the smoke Gaussians' Adam state afresh after frame 0 or
+/// at every frame: a fresh state's first step moves every parameter with a gradient by the
+/// learning rate exactly (its bias-corrected moments are the gradient and its square), one
+/// that remembers earlier steps by other amounts.
+#[test]
+fn the_gaussians_adam_state_starts_afresh_when_asked() {
+    use gausmoke_train::config::OptimizerReset;
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let lr = 1e-3;
+    let densities = |run: &Run| {
+        let raw = run.trainer.state.gaussians.raw_densities.val();
+        raw.into_data().try_into_vec_as::<f32>().unwrap()
+    };
+    // Per frame 1 and 2 (one joint step each, no refinement): whether every density that
+    // moved moved by the learning rate, and how many moved.
+    let first_steps = |reset: OptimizerReset| -> [(bool, usize); 2] {
+        let config = TrainConfig {
+            advect_iterations: 1,
+            refine_iterations: 0,
+            lr_gaussians: lr,
+            gaussian_optimizer_reset: reset,
+            ..joint_terms_config()
+        };
+        let mut run = after_frame_0(&data, dir.path(), config, &format!("{reset:?}"));
+        [1, 2].map(|t| {
+            let before = densities(&run);
+            run.trainer.advance_to(t).unwrap();
+            let steps: Vec<f64> = densities(&run)
+                .iter()
+                .zip(&before)
+                .map(|(a, b)| (a - b).abs() as f64)
+                .filter(|&step| step > lr * 1e-3)
+                .collect();
+            let by_lr = steps.iter().all(|step| (step - lr).abs() < 0.02 * lr);
+            (by_lr, steps.len())
+        })
+    };
+    let cases = [
+        (OptimizerReset::Never, [false, false]),
+        (OptimizerReset::AfterFirstFrame, [true, false]),
+        (OptimizerReset::EveryFrame, [true, true]),
+    ];
+    for (reset, expected) in cases {
+        let frames = first_steps(reset);
+        for ((by_lr, moved), (expected, t)) in frames.into_iter().zip(expected.into_iter().zip(1..))
+        {
+            assert!(
+                moved > 100,
+                "{reset:?}: only {moved} densities moved at frame {t}"
+            );
+            assert_eq!(
+                by_lr, expected,
+                "{reset:?}, frame {t}: every density moved by the learning rate: {by_lr}"
+            );
+        }
+    }
+}
+
+/// `velocity_from_ground_truth` makes the scene's true velocity each frame's velocity (its
+/// error against the truth vanishes, where Phi's is large); a data set without ground truth,
+/// or a grid of another size than the truth's, is refused naming the setting.
+#[test]
+fn the_true_velocity_can_carry_the_gaussians() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let truth_grid = SynthConfig::tiny().grid;
+    let config = TrainConfig {
+        grid_resolution: truth_grid,
+        ..joint_terms_config()
+    };
+    let device = device_by_name("flex").unwrap();
+    let errors = |config: TrainConfig, name: &str| -> Vec<f64> {
+        let run = trained(&data, dir.path(), config, name);
+        let report = eval::evaluate(run.folder.root(), &device, None).unwrap();
+        report.frames[1..]
+            .iter()
+            .map(|frame| frame.velocity_relative_error.unwrap())
+            .collect()
+    };
+    let fitted = errors(config.clone(), "fitted");
+    assert!(
+        fitted.iter().all(|&e| e > 0.3),
+        "Phi's velocity is already the truth ({fitted:?}): the test cannot fail"
+    );
+    let oracle = TrainConfig {
+        velocity_from_ground_truth: true,
+        ..config.clone()
+    };
+    let true_errors = errors(oracle.clone(), "truth");
+    assert!(
+        true_errors.iter().all(|&e| e < 1e-5),
+        "the true velocity's error {true_errors:?}"
+    );
+
+    let other_grid = TrainConfig {
+        grid_resolution: truth_grid + 4,
+        ..oracle.clone()
+    };
+    let mut run = after_frame_0(&data, dir.path(), other_grid, "other grid");
+    let message = run.trainer.advance_to(1).unwrap_err().to_string();
+    assert!(
+        message.contains("grid_resolution") && message.contains("frame_001"),
+        "{message}"
+    );
+
+    std::fs::remove_dir_all(data.join("gt")).unwrap();
+    let scene = Sequence::open(&data, &oracle).unwrap();
+    let device = device_by_name("flex").unwrap().autodiff();
+    let message = Run::new(scene, oracle, device, &dir.path().join("no truth"), false)
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(message.contains("velocity_from_ground_truth"), "{message}");
+}
+
 /// The refinement's move is reported per frame (its length and how much of it is at the
 /// velocity grid's scale), and `lambda_refine_grid` / `lambda_refine_subgrid` (ours) tie
 /// its two parts apart: tying the sub-grid part leaves a move more of whose mean square is
