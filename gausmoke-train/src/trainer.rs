@@ -1312,7 +1312,8 @@ impl Trainer {
         })
     }
 
-    /// The data set's true velocity of frame `t` on the grid (`velocity_from_ground_truth`).
+    /// The data set's true velocity of frame `t` on the grid (`velocity_from_ground_truth`),
+    /// times `ground_truth_velocity_scale`.
     fn true_velocity(&self, t: usize) -> Result<Tensor<4>, TrainError> {
         let dir = self
             .sequence
@@ -1352,10 +1353,8 @@ impl Trainer {
                 }
             }
         }
-        Ok(Tensor::from_data(
-            TensorData::new(values, [n, n, n, 3]),
-            &self.device,
-        ))
+        let scale = self.config.ground_truth_velocity_scale;
+        Ok(Tensor::from_data(TensorData::new(values, [n, n, n, 3]), &self.device) * scale)
     }
 
     /// The grid-scale field of `moves` (world units, one row per Gaussian `scale` was built

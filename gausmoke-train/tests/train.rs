@@ -1159,8 +1159,9 @@ fn the_gaussians_adam_state_starts_afresh_when_asked() {
 }
 
 /// `velocity_from_ground_truth` makes the scene's true velocity each frame's velocity (its
-/// error against the truth vanishes, where Phi's is large); a data set without ground truth,
-/// or a grid of another size than the truth's, is refused naming the setting.
+/// error against the truth vanishes, where Phi's is large; scaled by a half, it is half);
+/// a data set without ground truth, or a grid of another size than the truth's, is refused
+/// naming the setting.
 #[test]
 fn the_true_velocity_can_carry_the_gaussians() {
     let dir = tempfile::tempdir().unwrap();
@@ -1192,6 +1193,15 @@ fn the_true_velocity_can_carry_the_gaussians() {
     assert!(
         true_errors.iter().all(|&e| e < 1e-5),
         "the true velocity's error {true_errors:?}"
+    );
+    let half = TrainConfig {
+        ground_truth_velocity_scale: 0.5,
+        ..oracle.clone()
+    };
+    let half_errors = errors(half, "half");
+    assert!(
+        half_errors.iter().all(|&e| (e - 0.5).abs() < 1e-4),
+        "half the true velocity's error {half_errors:?}"
     );
 
     let other_grid = TrainConfig {
