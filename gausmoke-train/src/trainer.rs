@@ -1326,35 +1326,19 @@ impl Trainer {
         ));
         let mut arrays = read_arrays(&path)?;
         let n = self.config.grid_resolution;
-        let found = arrays.get("velocity").map(|(shape, _)| shape.clone());
-        if found
-            .as_ref()
-            .is_some_and(|shape| shape[..] != [n, n, n, 3])
-        {
-            return Err(TrainError::Config {
+        let truth = take_array(&mut arrays, "velocity", &[n, n, n, 3], &path).map_err(|error| {
+            TrainError::Config {
                 origin: "configuration".into(),
                 reason: format!(
-                    "velocity_from_ground_truth: {} holds a velocity of shape {:?}, but \
-                     grid_resolution is {n}; set grid_resolution to the ground truth's",
-                    path.display(),
-                    found.unwrap_or_default()
+                    "velocity_from_ground_truth reads the true velocity on the grid of \
+                     grid_resolution ({n}) cells a side: {error}"
                 ),
-            });
-        }
-        let truth = take_array(&mut arrays, "velocity", &[n, n, n, 3], &path)?;
-        // The ground truth is [z][y][x] with x fastest, the grid [x][y][z] with z fastest.
-        let mut values = vec![0.0; truth.len()];
-        for z in 0..n {
-            for y in 0..n {
-                for x in 0..n {
-                    let from = 3 * ((z * n + y) * n + x);
-                    let to = 3 * ((x * n + y) * n + z);
-                    values[to..to + 3].copy_from_slice(&truth[from..from + 3]);
-                }
             }
-        }
+        })?;
         let scale = self.config.ground_truth_velocity_scale;
-        Ok(Tensor::from_data(TensorData::new(values, [n, n, n, 3]), &self.device) * scale)
+        // The ground truth is [z][y][x] with x fastest, the grid [x][y][z] with z fastest.
+        let truth = Tensor::<4>::from_data(TensorData::new(truth, [n, n, n, 3]), &self.device);
+        Ok(truth.permute([2, 1, 0, 3]) * scale)
     }
 
     /// The grid-scale field of `moves` (world units, one row per Gaussian `scale` was built

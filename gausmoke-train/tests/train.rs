@@ -942,6 +942,16 @@ fn quiet_run(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Run {
         .quiet(true)
 }
 
+/// Why a run of `config` on `data` (flex) in `dir/name` is refused; panics when it is not.
+fn refusal(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> String {
+    let scene = Sequence::open(data, &config).unwrap();
+    let device = device_by_name("flex").unwrap().autodiff();
+    Run::new(scene, config, device, &dir.join(name), false)
+        .err()
+        .unwrap_or_else(|| panic!("{name}: the run was not refused"))
+        .to_string()
+}
+
 /// A run of `config` on `data` (flex, quiet) in `dir/name`, frame 0 fitted.
 fn after_frame_0(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Run {
     let mut run = quiet_run(data, dir, config, name);
@@ -1216,12 +1226,7 @@ fn the_true_velocity_can_carry_the_gaussians() {
     );
 
     std::fs::remove_dir_all(data.join("gt")).unwrap();
-    let scene = Sequence::open(&data, &oracle).unwrap();
-    let device = device_by_name("flex").unwrap().autodiff();
-    let message = Run::new(scene, oracle, device, &dir.path().join("no truth"), false)
-        .err()
-        .expect("refused")
-        .to_string();
+    let message = refusal(&data, dir.path(), oracle, "no truth");
     assert!(message.contains("velocity_from_ground_truth"), "{message}");
 }
 
@@ -1335,13 +1340,8 @@ fn a_refinement_step_can_render_some_of_the_views() {
         (per_view[0] - mean).abs() > 1e-3 * mean,
         "the views' L1 are too alike to tell one from all: {per_view:?}"
     );
-    let too_many = config(per_view.len() + 1);
-    let scene = Sequence::open(&data, &too_many).unwrap();
-    let device = device_by_name("flex").unwrap().autodiff();
-    let err = Run::new(scene, too_many, device, &dir.path().join("too many"), false)
-        .err()
-        .expect("more views per step than the data set has is refused")
-        .to_string();
+    // More views per step than the data set has is refused.
+    let err = refusal(&data, dir.path(), config(per_view.len() + 1), "too many");
     assert!(err.contains("refine_views_per_step"), "{err}");
 }
 
