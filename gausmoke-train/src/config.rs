@@ -398,7 +398,15 @@ pub struct TrainConfig {
     /// one): recycled Gaussians go only to cells whose centre lies in this box, such as the
     /// inflow where a source feeds the plume, so that new smoke enters where it does and is
     /// not placed anywhere in the training views' visual hull. Unset admits the whole box.
+    /// It is also the inflow box that `emission_fraction` emits into.
     pub respawn_region: Option<[f32; 6]>,
+    /// Most Gaussians emitted per frame at the source, as a fraction of all (ours, `emission`
+    /// module; 0, the default, emits none). After a frame's joint iterations, the density
+    /// the carrier took out of the cells of the inflow box (`respawn_region`, required) is
+    /// emitted back into them as new Gaussians as heavy as their neighbours, in rows
+    /// recycling would take: a steady source holds its inflow's density whatever the speed of
+    /// the flow through it.
+    pub emission_fraction: f32,
     /// Most Gaussians split per frame, as a fraction of all (ours, `split` module): the
     /// largest opaque ones become two halves with the same mass, mean and covariance, the
     /// second half in a row that recycling would take (on a box face, or invisible), after
@@ -547,6 +555,7 @@ impl Default for TrainConfig {
             respawn_threshold: 0.05,
             respawn_near_smoke: 0.0,
             respawn_region: None,
+            emission_fraction: 0.0,
             split_fraction: 0.0,
             split_size_factor: 1.0,
             split_into_faces_only: false,
@@ -823,6 +832,19 @@ impl TrainConfig {
                 self.respawn_fraction
             ));
         }
+        if !(0.0..=1.0).contains(&self.emission_fraction) {
+            return bad(format!(
+                "emission_fraction must be in [0, 1], got {}",
+                self.emission_fraction
+            ));
+        }
+        if self.emission_fraction > 0.0 && self.respawn_region.is_none() {
+            return bad(
+                "emission_fraction emits into the inflow box, which is unset: set \
+                 respawn_region too"
+                    .into(),
+            );
+        }
         if !(0.0..=1.0).contains(&self.split_fraction) {
             return bad(format!(
                 "split_fraction must be in [0, 1], got {}",
@@ -881,10 +903,10 @@ impl TrainConfig {
                      on each axis (fractions of the smoke box), got {region:?}"
                 ));
             }
-            if self.respawn_fraction == 0.0 {
+            if self.respawn_fraction == 0.0 && self.emission_fraction == 0.0 {
                 return bad(
-                    "respawn_region places recycled Gaussians, which are off: set \
-                     respawn_fraction > 0 too"
+                    "respawn_region places recycled and emitted Gaussians, both off: set \
+                     respawn_fraction or emission_fraction > 0 too"
                         .into(),
                 );
             }
@@ -1175,6 +1197,23 @@ mod tests {
         }
         let err = region("[0.3, 0, 0.3, 0.7, 0.15, 0.7]", "0").unwrap_err();
         assert!(err.to_string().contains("respawn_fraction"), "{err}");
+        // Emission needs the inflow box, and the box is enough with emission alone.
+        let emission = |overrides: &[&str]| {
+            let overrides: Vec<String> = overrides.iter().map(|s| s.to_string()).collect();
+            TrainConfig::default()
+                .with_overrides(&overrides)
+                .and_then(|config| config.validate().map(|()| config))
+        };
+        let err = emission(&["emission_fraction=0.02"]).unwrap_err();
+        assert!(err.to_string().contains("respawn_region"), "{err}");
+        let err = emission(&["emission_fraction=1.5"]).unwrap_err();
+        assert!(err.to_string().contains("emission_fraction"), "{err}");
+        let config = emission(&[
+            "emission_fraction=0.02",
+            "respawn_region=[0.3, 0, 0.3, 0.7, 0.15, 0.7]",
+        ])
+        .unwrap();
+        assert_eq!(config.emission_fraction, 0.02);
         // A half-open top reaches the projection's faces.
         let half_open = TrainConfig::default()
             .with_overrides(&["open_faces=[\"y+\"]".into(), "open_face_flow=0.5".into()])

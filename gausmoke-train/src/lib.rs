@@ -20,6 +20,7 @@ pub mod arrays;
 pub mod chart;
 pub mod checkpoint;
 pub mod config;
+pub mod emission;
 pub mod eval;
 pub mod export;
 mod hash;

@@ -70,12 +70,12 @@ impl SpawnLattice {
         }
     }
 
-    fn cell_size(&self) -> Vec3 {
+    pub(crate) fn cell_size(&self) -> Vec3 {
         let [nx, ny, nz] = self.resolution;
         (self.hi - self.lo) / Vec3::new(nx as f32, ny as f32, nz as f32)
     }
 
-    fn cell_centre(&self, [i, j, k]: [usize; 3]) -> Vec3 {
+    pub(crate) fn cell_centre(&self, [i, j, k]: [usize; 3]) -> Vec3 {
         self.lo + self.cell_size() * Vec3::new(i as f32 + 0.5, j as f32 + 0.5, k as f32 + 0.5)
     }
 
@@ -259,15 +259,16 @@ fn near_smoke(density: &[f32], lattice: &SpawnLattice, fraction: f32) -> Vec<boo
     near
 }
 
-/// Recycles up to `options.fraction` of `gaussians` in place (see the module docs).
-/// `density` is the Gaussians' density on the lattice (`[nx, ny, nz]`, z fastest), read only
-/// with `options.near_smoke > 0`.
+/// Recycles up to `options.fraction` of `gaussians` in place (see the module docs), never
+/// the `taken` rows (renewed otherwise this frame). `density` is the Gaussians' density on
+/// the lattice (`[nx, ny, nz]`, z fastest), read only with `options.near_smoke > 0`.
 pub fn respawn(
     gaussians: &mut HostGaussians,
     views: &[DeficitView],
     lattice: &SpawnLattice,
     options: &RespawnOptions,
     density: &[f32],
+    taken: &[usize],
 ) -> RespawnReport {
     let budget = (options.fraction.max(0.0) * gaussians.len() as f32).floor() as usize;
     if budget == 0 || views.is_empty() {
@@ -299,7 +300,18 @@ pub fn respawn(
         .collect();
     let deficit_cells = cells.len();
     let max_deficit = scores.iter().cloned().fold(0.0, f32::max);
-    let (candidates, faces) = recycling_candidates(gaussians, lattice);
+    let (mut candidates, mut faces) = recycling_candidates(gaussians, lattice);
+    if !taken.is_empty() {
+        let mut free = vec![true; gaussians.len()];
+        for &row in taken {
+            free[row] = false;
+        }
+        faces -= candidates[..faces]
+            .iter()
+            .filter(|&&row| !free[row])
+            .count();
+        candidates.retain(|&row| free[row]);
+    }
     let count = budget.min(cells.len()).min(candidates.len());
     if count == 0 {
         return RespawnReport {
@@ -463,7 +475,7 @@ mod tests {
         let views = deficit_views(&cameras, &observed, &rendered);
         let mut g = gaussians(100);
         let before = g.clone();
-        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[]);
+        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[], &[]);
 
         assert_eq!(report.indices.len(), 5);
         assert_eq!(report.from_box_faces, 1);
@@ -495,6 +507,12 @@ mod tests {
             assert_eq!(g.means[3 * i..3 * i + 3], before.means[3 * i..3 * i + 3]);
             assert_eq!(g.raw_densities[i], before.raw_densities[i]);
         }
+        // Rows renewed otherwise this frame are passed over, the face one included.
+        let mut g = before.clone();
+        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[], &[0, 3]);
+        assert_eq!(report.indices, vec![2, 4, 5, 6, 7]);
+        assert_eq!(report.from_box_faces, 0);
+        assert_eq!(g.means[..3], before.means[..3]);
     }
 
     #[test]
@@ -516,7 +534,14 @@ mod tests {
         // Density where the views show the smoke (cell (2, 5, 4) holds the point): recycled
         // Gaussians land in that cell or a neighbour.
         let mut g = gaussians(100);
-        let report = respawn(&mut g, &views, &lattice(), &options, &density_at([2, 5, 4]));
+        let report = respawn(
+            &mut g,
+            &views,
+            &lattice(),
+            &options,
+            &density_at([2, 5, 4]),
+            &[],
+        );
         assert!(!report.indices.is_empty());
         let centre = lattice().cell_centre([2, 5, 4]);
         for &index in &report.indices {
@@ -528,7 +553,14 @@ mod tests {
         }
         // Density only in a far corner: the deficit there is not next to smoke.
         let mut g = gaussians(100);
-        let report = respawn(&mut g, &views, &lattice(), &options, &density_at([7, 0, 0]));
+        let report = respawn(
+            &mut g,
+            &views,
+            &lattice(),
+            &options,
+            &density_at([7, 0, 0]),
+            &[],
+        );
         assert!(report.indices.is_empty(), "{report:?}");
     }
 
@@ -553,7 +585,7 @@ mod tests {
             ..options(0.05)
         };
         let mut g = gaussians(100);
-        let report = respawn(&mut g, &views, &lattice(), &bottom, &[]);
+        let report = respawn(&mut g, &views, &lattice(), &bottom, &[], &[]);
         assert_eq!(report.indices.len(), 5);
         for &index in &report.indices {
             let p = Vec3::from_slice(&g.means[3 * index..3 * index + 3]);
@@ -564,7 +596,7 @@ mod tests {
         }
         // Without the region both spots receive some.
         let mut g = gaussians(100);
-        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[]);
+        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[], &[]);
         let highs = report
             .indices
             .iter()
@@ -580,7 +612,7 @@ mod tests {
             ..options(0.05)
         };
         let mut g = gaussians(100);
-        let report = respawn(&mut g, &views, &lattice(), &corner, &[]);
+        let report = respawn(&mut g, &views, &lattice(), &corner, &[], &[]);
         assert!(report.indices.is_empty(), "{report:?}");
     }
 
@@ -615,7 +647,7 @@ mod tests {
         let mut g = gaussians(100);
         let before = g.clone();
         assert!(
-            respawn(&mut g, &views, &lattice(), &options(0.05), &[])
+            respawn(&mut g, &views, &lattice(), &options(0.05), &[], &[])
                 .indices
                 .is_empty()
         );
@@ -627,7 +659,7 @@ mod tests {
             rendered: &dark,
         }];
         assert!(
-            respawn(&mut g, &views, &lattice(), &options(0.0), &[])
+            respawn(&mut g, &views, &lattice(), &options(0.0), &[], &[])
                 .indices
                 .is_empty()
         );
@@ -654,7 +686,7 @@ mod tests {
             },
         ];
         let mut g = gaussians(100);
-        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[]);
+        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[], &[]);
         assert_eq!(report.deficit_cells, 0);
         assert!(report.indices.is_empty());
     }

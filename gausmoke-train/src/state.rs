@@ -134,6 +134,10 @@ pub struct FrameReport {
     /// (`respawn_fraction`).
     #[serde(default)]
     pub respawned: usize,
+    /// Gaussians emitted at the source in this frame, before recycling
+    /// (`emission_fraction`).
+    #[serde(default)]
+    pub emitted: usize,
     /// Gaussians split in this frame, after recycling (`split_fraction`).
     #[serde(default)]
     pub split: usize,

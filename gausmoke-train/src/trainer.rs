@@ -53,6 +53,7 @@ use crate::config::{
     CorrectionTarget, IntegratorKind, InterpolationKind, LookaheadVelocity, Obstacles,
     OptimizerReset, ProjectionKind, TrainConfig,
 };
+use crate::emission::{EmissionOptions, EmissionReport, emit};
 use crate::respawn::{
     DeficitView, RespawnOptions, RespawnReport, SpawnLattice, recycling_candidates, respawn,
 };
@@ -78,6 +79,8 @@ pub struct FrameOutcome {
     pub clamped_to_box: usize,
     /// Gaussians recycled between the joint iterations and the refinement.
     pub respawned: usize,
+    /// Gaussians emitted at the source between the joint iterations and the refinement.
+    pub emitted: usize,
     /// Gaussians split after the recycling.
     pub split: usize,
     /// How far and how coherently the refinement moved the centres (`None` without it).
@@ -88,6 +91,14 @@ pub struct FrameOutcome {
     pub traffic: Vec<LoopTraffic>,
     /// The explicit buoyancy force's coefficient after the frame (`buoyancy_force`).
     pub buoyancy: Option<f64>,
+}
+
+/// What [`Trainer::renew_gaussians`] did to the rows in one frame.
+#[derive(Debug, Default)]
+struct Renewal {
+    emitted: EmissionReport,
+    recycled: RespawnReport,
+    split: SplitReport,
 }
 
 /// A raw density whose softplus is negligible (about 1e-13): a Gaussian left out of a
@@ -929,6 +940,7 @@ impl Trainer {
             projection: None,
             clamped_to_box: 0,
             respawned: 0,
+            emitted: 0,
             split: 0,
             refine_moves: None,
             refine_move_field: None,
@@ -1000,6 +1012,8 @@ impl Trainer {
             })
             .collect();
 
+        // What the source must hold (`emission_fraction`): frame t-1's density.
+        let density_before = (config.emission_fraction > 0.0).then(|| self.density_host());
         let true_velocity = if config.velocity_from_ground_truth {
             Some(self.true_velocity(t)?)
         } else {
@@ -1197,10 +1211,14 @@ impl Trainer {
         self.keep_out_of_obstacles();
         // Recycling sees the transported Gaussians against frame t: what they miss entered
         // the box (or was never fitted), and the refinement fits the recycled ones.
-        let (respawned, split) = self.renew_gaussians(t)?;
-        let respawned = respawned.indices;
+        let renewal = self.renew_gaussians(t, density_before.as_deref())?;
+        let (respawned, emitted, split) = (
+            renewal.recycled.indices,
+            renewal.emitted.indices,
+            renewal.split,
+        );
         // Rows that jumped here, which the velocity correction must not fit.
-        let moved: Vec<usize> = [&respawned, &split.parents, &split.children]
+        let moved: Vec<usize> = [&respawned, &emitted, &split.parents, &split.children]
             .into_iter()
             .flatten()
             .copied()
@@ -1304,6 +1322,7 @@ impl Trainer {
             projection: Some(self.projection_report(unprojected)),
             clamped_to_box: clamped,
             respawned: respawned.len(),
+            emitted: emitted.len(),
             split: split.parents.len(),
             refine_moves,
             refine_move_field,
@@ -1478,29 +1497,87 @@ impl Trainer {
         Ok(last)
     }
 
-    /// Recycling, then splitting, on one host copy of the Gaussians: one read from the device
-    /// and at most one write back a frame, whichever of the two is on.
-    fn renew_gaussians(&mut self, t: usize) -> Result<(RespawnReport, SplitReport), TrainError> {
-        if self.config.respawn_fraction <= 0.0 && self.config.split_fraction <= 0.0 {
-            return Ok(Default::default());
+    /// Emission at the source, recycling, then splitting, on one host copy of the Gaussians:
+    /// one read from the device and a write back when rows changed (two when emission
+    /// changed some, so that recycling's renders show them). `density_before` is frame
+    /// t-1's density on the grid (with `emission_fraction > 0`). No row is taken twice.
+    fn renew_gaussians(
+        &mut self,
+        t: usize,
+        density_before: Option<&[f32]>,
+    ) -> Result<Renewal, TrainError> {
+        if self.config.respawn_fraction <= 0.0
+            && self.config.split_fraction <= 0.0
+            && density_before.is_none()
+        {
+            return Ok(Renewal::default());
         }
         let mut host = self.state.gaussians.to_host();
-        let recycled = self.respawn(t, &mut host)?;
-        let split = self.split(&mut host);
-        if !recycled.indices.is_empty() || !split.parents.is_empty() {
+        let emitted = match density_before {
+            Some(before) => self.emit(t, &mut host, before),
+            None => EmissionReport::default(),
+        };
+        if !emitted.indices.is_empty() && self.config.respawn_fraction > 0.0 {
             self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
         }
-        if !split.parents.is_empty() {
-            // A half may land in an obstacle, as an advected centre may.
+        let recycled = self.respawn(t, &mut host, &emitted.indices)?;
+        let taken: Vec<usize> = [&emitted.indices, &recycled.indices]
+            .into_iter()
+            .flatten()
+            .copied()
+            .collect();
+        let split = self.split(&mut host, &taken);
+        if !emitted.indices.is_empty() || !recycled.indices.is_empty() || !split.parents.is_empty()
+        {
+            self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
+        }
+        if !split.parents.is_empty() || !emitted.indices.is_empty() {
+            // A half or an emitted Gaussian may land in an obstacle, as an advected centre may.
             self.keep_out_of_obstacles();
         }
-        Ok((recycled, split))
+        Ok(Renewal {
+            emitted,
+            recycled,
+            split,
+        })
+    }
+
+    /// Emits into the rows recycling would take the density the carrier took out of the
+    /// inflow box since frame t-1 (`density_before`; see [`crate::emission`]).
+    fn emit(&self, t: usize, host: &mut HostGaussians, density_before: &[f32]) -> EmissionReport {
+        let _phase = phase!("emission");
+        let lattice = self.spawn_lattice();
+        let Some(fractions) = self.config.respawn_region else {
+            return EmissionReport::default();
+        };
+        let options = EmissionOptions {
+            region: lattice.region_from_fractions(fractions),
+            budget: (self.config.emission_fraction * host.len() as f32).floor() as usize,
+            std: self.initial_std(),
+            // Apart from recycling's stream of the same frame.
+            seed: self.config.seed ^ (t as u64 + 1).wrapping_mul(0xD1B5_4A32_D192_ED03),
+        };
+        let after = self.density_host();
+        let (slots, _) = recycling_candidates(host, &lattice);
+        let report = emit(host, density_before, &after, &lattice, &slots, &options);
+        tracing::debug!(
+            frame = t,
+            emitted = report.indices.len(),
+            mass = report.mass,
+            "emission"
+        );
+        report
     }
 
     /// Recycles rows of `host` (see [`crate::respawn`]) against frame `t`'s training views,
     /// after the Gaussians were carried to frame `t`; nothing happens with
     /// `respawn_fraction = 0`.
-    fn respawn(&self, t: usize, host: &mut HostGaussians) -> Result<RespawnReport, TrainError> {
+    fn respawn(
+        &self,
+        t: usize,
+        host: &mut HostGaussians,
+        taken: &[usize],
+    ) -> Result<RespawnReport, TrainError> {
         if self.config.respawn_fraction <= 0.0 {
             return Ok(RespawnReport::default());
         }
@@ -1535,7 +1612,7 @@ impl Trainer {
         } else {
             Vec::new()
         };
-        let report = respawn(host, &views, &lattice, &options, &density);
+        let report = respawn(host, &views, &lattice, &options, &density, taken);
         tracing::debug!(
             frame = t,
             recycled = report.indices.len(),
@@ -1581,8 +1658,9 @@ impl Trainer {
     }
 
     /// Splits the largest rows of `host` (see [`crate::split`]) into rows recycling would
-    /// take, after recycling took its own; nothing happens with `split_fraction = 0`.
-    fn split(&self, host: &mut HostGaussians) -> SplitReport {
+    /// take, other than the `taken` ones (emitted or recycled this frame); nothing happens
+    /// with `split_fraction = 0`.
+    fn split(&self, host: &mut HostGaussians, taken: &[usize]) -> SplitReport {
         if self.config.split_fraction <= 0.0 {
             return SplitReport::default();
         }
@@ -1594,6 +1672,7 @@ impl Trainer {
         if self.config.split_into_faces_only {
             slots.truncate(on_faces);
         }
+        slots.retain(|row| !taken.contains(row));
         let report = split_largest(host, &slots, budget, min_std, &lattice);
         tracing::debug!(split = report.parents.len(), slots = slots.len(), "split");
         report

@@ -1230,6 +1230,76 @@ fn the_true_velocity_can_carry_the_gaussians() {
     assert!(message.contains("velocity_from_ground_truth"), "{message}");
 }
 
+/// The density in the cells of `region` (fractions of the box) of a run's Gaussians, summed.
+fn density_in_region(run: &Run, region: [f32; 6]) -> f32 {
+    let density = run.trainer.density_host();
+    let [nx, ny, nz] = run.trainer.grid.resolution();
+    let inside = |index: usize, n: usize, axis: usize| {
+        let centre = (index as f32 + 0.5) / n as f32;
+        region[axis] <= centre && centre <= region[axis + 3]
+    };
+    let mut sum = 0.0;
+    for i in 0..nx {
+        for j in 0..ny {
+            for k in 0..nz {
+                if inside(i, nx, 0) && inside(j, ny, 1) && inside(k, nz, 2) {
+                    sum += density[(i * ny + j) * nz + k];
+                }
+            }
+        }
+    }
+    sum
+}
+
+/// `emission_fraction` puts back into the inflow box the density the carrier took out of it:
+/// carried by the scene's true velocity without emission, the box loses much of its density
+/// in a frame; with emission it keeps most of it, in new rows the frame report counts.
+#[test]
+fn emission_at_the_source_keeps_the_inflow_filled() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    // Around the synthetic solver's source disc, on the floor at the box's centre.
+    let inflow = [0.3, 0.0, 0.3, 0.7, 0.2, 0.7];
+    let carried = TrainConfig {
+        grid_resolution: SynthConfig::tiny().grid,
+        velocity_from_ground_truth: true,
+        // The tiny scene's flow moves its smoke a fraction of a cell a frame.
+        ground_truth_velocity_scale: 10.0,
+        refinement: false,
+        ..joint_terms_config()
+    };
+    let loss_in_frame_1 = |config: TrainConfig, name: &str| -> (f32, usize) {
+        let mut run = after_frame_0(&data, dir.path(), config, name);
+        let before = density_in_region(&run, inflow);
+        let outcome = run.trainer.advance_to(1).unwrap();
+        let after = density_in_region(&run, inflow);
+        (1.0 - after / before, outcome.emitted)
+    };
+    let (lost, emitted) = loss_in_frame_1(carried.clone(), "carried");
+    assert_eq!(emitted, 0);
+    let emitting = TrainConfig {
+        respawn_region: Some(inflow),
+        emission_fraction: 0.2,
+        ..carried
+    };
+    let (lost_emitting, emitted) = loss_in_frame_1(emitting.clone(), "emitting");
+    eprintln!("lost {lost} without emission, {lost_emitting} with {emitted} emitted");
+    assert!(
+        lost > 0.2,
+        "the carrier took {lost} of the inflow's density: the test cannot fail"
+    );
+    assert!(emitted > 0);
+    // Not all of it: a new Gaussian is a standard deviation wide and spreads part of its
+    // mass past the box's cells (the emission module's tests check the mass exactly).
+    assert!(
+        lost_emitting.abs() < 0.5 * lost,
+        "with emission the inflow lost {lost_emitting}, without {lost}"
+    );
+    let mut run = quiet_run(&data, dir.path(), emitting, "reported");
+    let reports = run.run().unwrap().to_vec();
+    assert!(reports[1..].iter().all(|r| r.emitted > 0), "{reports:?}");
+}
+
 /// The refinement's move is reported per frame (its length and how much of it is at the
 /// velocity grid's scale), and `lambda_refine_grid` / `lambda_refine_subgrid` (ours) tie
 /// its two parts apart: tying the sub-grid part leaves a move more of whose mean square is
