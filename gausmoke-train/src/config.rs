@@ -402,10 +402,10 @@ pub struct TrainConfig {
     pub respawn_region: Option<[f32; 6]>,
     /// Most Gaussians emitted per frame at the source, as a fraction of all (ours, `emission`
     /// module; 0, the default, emits none). After a frame's joint iterations, the density
-    /// the carrier took out of the cells of the inflow box (`respawn_region`, required) is
-    /// emitted back into them as new Gaussians as heavy as their neighbours, in rows
-    /// recycling would take: a steady source holds its inflow's density whatever the speed of
-    /// the flow through it.
+    /// the carrier took out of the inflow box (`respawn_region`, required; its net loss
+    /// since frame t-1) is emitted back into the cells that lost it as new Gaussians as heavy
+    /// as their neighbours, in rows recycling would take: a steady source holds its inflow's
+    /// density whatever the speed of the flow through it.
     pub emission_fraction: f32,
     /// Most Gaussians split per frame, as a fraction of all (ours, `split` module): the
     /// largest opaque ones become two halves with the same mass, mean and covariance, the

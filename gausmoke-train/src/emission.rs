@@ -9,14 +9,16 @@
 //! one (docs/RESULTS.md). A steady source holds the density of its inflow, so what advection
 //! took from a cell of the inflow box between frames t-1 and t is what it emits there:
 //!
-//! - **How much.** Per cell of the velocity grid inside the box (`respawn_region`), the
-//!   density the Gaussians of frame t-1 splat minus what the carried ones splat, clamped at
-//!   0; the sum times the cell volume is the mass to emit. A slow carrier empties the box
-//!   slowly and so emits little; one at rest emits nothing.
+//! - **How much.** The box's loss: over the cells of the velocity grid inside it
+//!   (`respawn_region`), the density the Gaussians of frame t-1 splat minus what the
+//!   carried ones splat, summed, times the cell volume; nothing when the box gained. Gains
+//!   of some cells offset losses of others, since smoke moved within the box has not left
+//!   it (a sum of the losses alone emitted about twice the loss under a slow carrier). A
+//!   slow carrier empties the box slowly and so emits little; one at rest emits nothing.
 //! - **How many.** That mass over the median mass of the visible Gaussians whose centres lie
 //!   in the box (of all visible ones when none does), rounded up, at most `budget`: emitted
 //!   Gaussians are as heavy as their neighbours, and the cap only makes them heavier.
-//! - **Where.** Cells drawn with replacement in proportion to their deficit, jittered
+//! - **Where.** Cells drawn with replacement in proportion to their loss, jittered
 //!   uniformly within the cell, and kept one standard deviation inside the smoke box: a
 //!   source on the floor must not put half of a new Gaussian under it, where no view sees
 //!   smoke.
@@ -131,20 +133,26 @@ pub fn emit(
     let [lo, hi] = options.region;
     let inside = |p: Vec3| p.cmpge(lo).all() && p.cmple(hi).all();
     let cell_volume = lattice.cell_size().x * lattice.cell_size().y * lattice.cell_size().z;
+    // The cells that lost density, with their loss, and the box's net loss.
     let mut cells: Vec<(usize, f32)> = Vec::new();
+    let mut net_loss = 0.0;
     for i in 0..nx {
         for j in 0..ny {
             for k in 0..nz {
                 let cell = (i * ny + j) * nz + k;
-                let deficit = before[cell] - after[cell];
-                if deficit > 0.0 && inside(lattice.cell_centre([i, j, k])) {
-                    cells.push((cell, deficit));
+                if !inside(lattice.cell_centre([i, j, k])) {
+                    continue;
+                }
+                let loss = before[cell] - after[cell];
+                net_loss += loss;
+                if loss > 0.0 {
+                    cells.push((cell, loss));
                 }
             }
         }
     }
-    let deficit: f32 = cells.iter().map(|(_, d)| d).sum();
-    let total_mass = deficit * cell_volume;
+    let losses: f32 = cells.iter().map(|(_, d)| d).sum();
+    let total_mass = net_loss * cell_volume;
     let report = EmissionReport {
         indices: Vec::new(),
         mass: total_mass,
@@ -194,7 +202,7 @@ pub fn emit(
     let mut rng = SplitMix64::new(options.seed);
     let mut report = report;
     for &index in slots.iter().take(count) {
-        let mut pick = rng.uniform() * deficit;
+        let mut pick = rng.uniform() * losses;
         let mut chosen = cells[cells.len() - 1].0;
         for &(cell, d) in &cells {
             if pick < d {
@@ -298,7 +306,7 @@ mod tests {
         }
         after[cell(3, 0, 3)] = 0.5;
         after[cell(4, 0, 4)] = 0.5;
-        // Outside the inflow box: a deficit there is not the source's.
+        // Outside the inflow box: a loss there is not the source's.
         before[cell(4, 6, 4)] = 1.0;
         (before, after)
     }
@@ -346,6 +354,26 @@ mod tests {
         let fresh = gaussians(100, 6);
         assert_eq!(g.means[..150], fresh.means[..150]);
         assert_eq!(g.raw_densities[..50], fresh.raw_densities[..50]);
+    }
+
+    #[test]
+    fn smoke_moved_within_the_inflow_has_not_left_it() {
+        let (before, mut after) = densities();
+        // Of the eight units the four cells held, 3 stay in one of them: the box lost 4.
+        after[cell(3, 0, 4)] = 3.0;
+        let mut g = gaussians(100, 6);
+        let slots: Vec<usize> = (50..100).collect();
+        let report = emit(&mut g, &before, &after, &lattice(), &slots, &options(40));
+        let cell_volume = 0.125f32.powi(3);
+        assert!((report.mass - 4.0 * cell_volume).abs() < 1e-6);
+        let emitted: f32 = report.indices.iter().map(|&i| seen_mass(&g, i)).sum();
+        assert!((emitted - report.mass).abs() < 1e-3 * report.mass);
+        // Only into the three cells that lost density.
+        for &index in &report.indices {
+            let p = Vec3::from_slice(&g.means[3 * index..3 * index + 3]);
+            let gained = p.x < 0.5 && p.z >= 0.5;
+            assert!(!gained, "emitted {index} at {p:?}, in the cell that gained");
+        }
     }
 
     #[test]
