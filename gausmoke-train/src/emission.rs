@@ -38,7 +38,7 @@ use gausmoke_core::glam::Vec3;
 use gausmoke_render::HostGaussians;
 use gausmoke_render::math::softplus;
 
-use crate::respawn::{INVISIBLE_OPACITY, SpawnLattice, inverse_softplus, peak_opacity};
+use crate::respawn::{INVISIBLE_OPACITY, SpawnLattice, make_isotropic, peak_opacity};
 
 /// `(2 pi)^(3/2)`: the integral of an unnormalised 3D Gaussian of unit standard deviations.
 const GAUSSIAN_VOLUME: f32 = 15.749_61;
@@ -198,7 +198,6 @@ pub fn emit(
     let log_std = options.std.ln();
     // One standard deviation inside the box where it is wide enough.
     let margin = Vec3::splat(options.std).min(0.5 * (lattice.hi - lattice.lo));
-    let cell_size = lattice.cell_size();
     let mut rng = SplitMix64::new(options.seed);
     let mut report = report;
     for &index in slots.iter().take(count) {
@@ -211,21 +210,12 @@ pub fn emit(
             }
             pick -= d;
         }
-        let (i, j, k) = (chosen / (ny * nz), (chosen / nz) % ny, chosen % nz);
-        let jitter = Vec3::new(
-            rng.range(-0.5, 0.5),
-            rng.range(-0.5, 0.5),
-            rng.range(-0.5, 0.5),
-        );
-        let position = (lattice.cell_centre([i, j, k]) + jitter * cell_size)
+        let position = lattice
+            .point_in_cell(chosen, &mut rng)
             .clamp(lattice.lo + margin, lattice.hi - margin);
         let seen = lattice_mass(position, options.std, lattice);
         let sigma = share / seen.max(f32::MIN_POSITIVE);
-        gaussians.means[3 * index..3 * index + 3].copy_from_slice(&position.to_array());
-        gaussians.rotations[4 * index..4 * index + 4].copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
-        gaussians.log_scales[3 * index..3 * index + 3].fill(log_std);
-        gaussians.raw_densities[index] = inverse_softplus(sigma);
-        gaussians.colors[3 * index..3 * index + 3].copy_from_slice(&colour);
+        make_isotropic(gaussians, index, position, log_std, sigma, colour);
         report.indices.push(index);
     }
     report

@@ -79,6 +79,22 @@ impl SpawnLattice {
         self.lo + self.cell_size() * Vec3::new(i as f32 + 0.5, j as f32 + 0.5, k as f32 + 0.5)
     }
 
+    /// The cell of flat index `cell` (`[nx, ny, nz]`, z fastest).
+    pub(crate) fn cell_of(&self, cell: usize) -> [usize; 3] {
+        let [_, ny, nz] = self.resolution;
+        [cell / (ny * nz), (cell / nz) % ny, cell % nz]
+    }
+
+    /// A point drawn uniformly in the cell of flat index `cell`.
+    pub(crate) fn point_in_cell(&self, cell: usize, rng: &mut SplitMix64) -> Vec3 {
+        let jitter = Vec3::new(
+            rng.range(-0.5, 0.5),
+            rng.range(-0.5, 0.5),
+            rng.range(-0.5, 0.5),
+        );
+        self.cell_centre(self.cell_of(cell)) + jitter * self.cell_size()
+    }
+
     /// The world-space box `[lo, hi]` of `[x0, y0, z0, x1, y1, z1]` given as fractions of
     /// this lattice's box (`respawn_region`).
     pub fn region_from_fractions(&self, r: [f32; 6]) -> [Vec3; 2] {
@@ -148,6 +164,23 @@ fn on_box_face(position: Vec3, lattice: &SpawnLattice) -> bool {
     let tolerance = 1e-5 * (lattice.hi - lattice.lo).max_element();
     (position - lattice.lo).min_element() <= tolerance
         || (lattice.hi - position).min_element() <= tolerance
+}
+
+/// Makes row `index` of `gaussians` an isotropic Gaussian at `position` of log standard
+/// deviation `log_std`, peak density `sigma` and `colour`.
+pub(crate) fn make_isotropic(
+    gaussians: &mut HostGaussians,
+    index: usize,
+    position: Vec3,
+    log_std: f32,
+    sigma: f32,
+    colour: [f32; 3],
+) {
+    gaussians.means[3 * index..3 * index + 3].copy_from_slice(&position.to_array());
+    gaussians.rotations[4 * index..4 * index + 4].copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
+    gaussians.log_scales[3 * index..3 * index + 3].fill(log_std);
+    gaussians.raw_densities[index] = inverse_softplus(sigma);
+    gaussians.colors[3 * index..3 * index + 3].copy_from_slice(&colour);
 }
 
 /// Rows to recycle, best candidates first: on a box face, then invisible by ascending opacity.
@@ -284,9 +317,8 @@ pub fn respawn(
         }
     }
     if let Some([lo, hi]) = options.region {
-        let [_, ny, nz] = lattice.resolution;
         for (cell, score) in scores.iter_mut().enumerate() {
-            let centre = lattice.cell_centre([cell / (ny * nz), (cell / nz) % ny, cell % nz]);
+            let centre = lattice.cell_centre(lattice.cell_of(cell));
             if centre.cmplt(lo).any() || centre.cmpgt(hi).any() {
                 *score = 0.0;
             }
@@ -343,8 +375,6 @@ pub fn respawn(
         / 3.0;
 
     let mut rng = SplitMix64::new(options.seed);
-    let [_, ny, nz] = lattice.resolution;
-    let cell_size = lattice.cell_size();
     let log_std = options.std.ln();
     let mut report = RespawnReport {
         indices: Vec::with_capacity(count),
@@ -365,23 +395,10 @@ pub fn respawn(
             pick -= score;
         }
         let (cell, score) = cells.swap_remove(chosen);
-        let (i, j, k) = (cell / (ny * nz), (cell / nz) % ny, cell % nz);
-        let centre = lattice.cell_centre([i, j, k]);
-        let jitter = Vec3::new(
-            rng.range(-0.5, 0.5),
-            rng.range(-0.5, 0.5),
-            rng.range(-0.5, 0.5),
-        );
-        let position = centre + jitter * cell_size;
-
+        let position = lattice.point_in_cell(cell, &mut rng);
         let opacity = (0.5 * score / contrast.max(0.05)).clamp(INVISIBLE_OPACITY, 0.5);
         let sigma = -(1.0 - opacity).ln() / (SQRT_TAU * options.std);
-
-        gaussians.means[3 * index..3 * index + 3].copy_from_slice(&position.to_array());
-        gaussians.rotations[4 * index..4 * index + 4].copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
-        gaussians.log_scales[3 * index..3 * index + 3].fill(log_std);
-        gaussians.raw_densities[index] = inverse_softplus(sigma);
-        gaussians.colors[3 * index..3 * index + 3].copy_from_slice(&colour);
+        make_isotropic(gaussians, index, position, log_std, sigma, colour);
         report.indices.push(index);
     }
     report
