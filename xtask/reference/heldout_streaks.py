@@ -1,6 +1,6 @@
 """How much of a run's held-out error is vertical streaks (issue 18).
 
-  python heldout_streaks.py RUN_DIR FRAMES [--png OUT.png]          (needs numpy and scipy)
+  python heldout_streaks.py RUN_DIR FRAMES [--png OUT.png] [--bands N]   (numpy and scipy)
 
 FRAMES is a comma list of frames the run wrote comparisons for (`comparison/frame_TTT.png`:
 the held-out reference, 4 grey columns, the render; every `output_every` frames). For each,
@@ -9,6 +9,9 @@ its 5-pixel border), prints the held-out PSNR over the whole image (as `eval` gi
 8-bit rounding) and two shares of the error's energy: what survives a running mean over 9
 rows (error that stays the same down a column: vertical streaks) and over 9 columns (the
 same along a row). Error without such structure keeps about 1/9 of its energy under either.
+`--bands N` also prints the mean squared error in N equal bands of image rows, top first,
+averaged over the frames: where in height the error sits (the source is in the lowest band
+with smoke).
 
 Why: every camera of the synthetic plume (and of ScalarFlow) sits at about the smoke's
 height, so a horizontal slice of the smoke is seen from the same few directions in every
@@ -95,8 +98,9 @@ def shares(error, smoke):
     return (down[smoke] ** 2).sum() / total, (along[smoke] ** 2).sum() / total
 
 
-def main(run, frames, png):
+def main(run, frames, png, bands):
     rows = []
+    band_errors = np.zeros(bands)
     for t in frames:
         pair = read_png(os.path.join(run, "comparison", f"frame_{t:03d}.png"))
         width = (pair.shape[1] - 4) // 2
@@ -109,6 +113,8 @@ def main(run, frames, png):
         )
         smoke = np.abs(reference - np.median(border)) > 0.02
         vertical, horizontal = shares(error, smoke)
+        for band, part in enumerate(np.array_split(error, bands, axis=0) if bands else []):
+            band_errors[band] += (part**2).mean() / len(frames)
         print(
             f"frame {t:3d}: held-out PSNR {psnr:6.2f} dB; smoke {smoke.mean():.2f} of the "
             f"image; its error energy kept by a 9-row mean {vertical:.2f}, by a 9-column "
@@ -117,6 +123,9 @@ def main(run, frames, png):
         lo, hi = reference.min(), reference.max()
         scaled = (reference - lo) / max(hi - lo, 1e-6)
         rows.append(np.concatenate([scaled, np.clip(0.5 + error / 0.06, 0.0, 1.0)], axis=1))
+    if bands:
+        print("mean squared error by band of rows, top first: "
+              + " ".join(f"{e:.2e}" for e in band_errors))
     if png:
         picture = np.concatenate(rows, axis=0)
         write_png(png, np.repeat(np.repeat(picture, 4, axis=0), 4, axis=1))
@@ -130,6 +139,11 @@ if __name__ == "__main__":
         i = args.index("--png")
         png = args[i + 1]
         del args[i : i + 2]
+    bands = 0
+    if "--bands" in args:
+        i = args.index("--bands")
+        bands = int(args[i + 1])
+        del args[i : i + 2]
     if len(args) != 2:
         sys.exit(__doc__)
-    main(args[0], [int(t) for t in args[1].split(",")], png)
+    main(args[0], [int(t) for t in args[1].split(",")], png, bands)
