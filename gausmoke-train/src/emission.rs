@@ -38,7 +38,9 @@ use gausmoke_core::glam::Vec3;
 use gausmoke_render::HostGaussians;
 use gausmoke_render::math::softplus;
 
-use crate::respawn::{INVISIBLE_OPACITY, SpawnLattice, make_isotropic, peak_opacity};
+use crate::respawn::{
+    INVISIBLE_OPACITY, SpawnLattice, draw_weighted, make_isotropic, peak_opacity,
+};
 
 /// `(2 pi)^(3/2)`: the integral of an unnormalised 3D Gaussian of unit standard deviations.
 const GAUSSIAN_VOLUME: f32 = 15.749_61;
@@ -151,7 +153,6 @@ pub fn emit(
             }
         }
     }
-    let losses: f32 = cells.iter().map(|(_, d)| d).sum();
     let total_mass = net_loss * cell_volume;
     let report = EmissionReport {
         indices: Vec::new(),
@@ -201,17 +202,10 @@ pub fn emit(
     let mut rng = SplitMix64::new(options.seed);
     let mut report = report;
     for &index in slots.iter().take(count) {
-        let mut pick = rng.uniform() * losses;
-        let mut chosen = cells[cells.len() - 1].0;
-        for &(cell, d) in &cells {
-            if pick < d {
-                chosen = cell;
-                break;
-            }
-            pick -= d;
-        }
+        // With replacement.
+        let (cell, _) = cells[draw_weighted(&cells, &mut rng)];
         let position = lattice
-            .point_in_cell(chosen, &mut rng)
+            .point_in_cell(cell, &mut rng)
             .clamp(lattice.lo + margin, lattice.hi - margin);
         let seen = lattice_mass(position, options.std, lattice);
         let sigma = share / seen.max(f32::MIN_POSITIVE);

@@ -166,6 +166,20 @@ fn on_box_face(position: Vec3, lattice: &SpawnLattice) -> bool {
         || (lattice.hi - position).min_element() <= tolerance
 }
 
+/// The position in `cells` (`(cell, weight)` pairs, weights >= 0, not all 0) drawn with
+/// probability proportional to its weight (a linear scan: callers draw a few hundred).
+pub(crate) fn draw_weighted(cells: &[(usize, f32)], rng: &mut SplitMix64) -> usize {
+    let total: f32 = cells.iter().map(|(_, w)| w).sum();
+    let mut pick = rng.uniform() * total;
+    for (position, (_, weight)) in cells.iter().enumerate() {
+        if pick < *weight {
+            return position;
+        }
+        pick -= weight;
+    }
+    cells.len() - 1
+}
+
 /// Makes row `index` of `gaussians` an isotropic Gaussian at `position` of log standard
 /// deviation `log_std`, peak density `sigma` and `colour`.
 pub(crate) fn make_isotropic(
@@ -383,18 +397,8 @@ pub fn respawn(
         max_deficit,
     };
     for &index in candidates.iter().take(count) {
-        // Weighted draw without replacement (linear scan: `count` is small).
-        let total: f32 = cells.iter().map(|(_, s)| s).sum();
-        let mut pick = rng.uniform() * total;
-        let mut chosen = cells.len() - 1;
-        for (position, (_, score)) in cells.iter().enumerate() {
-            if pick < *score {
-                chosen = position;
-                break;
-            }
-            pick -= score;
-        }
-        let (cell, score) = cells.swap_remove(chosen);
+        // Without replacement.
+        let (cell, score) = cells.swap_remove(draw_weighted(&cells, &mut rng));
         let position = lattice.point_in_cell(cell, &mut rng);
         let opacity = (0.5 * score / contrast.max(0.05)).clamp(INVISIBLE_OPACITY, 0.5);
         let sigma = -(1.0 - opacity).ln() / (SQRT_TAU * options.std);
