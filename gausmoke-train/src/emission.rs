@@ -219,11 +219,7 @@ pub fn emit(
 mod tests {
     use super::*;
 
-    /// The unit box on an 8^3 lattice; the inflow is its bottom-centre quarter.
-    fn lattice() -> SpawnLattice {
-        SpawnLattice::unit_box()
-    }
-
+    /// The inflow: the bottom-centre quarter of the unit box (lattice 8^3).
     fn inflow() -> [Vec3; 2] {
         [Vec3::new(0.25, 0.0, 0.25), Vec3::new(0.75, 0.25, 0.75)]
     }
@@ -256,7 +252,7 @@ mod tests {
     fn seen_mass(g: &HostGaussians, index: usize) -> f32 {
         let p = Vec3::from_slice(&g.means[3 * index..3 * index + 3]);
         let std = g.log_scales[3 * index].exp();
-        let lattice = lattice();
+        let lattice = SpawnLattice::unit_box();
         let mut sum = 0.0;
         for i in 0..8 {
             for j in 0..8 {
@@ -269,6 +265,24 @@ mod tests {
             }
         }
         softplus(g.raw_densities[index]) * sum * 0.125f32.powi(3)
+    }
+
+    /// [`emit`] on the unit box's lattice into `slots`, at most `budget`.
+    fn emitted(
+        g: &mut HostGaussians,
+        before: &[f32],
+        after: &[f32],
+        slots: &[usize],
+        budget: usize,
+    ) -> EmissionReport {
+        emit(
+            g,
+            before,
+            after,
+            &SpawnLattice::unit_box(),
+            slots,
+            &options(budget),
+        )
     }
 
     fn options(budget: usize) -> EmissionOptions {
@@ -300,7 +314,7 @@ mod tests {
         let (before, after) = densities();
         let mut g = gaussians(100, 6);
         let slots: Vec<usize> = (50..100).collect();
-        let report = emit(&mut g, &before, &after, &lattice(), &slots, &options(40));
+        let report = emitted(&mut g, &before, &after, &slots, 40);
         let cell_volume = 0.125f32.powi(3);
         let expected_mass = (2.0 * 1.5 + 2.0 * 2.0) * cell_volume;
         assert!((report.mass - expected_mass).abs() < 1e-6 * expected_mass.max(1.0));
@@ -347,7 +361,7 @@ mod tests {
         after[cell(3, 0, 4)] = 3.0;
         let mut g = gaussians(100, 6);
         let slots: Vec<usize> = (50..100).collect();
-        let report = emit(&mut g, &before, &after, &lattice(), &slots, &options(40));
+        let report = emitted(&mut g, &before, &after, &slots, 40);
         let cell_volume = 0.125f32.powi(3);
         assert!((report.mass - 4.0 * cell_volume).abs() < 1e-6);
         let emitted: f32 = report.indices.iter().map(|&i| seen_mass(&g, i)).sum();
@@ -365,12 +379,12 @@ mod tests {
         let (before, after) = densities();
         let mut g = gaussians(100, 6);
         let slots: Vec<usize> = (50..100).collect();
-        let report = emit(&mut g, &before, &after, &lattice(), &slots, &options(1));
+        let report = emitted(&mut g, &before, &after, &slots, 1);
         assert_eq!(report.indices, vec![50]);
         assert!((seen_mass(&g, 50) - report.mass).abs() < 1e-3 * report.mass);
         // Fewer free rows than the budget: all of them.
         let mut g = gaussians(100, 6);
-        let report = emit(&mut g, &before, &after, &lattice(), &[70], &options(40));
+        let report = emitted(&mut g, &before, &after, &[70], 40);
         assert_eq!(report.indices, vec![70]);
     }
 
@@ -381,13 +395,13 @@ mod tests {
         let fresh = g.clone();
         let slots: Vec<usize> = (50..100).collect();
         // At rest.
-        let report = emit(&mut g, &before, &before, &lattice(), &slots, &options(40));
+        let report = emitted(&mut g, &before, &before, &slots, 40);
         assert!(report.indices.is_empty() && report.mass == 0.0);
         // Density gained in the box (smoke carried in from elsewhere), lost only outside it.
         let mut after = before.clone();
         after[cell(3, 0, 3)] = 3.0;
         after[cell(4, 6, 4)] = 0.0;
-        let report = emit(&mut g, &before, &after, &lattice(), &slots, &options(40));
+        let report = emitted(&mut g, &before, &after, &slots, 40);
         assert!(report.indices.is_empty());
         assert_eq!(g, fresh);
     }
