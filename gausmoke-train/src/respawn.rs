@@ -197,14 +197,21 @@ pub(crate) fn make_isotropic(
     gaussians.colors[3 * index..3 * index + 3].copy_from_slice(&colour);
 }
 
-/// Rows to recycle, best candidates first: on a box face, then invisible by ascending opacity.
+/// Rows to recycle, best candidates first: on a box face, then invisible by ascending
+/// opacity; never the `taken` rows (renewed otherwise this frame). Also how many of them are
+/// on a face.
 pub(crate) fn recycling_candidates(
     gaussians: &HostGaussians,
     lattice: &SpawnLattice,
+    taken: &[usize],
 ) -> (Vec<usize>, usize) {
+    let mut free = vec![true; gaussians.len()];
+    for &row in taken {
+        free[row] = false;
+    }
     let mut on_faces = Vec::new();
     let mut invisible = Vec::new();
-    for index in 0..gaussians.len() {
+    for index in (0..gaussians.len()).filter(|&index| free[index]) {
         let m = &gaussians.means[3 * index..3 * index + 3];
         let opacity = peak_opacity(gaussians, index);
         if on_box_face(Vec3::new(m[0], m[1], m[2]), lattice) {
@@ -346,18 +353,7 @@ pub fn respawn(
         .collect();
     let deficit_cells = cells.len();
     let max_deficit = scores.iter().cloned().fold(0.0, f32::max);
-    let (mut candidates, mut faces) = recycling_candidates(gaussians, lattice);
-    if !taken.is_empty() {
-        let mut free = vec![true; gaussians.len()];
-        for &row in taken {
-            free[row] = false;
-        }
-        faces -= candidates[..faces]
-            .iter()
-            .filter(|&&row| !free[row])
-            .count();
-        candidates.retain(|&row| free[row]);
-    }
+    let (candidates, faces) = recycling_candidates(gaussians, lattice, taken);
     let count = budget.min(cells.len()).min(candidates.len());
     if count == 0 {
         return RespawnReport {

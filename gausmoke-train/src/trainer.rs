@@ -1499,7 +1499,7 @@ impl Trainer {
 
     /// Emission at the source, recycling, then splitting, on one host copy of the Gaussians:
     /// one read from the device and a write back when rows changed (two when emission
-    /// changed some, so that recycling's renders show them). `density_before` is frame
+    /// changed some and recycling follows, so that its renders show them). `density_before` is frame
     /// t-1's density on the grid (with `emission_fraction > 0`). No row is taken twice.
     fn renew_gaussians(
         &mut self,
@@ -1517,8 +1517,11 @@ impl Trainer {
             Some(before) => self.emit(t, &mut host, before),
             None => EmissionReport::default(),
         };
-        if !emitted.indices.is_empty() && self.config.respawn_fraction > 0.0 {
+        // Rows changed on the host that the device does not have yet.
+        let mut unwritten = !emitted.indices.is_empty();
+        if unwritten && self.config.respawn_fraction > 0.0 {
             self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
+            unwritten = false;
         }
         let recycled = self.respawn(t, &mut host, &emitted.indices)?;
         let taken: Vec<usize> = [&emitted.indices, &recycled.indices]
@@ -1527,8 +1530,7 @@ impl Trainer {
             .copied()
             .collect();
         let split = self.split(&mut host, &taken);
-        if !emitted.indices.is_empty() || !recycled.indices.is_empty() || !split.parents.is_empty()
-        {
+        if unwritten || !recycled.indices.is_empty() || !split.parents.is_empty() {
             self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
         }
         if !split.parents.is_empty() || !emitted.indices.is_empty() {
@@ -1558,7 +1560,7 @@ impl Trainer {
             seed: self.config.seed ^ (t as u64 + 1).wrapping_mul(0xD1B5_4A32_D192_ED03),
         };
         let after = self.density_host();
-        let (slots, _) = recycling_candidates(host, &lattice);
+        let (slots, _) = recycling_candidates(host, &lattice, &[]);
         let report = emit(host, density_before, &after, &lattice, &slots, &options);
         tracing::debug!(
             frame = t,
@@ -1668,11 +1670,10 @@ impl Trainer {
         let lattice = self.spawn_lattice();
         let min_std = self.config.split_size_factor * self.initial_std();
         let budget = (self.config.split_fraction * host.len() as f32).floor() as usize;
-        let (mut slots, on_faces) = recycling_candidates(host, &lattice);
+        let (mut slots, on_faces) = recycling_candidates(host, &lattice, taken);
         if self.config.split_into_faces_only {
             slots.truncate(on_faces);
         }
-        slots.retain(|row| !taken.contains(row));
         let report = split_largest(host, &slots, budget, min_std, &lattice);
         tracing::debug!(split = report.parents.len(), slots = slots.len(), "split");
         report
