@@ -90,6 +90,19 @@ pub enum LookaheadVelocity {
     Predicted,
 }
 
+/// When emission at the source (`emission_fraction`) adds a frame's new Gaussians.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EmissionTiming {
+    /// After the joint iterations: the box's loss to the velocity they fitted, so the
+    /// joint iterations render the inflow as the carrier left it.
+    AfterJoint,
+    /// Before them: the box's loss to the carrier that starts the frame (the previous
+    /// velocity, or the true one), and the new Gaussians stay where they are born through
+    /// the joint iterations, so that the velocity is fitted to a filled inflow.
+    BeforeJoint,
+}
+
 /// When the Gaussians' Adam state (its moment estimates) starts afresh (see
 /// `gaussian_optimizer_reset`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -401,12 +414,15 @@ pub struct TrainConfig {
     /// It is also the inflow box that `emission_fraction` emits into.
     pub respawn_region: Option<[f32; 6]>,
     /// Most Gaussians emitted per frame at the source, as a fraction of all (ours, `emission`
-    /// module; 0, the default, emits none). After a frame's joint iterations, the density
+    /// module; 0, the default, emits none). At each frame (when: `emission_timing`), the density
     /// the carrier took out of the inflow box (`respawn_region`, required; its net loss
     /// since frame t-1) is emitted back into the cells that lost it as new Gaussians as heavy
     /// as their neighbours, in rows recycling would take: a steady source holds its inflow's
     /// density whatever the speed of the flow through it.
     pub emission_fraction: f32,
+    /// When the emitted Gaussians are added (`after_joint`, the default, or
+    /// `before_joint`; see [`EmissionTiming`]).
+    pub emission_timing: EmissionTiming,
     /// Most Gaussians split per frame, as a fraction of all (ours, `split` module): the
     /// largest opaque ones become two halves with the same mass, mean and covariance, the
     /// second half in a row that recycling would take (on a box face, or invisible), after
@@ -556,6 +572,7 @@ impl Default for TrainConfig {
             respawn_near_smoke: 0.0,
             respawn_region: None,
             emission_fraction: 0.0,
+            emission_timing: EmissionTiming::AfterJoint,
             split_fraction: 0.0,
             split_size_factor: 1.0,
             split_into_faces_only: false,

@@ -50,8 +50,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use crate::TrainError;
 use crate::arrays::{read_arrays, take_array};
 use crate::config::{
-    CorrectionTarget, IntegratorKind, InterpolationKind, LookaheadVelocity, Obstacles,
-    OptimizerReset, ProjectionKind, TrainConfig,
+    CorrectionTarget, EmissionTiming, IntegratorKind, InterpolationKind, LookaheadVelocity,
+    Obstacles, OptimizerReset, ProjectionKind, TrainConfig,
 };
 use crate::emission::{EmissionOptions, EmissionReport, emit};
 use crate::respawn::{
@@ -978,7 +978,6 @@ impl Trainer {
         let log_scale_bounds = self.log_scale_bounds();
         let last_frame = (self.sequence.frames() - 1).max(1) as f32;
         let time = t as f32 / last_frame;
-        let previous_means = self.state.gaussians.means.val().detach();
         let previous_velocity = if config.transport_velocity {
             let _phase = phase!("velocity transport");
             transport_velocity(&self.grid, &self.state.velocity.clone().detach(), config.dt)
@@ -1018,6 +1017,28 @@ impl Trainer {
             Some(self.true_velocity(t)?)
         } else {
             None
+        };
+        // Emission before the joint iterations: the box's loss to the carrier that starts
+        // the frame, born at frame t's positions and held there while the velocity is fitted.
+        let born = match (&density_before, config.emission_timing) {
+            (Some(before), EmissionTiming::BeforeJoint) => {
+                let carrier = true_velocity.as_ref().unwrap_or(&previous_velocity);
+                self.emit_before_joint(t, carrier, before)
+            }
+            _ => EmissionReport::default(),
+        };
+        let previous_means = self.state.gaussians.means.val().detach();
+        // `[N, 1]`: 1 on the rows born this frame, whose centres the carrier does not move.
+        let born_rows = (!born.indices.is_empty()).then(|| {
+            let [n, _] = previous_means.dims();
+            Tensor::<2>::from_data(
+                TensorData::new(marked_rows(n, &born.indices), [n, 1]),
+                &self.device,
+            )
+        });
+        let hold_born = |positions: Tensor<2>| match &born_rows {
+            Some(born) => positions.clone() + (previous_means.clone() - positions) * born.clone(),
+            None => positions,
         };
 
         // K joint iterations (Algorithm 1, lines 3-9).
@@ -1067,7 +1088,8 @@ impl Trainer {
                 self.integrator(),
                 interpolation,
             );
-            let next = self.state.gaussians.tensors_at(moved.positions.clone());
+            let positions = hold_born(moved.positions.clone());
+            let next = self.state.gaussians.tensors_at(positions.clone());
             let (render, check) = self.render_loss(
                 &self.scene(next.clone(), true),
                 &cameras,
@@ -1156,7 +1178,7 @@ impl Trainer {
 
             velocity = projected.clone().detach();
             unprojected = update.detach();
-            advected = moved.positions.detach();
+            advected = positions.detach();
             let left_box = moved.left_box.float().sum().reshape([1]);
 
             let mut grads = {
@@ -1203,7 +1225,7 @@ impl Trainer {
                 self.integrator(),
                 interpolation,
             );
-            advected = moved.positions.detach();
+            advected = hold_born(moved.positions).detach();
         }
 
         // K' refinement iterations (lines 11-13): free centres tied to the advected ones.
@@ -1211,7 +1233,10 @@ impl Trainer {
         self.keep_out_of_obstacles();
         // Recycling sees the transported Gaussians against frame t: what they miss entered
         // the box (or was never fitted), and the refinement fits the recycled ones.
-        let renewal = self.renew_gaussians(t, density_before.as_deref())?;
+        let after_joint = density_before
+            .as_deref()
+            .filter(|_| config.emission_timing == EmissionTiming::AfterJoint);
+        let renewal = self.renew_gaussians(t, after_joint, born)?;
         let (respawned, emitted, split) = (
             renewal.recycled.indices,
             renewal.emitted.indices,
@@ -1505,20 +1530,24 @@ impl Trainer {
         &mut self,
         t: usize,
         density_before: Option<&[f32]>,
+        born: EmissionReport,
     ) -> Result<Renewal, TrainError> {
         if self.config.respawn_fraction <= 0.0
             && self.config.split_fraction <= 0.0
             && density_before.is_none()
         {
-            return Ok(Renewal::default());
+            return Ok(Renewal {
+                emitted: born,
+                ..Renewal::default()
+            });
         }
         let mut host = self.state.gaussians.to_host();
         let emitted = match density_before {
-            Some(before) => self.emit(t, &mut host, before),
-            None => EmissionReport::default(),
+            Some(before) => self.emit(t, &mut host, before, &self.density_host()),
+            None => born,
         };
-        // Rows changed on the host that the device does not have yet.
-        let mut unwritten = !emitted.indices.is_empty();
+        // Rows changed on the host that the device does not have yet (born rows are written).
+        let mut unwritten = density_before.is_some() && !emitted.indices.is_empty();
         if unwritten && self.config.respawn_fraction > 0.0 {
             self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
             unwritten = false;
@@ -1546,7 +1575,13 @@ impl Trainer {
 
     /// Emits into the rows recycling would take the density the carrier took out of the
     /// inflow box since frame t-1 (`density_before`; see [`crate::emission`]).
-    fn emit(&self, t: usize, host: &mut HostGaussians, density_before: &[f32]) -> EmissionReport {
+    fn emit(
+        &self,
+        t: usize,
+        host: &mut HostGaussians,
+        density_before: &[f32],
+        density_after: &[f32],
+    ) -> EmissionReport {
         let _phase = phase!("emission");
         let lattice = self.spawn_lattice();
         let Some(fractions) = self.config.respawn_region else {
@@ -1559,15 +1594,56 @@ impl Trainer {
             // Apart from recycling's stream of the same frame.
             seed: self.config.seed ^ (t as u64 + 1).wrapping_mul(0xD1B5_4A32_D192_ED03),
         };
-        let after = self.density_host();
         let (slots, _) = recycling_candidates(host, &lattice, &[]);
-        let report = emit(host, density_before, &after, &lattice, &slots, &options);
+        let report = emit(
+            host,
+            density_before,
+            density_after,
+            &lattice,
+            &slots,
+            &options,
+        );
         tracing::debug!(
             frame = t,
             emitted = report.indices.len(),
             mass = report.mass,
             "emission"
         );
+        report
+    }
+
+    /// Emission before frame `t`'s joint iterations (`emission_timing = "before_joint"`): the
+    /// box's loss when the Gaussians of frame t-1 (`density_before` on the grid) are carried
+    /// one frame by `carrier`, emitted at frame t's positions and written to the device.
+    fn emit_before_joint(
+        &mut self,
+        t: usize,
+        carrier: &Tensor<4>,
+        density_before: &[f32],
+    ) -> EmissionReport {
+        let previous = self.state.gaussians.tensors().detach();
+        let carried = advect(
+            &self.grid,
+            &carrier.clone().detach(),
+            &previous.means,
+            self.config.dt,
+            self.integrator(),
+            self.interpolation(),
+        );
+        let density_after = read_floats(density_grid(
+            &Gaussians {
+                means: carried.positions,
+                ..previous
+            },
+            &self.grid,
+            SplatOptions::default().cutoff,
+        ));
+        let mut host = self.state.gaussians.to_host();
+        let report = self.emit(t, &mut host, density_before, &density_after);
+        if !report.indices.is_empty() {
+            self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
+            self.keep_out_of_obstacles();
+        }
         report
     }
 

@@ -1256,6 +1256,8 @@ fn density_in_region(run: &Run, region: [f32; 6]) -> f32 {
 /// in a frame; with emission it keeps most of it, in new rows the frame report counts.
 #[test]
 fn emission_at_the_source_keeps_the_inflow_filled() {
+    use gausmoke_train::config::EmissionTiming;
+
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
     // Around the synthetic solver's source disc, on the floor at the box's centre.
@@ -1294,6 +1296,20 @@ fn emission_at_the_source_keeps_the_inflow_filled() {
     assert!(
         lost_emitting.abs() < 0.5 * lost,
         "with emission the inflow lost {lost_emitting}, without {lost}"
+    );
+    // Emitted before the joint iterations, from the loss the same carrier predicts, the new
+    // Gaussians must stay where they are born while it moves the others: carried at ten
+    // times the flow's speed they would leave the box as the old ones do.
+    let born_first = TrainConfig {
+        emission_timing: EmissionTiming::BeforeJoint,
+        ..emitting.clone()
+    };
+    let (lost_born_first, born) = loss_in_frame_1(born_first, "emitting first");
+    eprintln!("before the joint iterations: lost {lost_born_first} with {born} emitted");
+    assert!(born > 0);
+    assert!(
+        lost_born_first.abs() < 0.5 * lost,
+        "emitting first, the inflow lost {lost_born_first}, without emission {lost}"
     );
     let mut run = quiet_run(&data, dir.path(), emitting, "reported");
     let reports = run.run().unwrap().to_vec();
