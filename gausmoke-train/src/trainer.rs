@@ -1630,14 +1630,10 @@ impl Trainer {
             self.integrator(),
             self.interpolation(),
         );
-        let density_after = read_floats(density_grid(
-            &Gaussians {
-                means: carried.positions,
-                ..previous
-            },
-            &self.grid,
-            SplatOptions::default().cutoff,
-        ));
+        let density_after = self.density_host_of(&Gaussians {
+            means: carried.positions,
+            ..previous
+        });
         let mut host = self.state.gaussians.to_host();
         let report = self.emit(t, &mut host, density_before, &density_after);
         if !report.indices.is_empty() {
@@ -1757,9 +1753,13 @@ impl Trainer {
 
     /// Host density grid of the current Gaussians.
     pub fn density_host(&self) -> Vec<f32> {
-        let detached = self.state.gaussians.tensors().detach();
+        self.density_host_of(&self.state.gaussians.tensors())
+    }
+
+    /// The density `gaussians` splat on the velocity grid, on the host.
+    fn density_host_of(&self, gaussians: &GaussianTensors) -> Vec<f32> {
         read_floats(density_grid(
-            &detached,
+            &gaussians.clone().detach(),
             &self.grid,
             SplatOptions::default().cutoff,
         ))
