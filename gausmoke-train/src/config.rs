@@ -3,7 +3,7 @@
 //! is written next to the outputs (`config.toml`).
 
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
@@ -237,6 +237,12 @@ pub struct TrainConfig {
     /// (with `frames = 1`, a static fit of that frame alone: the independent per-frame
     /// baseline). Needs `frames` when not 0.
     pub first_frame: usize,
+    /// Frame 0's fit starts from the smoke Gaussians of a frame file a run wrote
+    /// (`RUN/frames/frame_TTT.safetensors`) instead of spreading them through the box: a warm
+    /// start. With `first_frame` and `frames = 1` it asks how much frame t's views add, in
+    /// `init_iterations` more steps, to what a sequential run carried there. The file must hold
+    /// `gaussians` of them; `None` (the default) spreads them.
+    pub init_gaussians: Option<PathBuf>,
     /// Views to train on by name; `None` uses the data set's train split.
     pub train_views: Option<Vec<String>>,
     /// Held-out views by name; `None` uses the data set's test split.
@@ -518,6 +524,7 @@ impl Default for TrainConfig {
             image_size: None,
             frames: None,
             first_frame: 0,
+            init_gaussians: None,
             train_views: None,
             test_views: None,
             init_iterations: 2000,

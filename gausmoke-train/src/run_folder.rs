@@ -82,6 +82,34 @@ fn static_name(attribute: &str) -> String {
     format!("static_{attribute}")
 }
 
+/// Takes one Gaussian set out of a frame file's arrays: the attribute `a` is stored as
+/// `name(a)`, and its rows are counted by the densities.
+fn take_gaussians(
+    arrays: &mut HostArrays,
+    name: impl Fn(&str) -> String,
+    path: &Path,
+) -> Result<HostGaussians, TrainError> {
+    let n = arrays
+        .get(&name("raw_densities"))
+        .map(|(shape, _)| shape[0])
+        .unwrap_or_default();
+    let mut gaussians = HostGaussians::default();
+    for (attribute, values) in gaussians
+        .as_mut()
+        .map(|attribute, values| (attribute, values))
+        .into_array()
+    {
+        *values = take_array(arrays, &name(attribute.name), &attribute.shape(n), path)?;
+    }
+    Ok(gaussians)
+}
+
+/// The smoke Gaussians of a frame file a run wrote (`RUN/frames/frame_TTT.safetensors`),
+/// whatever its grid: what `init_gaussians` starts a fit from.
+pub fn read_frame_gaussians(path: &Path) -> Result<HostGaussians, TrainError> {
+    take_gaussians(&mut read_arrays(path)?, str::to_string, path)
+}
+
 /// A run folder on disk.
 #[derive(Debug, Clone)]
 pub struct RunFolder {
@@ -228,38 +256,12 @@ impl RunFolder {
             return Ok(None);
         }
         let mut arrays = read_arrays(&path)?;
-        let n = arrays
-            .get("raw_densities")
-            .map(|(shape, _)| shape[0])
-            .unwrap_or_default();
         let [nx, ny, nz] = grid.resolution();
-        let mut gaussians = HostGaussians::default();
-        for (attribute, values) in gaussians
-            .as_mut()
-            .map(|attribute, values| (attribute, values))
-            .into_array()
-        {
-            *values = take_array(&mut arrays, attribute.name, &attribute.shape(n), &path)?;
-        }
-        let statics = match arrays.get(&static_name("raw_densities")) {
-            Some((shape, _)) => {
-                let m = shape[0];
-                let mut statics = HostGaussians::default();
-                for (attribute, values) in statics
-                    .as_mut()
-                    .map(|attribute, values| (attribute, values))
-                    .into_array()
-                {
-                    *values = take_array(
-                        &mut arrays,
-                        &static_name(attribute.name),
-                        &attribute.shape(m),
-                        &path,
-                    )?;
-                }
-                Some(statics)
-            }
-            None => None,
+        let gaussians = take_gaussians(&mut arrays, str::to_string, &path)?;
+        let statics = if arrays.contains_key(&static_name("raw_densities")) {
+            Some(take_gaussians(&mut arrays, static_name, &path)?)
+        } else {
+            None
         };
         Ok(Some(FrameState {
             gaussians,

@@ -24,6 +24,8 @@
 //! The trainer only trains: what each frame produced comes back as a [`FrameOutcome`];
 //! evaluating it, writing files and checkpoints is [`crate::run::Run`]'s business.
 
+use std::path::Path;
+
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Gradients, Int, Tensor, TensorData};
 use gausmoke_core::glam::Vec3;
@@ -57,6 +59,7 @@ use crate::emission::{EmissionOptions, EmissionReport, emit};
 use crate::respawn::{
     DeficitView, RespawnOptions, RespawnReport, SpawnLattice, recycling_candidates, respawn,
 };
+use crate::run_folder::read_frame_gaussians;
 use crate::sequence::{Observation, Sequence};
 use crate::split::{SplitReport, split_largest};
 use crate::state::{
@@ -496,7 +499,10 @@ impl Trainer {
             Tensor::<1>::from_data(TensorData::new(sequence.background.to_vec(), [3]), &device);
         let raster = config.raster_options();
         let solids = solid_cells(&sequence, &config, &grid)?;
-        let state = fresh_state(&sequence, &config, &grid, &device);
+        let mut state = fresh_state(&sequence, &config, &grid, &device);
+        if let Some(path) = &config.init_gaussians {
+            state.gaussians = warm_start(path, config.gaussians, &device)?;
+        }
         Ok(Self {
             config,
             sequence,
@@ -1993,6 +1999,28 @@ fn fresh_state(
     }
 }
 
+/// The smoke Gaussians of another run's frame file, which must hold `count` of them
+/// (`init_gaussians`).
+fn warm_start(path: &Path, count: usize, device: &Device) -> Result<GaussianModel, TrainError> {
+    let refuse = |reason: String| TrainError::Config {
+        origin: format!("init_gaussians = {}", path.display()),
+        reason,
+    };
+    if !path.is_file() {
+        return Err(refuse(
+            "no such file (a run's frames/frame_TTT.safetensors)".into(),
+        ));
+    }
+    let host = read_frame_gaussians(path).map_err(|e| refuse(e.to_string()))?;
+    if host.len() != count {
+        return Err(refuse(format!(
+            "the file holds {} Gaussians but gaussians is {count}",
+            host.len()
+        )));
+    }
+    Ok(GaussianModel::from_host(&host, device))
+}
+
 /// A fresh Adam state for the smoke Gaussians.
 fn gaussian_optimizer() -> ModuleOptimizer {
     // 3DGS practice: a tiny epsilon, so rarely-seen Gaussians still move.
@@ -2107,6 +2135,75 @@ mod tests {
         let data = dir.path().join("data");
         generate(&SynthConfig::tiny(), &data).unwrap();
         (dir, data)
+    }
+
+    /// `init_gaussians` starts from the Gaussians another run wrote for a frame, not from a
+    /// spread of its own seed, and refuses a file that is missing or holds another count.
+    #[test]
+    fn a_warm_start_begins_with_another_runs_gaussians() {
+        use crate::run_folder::{FrameState, RunFolder};
+        use gausmoke_render::backends::device_by_name;
+        let (dir, data) = tiny_scene();
+        let device = device_by_name("flex").unwrap().autodiff();
+        let config = |seed: u64, init_gaussians: Option<std::path::PathBuf>| TrainConfig {
+            gaussians: 500,
+            grid_resolution: 8,
+            frames: Some(1),
+            seed,
+            init_gaussians,
+            ..TrainConfig::default()
+        };
+        let trainer = |config: TrainConfig| {
+            Trainer::new(
+                Sequence::open(&data, &config).unwrap(),
+                config,
+                device.clone(),
+            )
+        };
+        let source = trainer(config(1, None)).unwrap();
+        let mut written = source.state.gaussians.to_host();
+        // Frames carry fitted Gaussians, not a fresh spread: make these unlike any seed's.
+        for density in &mut written.raw_densities {
+            *density += 0.5;
+        }
+        let grid = source.grid;
+        let [nx, ny, nz] = grid.resolution();
+        let folder = RunFolder::at(&dir.path().join("source"));
+        folder
+            .write_frame_state(
+                7,
+                &grid,
+                &FrameState {
+                    gaussians: written.clone(),
+                    statics: None,
+                    velocity: vec![0.0; nx * ny * nz * 3],
+                    density: vec![0.0; nx * ny * nz],
+                },
+            )
+            .unwrap();
+        let path = folder.frame_state_path(7);
+        let warm = trainer(config(2, Some(path.clone()))).unwrap();
+        assert_eq!(warm.state.gaussians.to_host(), written);
+        let cold = trainer(config(2, None)).unwrap();
+        assert_ne!(cold.state.gaussians.to_host(), written);
+
+        let refused = |config: TrainConfig| match trainer(config) {
+            Err(err) => err.to_string(),
+            Ok(_) => panic!("accepted"),
+        };
+        let other_count = refused(TrainConfig {
+            gaussians: 400,
+            ..config(2, Some(path.clone()))
+        });
+        assert!(
+            other_count.contains("init_gaussians") && other_count.contains("holds 500"),
+            "{other_count}"
+        );
+        let missing = refused(config(2, Some(dir.path().join("nothing.safetensors"))));
+        assert!(
+            missing.contains("init_gaussians") && missing.contains("no such file"),
+            "{missing}"
+        );
     }
 
     /// A swirl of the centres (a move a velocity can make) comes back as that velocity,
