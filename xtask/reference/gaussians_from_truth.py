@@ -1,0 +1,109 @@
+"""Gaussians that draw a synthetic scene's true density, as a frame file (issue 18).
+
+  python gaussians_from_truth.py DATA FRAME COUNT OUT.safetensors [--std CELLS]   (numpy)
+
+Writes `OUT` in the layout of a run's `frames/frame_TTT.safetensors`, holding COUNT smoke
+Gaussians, for `gausmoke-train train --set init_gaussians=OUT` (with `first_frame` = FRAME,
+`frames = 1`): a fit that starts from the truth instead of a spread through the box. The
+question it serves: does a state nearer the scene's 3D density picture the held-out view
+better once it is fitted to the training views as hard as a frame fitted alone?
+
+One isotropic Gaussian sits at the centre of each smoke cell of the true density
+(`gt/frame_TTT.safetensors`, `[z][y][x]`, x fastest, cell centres at (i + 0.5) / n of the
+box; smoke: above 1% of the largest density), with standard deviation `--std` cells (default
+0.6: a lattice of such Gaussians sums to a smooth field) and the extinction that makes their
+sum match the cell's, `sigma = density_scale * density` as the scene's ray marcher renders
+it. When the smoke has more cells than COUNT, the lattice is coarsened to blocks of 2^3,
+3^3, ... cells (their mean density, the Gaussians as much larger) until it fits. The
+Gaussians left over are spread through the box at a negligible density, for the fit to use.
+Colours are white, as the scene's smoke emits.
+"""
+
+import argparse
+import json
+import os
+
+import numpy as np
+
+from safetensors_f32 import read_safetensors, write_safetensors
+
+
+def inverse_softplus(y):
+    y = np.maximum(y, 1e-12)
+    return np.where(y > 20.0, y, np.log(np.expm1(np.minimum(y, 20.0))))
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("data")
+    parser.add_argument("frame", type=int)
+    parser.add_argument("count", type=int)
+    parser.add_argument("out")
+    parser.add_argument("--std", type=float, default=0.6, help="standard deviation, in cells")
+    parser.add_argument("--seed", type=int, default=1)
+    args = parser.parse_args()
+
+    info = json.load(open(os.path.join(args.data, "info.json")))
+    scale = info["synth"]["density_scale"]
+    # The box is the voxel cube [0, voxel_scale] carried into the world by voxel_matrix.
+    matrix = np.array(info["voxel_matrix"], dtype=np.float64)
+    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], np.float64)
+    world = (corners * np.array(info["voxel_scale"])) @ matrix[:3, :3].T + matrix[:3, 3]
+    lo, extent = world.min(axis=0), world.max(axis=0) - world.min(axis=0)
+    truth = read_safetensors(os.path.join(args.data, "gt", f"frame_{args.frame:03}.safetensors"))
+    density = truth["density"].astype(np.float64)
+    n = density.shape[0]
+    cell = extent / n
+    if not np.allclose(cell, cell[0]):
+        raise SystemExit(f"{args.data}: the box's cells are not cubes ({cell})")
+    # Coarsen the lattice by whole strides until the smoke's blocks fit in COUNT Gaussians.
+    stride = 1
+    while True:
+        m = n // stride
+        blocks = density[: m * stride, : m * stride, : m * stride]
+        blocks = blocks.reshape(m, stride, m, stride, m, stride).mean(axis=(1, 3, 5))
+        smoke = blocks > 0.01 * blocks.max()
+        if smoke.sum() <= args.count or m <= 2:
+            break
+        stride += 1
+    chosen = np.argwhere(smoke)  # (z, y, x) of the blocks
+    if len(chosen) > args.count:
+        raise SystemExit(f"{len(chosen)} smoke blocks even at stride {stride}: raise COUNT")
+    rho = blocks[tuple(chosen.T)]
+    side = stride * cell[0]
+    xyz = chosen[:, ::-1].astype(np.float64)
+    means = lo + (xyz + 0.5) * side
+    std = args.std * side
+    # A Gaussian of peak extinction s and standard deviation std holds s (2 pi)^(3/2) std^3 of
+    # extinction; the block holds scale * rho * side^3.
+    peak = scale * rho * side**3 / ((2.0 * np.pi) ** 1.5 * std**3)
+
+    rng = np.random.default_rng(args.seed)
+    rest = args.count - len(chosen)
+    spare = lo + rng.random((rest, 3)) * extent
+    means = np.concatenate([means, spare])
+    raw = np.concatenate([inverse_softplus(peak), np.full(rest, -9.0)])
+    # The size a spread through the box starts with (GaussianModel::init_in_box).
+    spare_std = 0.5 * (np.prod(extent) / args.count) ** (1.0 / 3.0)
+    log_scales = np.concatenate(
+        [np.full((len(chosen), 3), np.log(std)), np.full((rest, 3), np.log(spare_std))]
+    )
+    rotations = np.tile([1.0, 0.0, 0.0, 0.0], (args.count, 1))
+    colors = np.ones((args.count, 3))
+    write_safetensors(
+        args.out,
+        {
+            "means": means.astype(np.float32),
+            "rotations": rotations.astype(np.float32),
+            "log_scales": log_scales.astype(np.float32),
+            "raw_densities": raw.astype(np.float32),
+            "colors": colors.astype(np.float32),
+        },
+        {},
+    )
+    print(f"{len(chosen)} Gaussians on the smoke's blocks of {stride}^3 cells, {rest} spare; "
+          f"std {std:.4f}")
+
+
+if __name__ == "__main__":
+    main()
