@@ -25,7 +25,8 @@ import os
 
 import numpy as np
 
-from safetensors_f32 import read_safetensors, write_safetensors
+from safetensors_f32 import write_safetensors
+from scene_truth import read_truth
 
 
 def inverse_softplus(y):
@@ -50,8 +51,7 @@ def main():
     corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], np.float64)
     world = (corners * np.array(info["voxel_scale"])) @ matrix[:3, :3].T + matrix[:3, 3]
     lo, extent = world.min(axis=0), world.max(axis=0) - world.min(axis=0)
-    truth = read_safetensors(os.path.join(args.data, "gt", f"frame_{args.frame:03}.safetensors"))
-    density = truth["density"].astype(np.float64)
+    density = read_truth(args.data, args.frame)[0].astype(np.float64)  # [x, y, z]
     n = density.shape[0]
     cell = extent / n
     if not np.allclose(cell, cell[0]):
@@ -66,13 +66,12 @@ def main():
         if smoke.sum() <= args.count or m <= 2:
             break
         stride += 1
-    chosen = np.argwhere(smoke)  # (z, y, x) of the blocks
+    chosen = np.argwhere(smoke)  # (x, y, z) of the blocks
     if len(chosen) > args.count:
         raise SystemExit(f"{len(chosen)} smoke blocks even at stride {stride}: raise COUNT")
     rho = blocks[tuple(chosen.T)]
     side = stride * cell[0]
-    xyz = chosen[:, ::-1].astype(np.float64)
-    means = lo + (xyz + 0.5) * side
+    means = lo + (chosen + 0.5) * side
     std = args.std * side
     # A Gaussian of peak extinction s and standard deviation std holds s (2 pi)^(3/2) std^3 of
     # extinction; the block holds scale * rho * side^3.
