@@ -78,6 +78,30 @@ pub enum PlyAxes {
     YDown,
 }
 
+/// How much of the joint iterations' transport the refinement starts from (see
+/// `carrier_share`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CarrierShare {
+    /// All of it, with the whole grid-scale tie (the paper's method).
+    Whole,
+    /// The share that paid in the frame's prediction: before the frame is fitted, the
+    /// previous Gaussians are carried by the velocity Phi predicts and scaled back to each of
+    /// the shares 0, 1/4, 1/2, 3/4 and 1 of that move; the share whose render is closest to
+    /// the frame's training views is applied to the fitted move, and the grid-scale tie is
+    /// weighted by it too.
+    Predicted,
+    /// The share of the fitted move itself that renders the frame's training views best, of
+    /// 0, 1/4, ..., 2 (beyond 1 where the velocity is too slow), found after the joint
+    /// iterations; the grid-scale tie is weighted by it up to 1.
+    Fitted,
+    /// The whole fitted move, with the grid-scale tie weighted by the share of the still
+    /// prediction's loss (the previous Gaussians unmoved, against the frame's training views)
+    /// that carrying them by the velocity Phi predicts removes: the tie holds the refinement
+    /// to the transport as far as the transport's predictions pay.
+    Explained,
+}
+
 /// Which velocity carries the Gaussians on from frame t+1 in the look-ahead (see
 /// `lambda_lookahead` and `lookahead_frames`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -364,6 +388,12 @@ pub struct TrainConfig {
     /// it is carried on (ours; 0 = none): only the moves' large scale follows the velocity's
     /// error, their grid-scale detail does not. In [0, 8]; needs `refine_velocity_share`.
     pub refine_velocity_blur: f32,
+    /// How much of the fitted transport the refinement starts from and is tied to (ours;
+    /// `"whole"` = the paper's method; `"predicted"`: the share that the frame's prediction
+    /// earned; `"fitted"`: the share of the fitted move that fits the frame's views best;
+    /// `"explained"`: the whole move, tied as far as its prediction paid; see [`CarrierShare`]), so that a carrier whose predictions stop paying stops
+    /// moving the smoke and stops holding the refinement's grid-scale moves back.
+    pub carrier_share: CarrierShare,
     /// Time step of the velocity update and advection, in frames.
     pub dt: f32,
     /// Channels of the U-Net's first level.
@@ -559,6 +589,7 @@ impl Default for TrainConfig {
             correction_target: CorrectionTarget::Centres,
             refine_velocity_share: 0.0,
             refine_velocity_blur: 0.0,
+            carrier_share: CarrierShare::Whole,
             dt: 1.0,
             unet_channels: 16,
             time_frequencies: 4,

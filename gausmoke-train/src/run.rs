@@ -537,6 +537,8 @@ fn frame_report(
             .and_then(|m| m.persistence)
             .map(|[_, grid]| grid),
         buoyancy: outcome.buoyancy,
+        carrier_share: outcome.carrier_share.map(f64::from),
+        carrier_explained: outcome.carrier_explained.map(f64::from),
         mean_speed: speeds.iter().sum::<f64>() / speeds.len().max(1) as f64,
         max_speed: speeds.iter().cloned().fold(0.0, f64::max),
         seconds: start.elapsed().as_secs_f64(),

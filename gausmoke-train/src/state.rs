@@ -173,6 +173,15 @@ pub struct FrameReport {
     /// upward change of velocity per frame at the densest cell, world units per frame.
     #[serde(default)]
     pub buoyancy: Option<f64>,
+    /// The share of the fitted transport the refinement started from
+    /// (`carrier_share = "predicted"` or `"fitted"`).
+    #[serde(default)]
+    pub carrier_share: Option<f64>,
+    /// The share of the frame's training views' loss, with the previous Gaussians unmoved,
+    /// that carrying them by the velocity Phi predicted removed (`carrier_share =
+    /// "predicted"` or `"explained"`).
+    #[serde(default)]
+    pub carrier_explained: Option<f64>,
     /// Mean and largest speed of the velocity grid (world units per frame).
     pub mean_speed: f64,
     pub max_speed: f64,

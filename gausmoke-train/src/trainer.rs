@@ -52,8 +52,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use crate::TrainError;
 use crate::arrays::{read_arrays, take_array};
 use crate::config::{
-    CorrectionTarget, EmissionTiming, IntegratorKind, InterpolationKind, LookaheadVelocity,
-    Obstacles, OptimizerReset, ProjectionKind, TrainConfig,
+    CarrierShare, CorrectionTarget, EmissionTiming, IntegratorKind, InterpolationKind,
+    LookaheadVelocity, Obstacles, OptimizerReset, ProjectionKind, TrainConfig,
 };
 use crate::emission::{EmissionOptions, EmissionReport, emit};
 use crate::respawn::{
@@ -94,7 +94,20 @@ pub struct FrameOutcome {
     pub traffic: Vec<LoopTraffic>,
     /// The explicit buoyancy force's coefficient after the frame (`buoyancy_force`).
     pub buoyancy: Option<f64>,
+    /// The share of the fitted transport the refinement started from
+    /// (`carrier_share = "predicted"` or `"fitted"`; `None` otherwise and at frame 0).
+    pub carrier_share: Option<f32>,
+    /// The share of the still prediction's loss that the carrier's prediction removed
+    /// (`carrier_share = "predicted"` or `"explained"`).
+    pub carrier_explained: Option<f32>,
 }
+
+/// The shares of the predicted move that `carrier_share = "predicted"` renders.
+const PREDICTED_SHARES: [f32; 5] = [0.0, 0.25, 0.5, 0.75, 1.0];
+
+/// The shares of the fitted move that `carrier_share = "fitted"` renders: up to twice it,
+/// where the velocity falls short of the smoke's speed.
+const FITTED_SHARES: [f32; 9] = [0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 1.75, 2.0];
 
 /// What [`Trainer::renew_gaussians`] did to the rows in one frame.
 #[derive(Debug, Default)]
@@ -644,6 +657,64 @@ impl Trainer {
         }
     }
 
+    /// The velocity Phi predicts for the frame from the previous velocity and the density of
+    /// the Gaussians at `previous_means`, before any step on the frame (the joint iterations'
+    /// first carrier), projected.
+    fn predicted_velocity(
+        &self,
+        previous_means: &Tensor<2>,
+        previous_velocity: &Tensor<4>,
+        time: f32,
+    ) -> Result<Tensor<4>, TrainError> {
+        let previous = self
+            .state
+            .gaussians
+            .tensors_at(previous_means.clone())
+            .detach();
+        let sigma = density_grid(&previous, &self.grid, SplatOptions::default().cutoff);
+        let delta = self
+            .state
+            .phi
+            .forward(previous_velocity.clone(), sigma.clone(), time)?
+            .detach();
+        let update = self.unprojected_update(previous_velocity.clone(), delta, sigma);
+        Ok(self.project(update).detach())
+    }
+
+    /// Of the moves from `previous` to `carried` scaled by each of `shares`, the share whose
+    /// render is closest to `targets` (mean L1; the smaller share on a tie), and every share's
+    /// loss (one read).
+    fn best_carried_share(
+        &self,
+        previous: &Tensor<2>,
+        carried: &Tensor<2>,
+        shares: &[f32],
+        cameras: &[Camera],
+        targets: &[Tensor<3>],
+    ) -> Result<(f32, Vec<f32>), TrainError> {
+        let mut lists = ListCapacities::new(self.config.tile_list_headroom);
+        let whole_move = carried.clone() - previous.clone();
+        let losses = shares
+            .iter()
+            .map(|&share| {
+                let means = previous.clone() + whole_move.clone() * share;
+                let gaussians = self.scene(self.state.gaussians.tensors_at(means), false);
+                Ok(self
+                    .render_loss(&gaussians.detach(), cameras, targets, &mut lists)?
+                    .0
+                    .detach())
+            })
+            .collect::<Result<Vec<_>, TrainError>>()?;
+        let losses = read_floats(Tensor::cat(losses, 0));
+        let best = losses
+            .iter()
+            .zip(shares)
+            .min_by(|a, b| a.0.total_cmp(b.0))
+            .map(|(_, &share)| share)
+            .expect("several shares");
+        Ok((best, losses))
+    }
+
     /// The explicit buoyancy force's coefficient (one read), if there is one.
     fn buoyancy_coefficient(&self) -> Option<f64> {
         self.state
@@ -952,6 +1023,8 @@ impl Trainer {
             refine_move_field: None,
             traffic,
             buoyancy: self.buoyancy_coefficient(),
+            carrier_share: None,
+            carrier_explained: None,
         })
     }
 
@@ -1045,6 +1118,42 @@ impl Trainer {
         let hold_born = |positions: Tensor<2>| match &born_rows {
             Some(born) => positions.clone() + (previous_means.clone() - positions) * born.clone(),
             None => positions,
+        };
+
+        // What the frame's prediction earned (`carrier_share`).
+        let prediction = match config.carrier_share {
+            CarrierShare::Whole | CarrierShare::Fitted => None,
+            CarrierShare::Predicted | CarrierShare::Explained => {
+                let _phase = phase!("carrier share");
+                let carrier = match &true_velocity {
+                    Some(truth) => truth.clone(),
+                    None => self.predicted_velocity(&previous_means, &previous_velocity, time)?,
+                };
+                let carried = advect(
+                    &self.grid,
+                    &carrier,
+                    &previous_means,
+                    config.dt,
+                    self.integrator(),
+                    interpolation,
+                );
+                let carried = hold_born(carried.positions).detach();
+                let shares: &[f32] = match config.carrier_share {
+                    CarrierShare::Predicted => &PREDICTED_SHARES,
+                    _ => &[0.0, 1.0],
+                };
+                let (share, losses) =
+                    self.best_carried_share(&previous_means, &carried, shares, &cameras, &targets)?;
+                // The shares run from 0 (no move) to 1 (the whole predicted move).
+                let (still, whole) = (losses[0], losses[losses.len() - 1]);
+                let explained = if still > 0.0 {
+                    (1.0 - whole / still).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
+                tracing::debug!(frame = t, share, explained, ?losses, "carrier share");
+                Some((share, explained))
+            }
         };
 
         // K joint iterations (Algorithm 1, lines 3-9).
@@ -1234,6 +1343,28 @@ impl Trainer {
             advected = hold_born(moved.positions).detach();
         }
 
+        // The share of the fitted move the refinement starts from, and its tie's factor.
+        let (carrier_share, tie_factor) = match (config.carrier_share, prediction) {
+            (CarrierShare::Predicted, Some((share, _))) => (Some(share), share),
+            (CarrierShare::Explained, Some((_, explained))) => (None, explained),
+            (CarrierShare::Fitted, _) => {
+                let _phase = phase!("carrier share");
+                let (share, losses) = self.best_carried_share(
+                    &previous_means,
+                    &advected,
+                    &FITTED_SHARES,
+                    &cameras,
+                    &targets,
+                )?;
+                tracing::debug!(frame = t, share, ?losses, "carrier share");
+                (Some(share), share.min(1.0))
+            }
+            _ => (None, 1.0),
+        };
+        let share = carrier_share.unwrap_or(1.0);
+        if share != 1.0 {
+            advected = previous_means.clone() + (advected - previous_means.clone()) * share;
+        }
         // K' refinement iterations (lines 11-13): free centres tied to the advected ones.
         self.state.gaussians = self.state.gaussians.clone().with_means(advected);
         self.keep_out_of_obstacles();
@@ -1282,7 +1413,8 @@ impl Trainer {
                 let moves = gaussians.means.clone() - anchor.clone();
                 let grid_part = scale.grid_part(moves.clone());
                 loss = loss
-                    + scale.mean_square(grid_part.clone()) * config.lambda_refine_grid
+                    + scale.mean_square(grid_part.clone())
+                        * (config.lambda_refine_grid * tie_factor)
                     + scale.mean_square(moves - grid_part) * config.lambda_refine_subgrid;
             }
             log.push(
@@ -1359,6 +1491,8 @@ impl Trainer {
             refine_move_field,
             traffic,
             buoyancy: self.buoyancy_coefficient(),
+            carrier_share,
+            carrier_explained: prediction.map(|(_, explained)| explained),
         })
     }
 
@@ -2203,6 +2337,98 @@ mod tests {
         assert!(
             missing.contains("init_gaussians") && missing.contains("no such file"),
             "{missing}"
+        );
+    }
+
+    /// The share search finds the share of a move whose render the targets are, and runs with
+    /// each `carrier_share` report what they chose.
+    #[test]
+    fn the_carrier_share_is_the_share_of_the_move_the_views_show() {
+        use gausmoke_render::backends::device_by_name;
+        let (_dir, data) = tiny_scene();
+        let device = device_by_name("flex").unwrap().autodiff();
+        let config = TrainConfig {
+            gaussians: 500,
+            grid_resolution: 8,
+            frames: Some(2),
+            init_iterations: 2,
+            advect_iterations: 2,
+            refine_iterations: 2,
+            carrier_share: CarrierShare::Predicted,
+            ..TrainConfig::default()
+        };
+        let sequence = Sequence::open(&data, &config).unwrap();
+        let mut trainer = Trainer::new(sequence, config.clone(), device.clone()).unwrap();
+        let previous = trainer.state.gaussians.means.val().detach();
+        let [n, _] = previous.dims();
+        // A rise of most of a cell, and a sideways drift.
+        let cell = trainer.grid.cell_size();
+        let step: Vec<f32> = (0..n)
+            .flat_map(|_| [0.3 * cell.x, 0.8 * cell.y, 0.0])
+            .collect();
+        let carried =
+            previous.clone() + Tensor::<2>::from_data(TensorData::new(step, [n, 3]), &device);
+        let observations = &trainer.sequence.train[1];
+        let cameras: Vec<Camera> = observations.iter().map(|o| o.camera).collect();
+        for expected in [0.0, 0.5, 1.0, 1.5] {
+            let means = previous.clone() + (carried.clone() - previous.clone()) * expected;
+            let seen = trainer
+                .scene(trainer.state.gaussians.tensors_at(means), false)
+                .detach();
+            let targets: Vec<Tensor<3>> = cameras
+                .iter()
+                .map(|camera| {
+                    render_volume(&seen, camera, &trainer.background, &trainer.raster)
+                        .unwrap()
+                        .rgb
+                })
+                .collect();
+            let (share, losses) = trainer
+                .best_carried_share(&previous, &carried, &FITTED_SHARES, &cameras, &targets)
+                .unwrap();
+            assert_eq!(share, expected, "losses {losses:?}");
+            assert_eq!(losses.len(), FITTED_SHARES.len());
+            assert!(losses.iter().all(|l| l.is_finite()), "losses {losses:?}");
+        }
+        trainer.fit_first_frame().unwrap();
+        let outcome = trainer.advance_to(1).unwrap();
+        let share = outcome.carrier_share.expect("a share at frame 1");
+        assert!(PREDICTED_SHARES.contains(&share), "share {share}");
+        let explained = outcome.carrier_explained.expect("a prediction at frame 1");
+        assert!((0.0..=1.0).contains(&explained), "explained {explained}");
+        let mut tied = Trainer::new(
+            Sequence::open(&data, &config).unwrap(),
+            TrainConfig {
+                carrier_share: CarrierShare::Explained,
+                ..config.clone()
+            },
+            device.clone(),
+        )
+        .unwrap();
+        tied.fit_first_frame().unwrap();
+        let outcome = tied.advance_to(1).unwrap();
+        assert_eq!(outcome.carrier_share, None, "the whole move");
+        assert!(
+            outcome
+                .carrier_explained
+                .is_some_and(|explained| (0.0..=1.0).contains(&explained)),
+            "explained {:?}",
+            outcome.carrier_explained
+        );
+        let mut fitted = Trainer::new(
+            Sequence::open(&data, &config).unwrap(),
+            TrainConfig {
+                carrier_share: CarrierShare::Fitted,
+                ..config.clone()
+            },
+            device.clone(),
+        )
+        .unwrap();
+        fitted.fit_first_frame().unwrap();
+        let share = fitted.advance_to(1).unwrap().carrier_share;
+        assert!(
+            share.is_some_and(|share| FITTED_SHARES.contains(&share)),
+            "share {share:?}"
         );
     }
 
