@@ -100,6 +100,10 @@ pub enum CarrierShare {
     /// that carrying them by the velocity Phi predicts removes: the tie holds the refinement
     /// to the transport as far as the transport's predictions pay.
     Explained,
+    /// As `Explained`, with the share over the largest share any frame of the run has had so
+    /// far (this one's included): the tie is whole while the predictions pay more and more,
+    /// and loosens once they pay less than they did.
+    ExplainedOfBest,
 }
 
 /// Which velocity carries the Gaussians on from frame t+1 in the look-ahead (see
@@ -391,7 +395,8 @@ pub struct TrainConfig {
     /// How much of the fitted transport the refinement starts from and is tied to (ours;
     /// `"whole"` = the paper's method; `"predicted"`: the share that the frame's prediction
     /// earned; `"fitted"`: the share of the fitted move that fits the frame's views best;
-    /// `"explained"`: the whole move, tied as far as its prediction paid; see [`CarrierShare`]), so that a carrier whose predictions stop paying stops
+    /// `"explained"`: the whole move, tied as far as its prediction paid; `"explained_of_best"`:
+    /// that against the best any frame has paid; see [`CarrierShare`]), so that a carrier whose predictions stop paying stops
     /// moving the smoke and stops holding the refinement's grid-scale moves back.
     pub carrier_share: CarrierShare,
     /// Time step of the velocity update and advection, in frames.

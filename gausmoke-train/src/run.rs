@@ -179,6 +179,11 @@ impl Run {
                     self.frame = Some(meta.frame);
                     self.losses = meta.losses;
                     self.reports = meta.reports;
+                    self.trainer.best_explained =
+                        self.reports
+                            .iter()
+                            .filter_map(|report| report.carrier_explained)
+                            .fold(0.0, f64::max) as f32;
                     self.elapsed_before = meta.elapsed_seconds;
                     self.phases_before = meta.phase_seconds;
                     if damaged.is_empty() {

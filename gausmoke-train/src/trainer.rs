@@ -464,6 +464,9 @@ pub struct Trainer {
     /// The last frame's refinement moves, for the next frame's persistence (not saved:
     /// a resumed run reports none at its first frame).
     last_moves: Option<FrameMoves>,
+    /// The largest share of the still prediction's loss any frame's carrier has removed so
+    /// far (`carrier_share = "explained_of_best"`); a resumed run takes it from its reports.
+    pub best_explained: f32,
     quiet: bool,
 }
 
@@ -526,6 +529,7 @@ impl Trainer {
             raster,
             solids,
             last_moves: None,
+            best_explained: 0.0,
             quiet: false,
         })
     }
@@ -1123,7 +1127,7 @@ impl Trainer {
         // What the frame's prediction earned (`carrier_share`).
         let prediction = match config.carrier_share {
             CarrierShare::Whole | CarrierShare::Fitted => None,
-            CarrierShare::Predicted | CarrierShare::Explained => {
+            CarrierShare::Predicted | CarrierShare::Explained | CarrierShare::ExplainedOfBest => {
                 let _phase = phase!("carrier share");
                 let carrier = match &true_velocity {
                     Some(truth) => truth.clone(),
@@ -1347,6 +1351,11 @@ impl Trainer {
         let (carrier_share, tie_factor) = match (config.carrier_share, prediction) {
             (CarrierShare::Predicted, Some((share, _))) => (Some(share), share),
             (CarrierShare::Explained, Some((_, explained))) => (None, explained),
+            (CarrierShare::ExplainedOfBest, Some((_, explained))) => {
+                self.best_explained = self.best_explained.max(explained);
+                let best = self.best_explained;
+                (None, if best > 0.0 { explained / best } else { 1.0 })
+            }
             (CarrierShare::Fitted, _) => {
                 let _phase = phase!("carrier share");
                 let (share, losses) = self.best_carried_share(
@@ -2396,25 +2405,28 @@ mod tests {
         assert!(PREDICTED_SHARES.contains(&share), "share {share}");
         let explained = outcome.carrier_explained.expect("a prediction at frame 1");
         assert!((0.0..=1.0).contains(&explained), "explained {explained}");
-        let mut tied = Trainer::new(
-            Sequence::open(&data, &config).unwrap(),
-            TrainConfig {
-                carrier_share: CarrierShare::Explained,
-                ..config.clone()
-            },
-            device.clone(),
-        )
-        .unwrap();
-        tied.fit_first_frame().unwrap();
-        let outcome = tied.advance_to(1).unwrap();
-        assert_eq!(outcome.carrier_share, None, "the whole move");
-        assert!(
-            outcome
-                .carrier_explained
-                .is_some_and(|explained| (0.0..=1.0).contains(&explained)),
-            "explained {:?}",
-            outcome.carrier_explained
-        );
+        for carrier_share in [CarrierShare::Explained, CarrierShare::ExplainedOfBest] {
+            let mut tied = Trainer::new(
+                Sequence::open(&data, &config).unwrap(),
+                TrainConfig {
+                    carrier_share,
+                    ..config.clone()
+                },
+                device.clone(),
+            )
+            .unwrap();
+            tied.fit_first_frame().unwrap();
+            let outcome = tied.advance_to(1).unwrap();
+            assert_eq!(outcome.carrier_share, None, "the whole move");
+            let explained = outcome.carrier_explained.expect("a prediction at frame 1");
+            assert!((0.0..=1.0).contains(&explained), "explained {explained}");
+            let best = if carrier_share == CarrierShare::ExplainedOfBest {
+                explained
+            } else {
+                0.0
+            };
+            assert_eq!(tied.best_explained, best);
+        }
         let mut fitted = Trainer::new(
             Sequence::open(&data, &config).unwrap(),
             TrainConfig {

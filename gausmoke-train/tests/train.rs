@@ -2139,3 +2139,43 @@ fn a_uniform_colour_stays_one_colour_through_recycling_and_splits() {
         uniform[0][0]
     );
 }
+
+/// `carrier_share = "explained_of_best"` weighs the grid-scale tie against the largest share
+/// of the loss any frame's prediction has removed; a resumed run takes that largest share
+/// from its reports instead of starting again from 0.
+#[test]
+fn the_best_paid_share_resumes_from_the_reports() {
+    use gausmoke_train::config::CarrierShare;
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let config = TrainConfig {
+        carrier_share: CarrierShare::ExplainedOfBest,
+        frames: Some(4),
+        init_iterations: 40,
+        advect_iterations: 10,
+        ..joint_terms_config()
+    };
+    let straight = trained(&data, dir.path(), config.clone(), "straight");
+    let best = straight.trainer.best_explained;
+    drop(straight); // its lock on the folder
+    let text = std::fs::read_to_string(dir.path().join("straight/metrics.json")).unwrap();
+    let metrics: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let explained: Vec<f64> = metrics["per_frame"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|f| f["carrier_explained"].as_f64())
+        .collect();
+    assert_eq!(explained.len(), 3, "frames 1-3 report it: {explained:?}");
+    assert!(best > 0.0, "{explained:?}");
+    assert_eq!(best, explained.iter().copied().fold(0.0, f64::max) as f32);
+
+    // Every frame done: nothing is trained again, and the largest share comes back.
+    let scene = Sequence::open(&data, &config).unwrap();
+    let device = device_by_name("flex").unwrap().autodiff();
+    let mut resumed = Run::new(scene, config, device, &dir.path().join("straight"), true)
+        .unwrap()
+        .quiet(true);
+    resumed.run().unwrap();
+    assert_eq!(resumed.trainer.best_explained, best);
+}
