@@ -395,9 +395,12 @@ pub struct TrainConfig {
     /// How much of the fitted transport the refinement starts from and is tied to (ours;
     /// `"whole"` = the paper's method; `"predicted"`: the share that the frame's prediction
     /// earned; `"fitted"`: the share of the fitted move that fits the frame's views best;
-    /// `"explained"`: the whole move, tied as far as its prediction paid; `"explained_of_best"`:
-    /// that against the best any frame has paid; see [`CarrierShare`]), so that a carrier whose predictions stop paying stops
-    /// moving the smoke and stops holding the refinement's grid-scale moves back.
+    /// `"explained"`: the whole move, tied as far as its prediction paid;
+    /// `"explained_of_best"`: that against the best any frame has paid; see
+    /// [`CarrierShare`]), so that a carrier whose predictions stop paying stops moving the
+    /// smoke and stops holding the refinement's grid-scale moves back. On the long plume the
+    /// training views endorse the transport at every frame, and none of these helps
+    /// (docs/RESULTS.md).
     pub carrier_share: CarrierShare,
     /// Time step of the velocity update and advection, in frames.
     pub dt: f32,

@@ -179,7 +179,7 @@ pub struct FrameReport {
     pub carrier_share: Option<f64>,
     /// The share of the frame's training views' loss, with the previous Gaussians unmoved,
     /// that carrying them by the velocity Phi predicted removed (`carrier_share =
-    /// "predicted"` or `"explained"`).
+    /// "predicted"`, `"explained"` or `"explained_of_best"`).
     #[serde(default)]
     pub carrier_explained: Option<f64>,
     /// Mean and largest speed of the velocity grid (world units per frame).

@@ -98,7 +98,7 @@ pub struct FrameOutcome {
     /// (`carrier_share = "predicted"` or `"fitted"`; `None` otherwise and at frame 0).
     pub carrier_share: Option<f32>,
     /// The share of the still prediction's loss that the carrier's prediction removed
-    /// (`carrier_share = "predicted"` or `"explained"`).
+    /// (`carrier_share = "predicted"`, `"explained"` or `"explained_of_best"`).
     pub carrier_explained: Option<f32>,
 }
 
