@@ -661,28 +661,20 @@ impl Trainer {
         }
     }
 
-    /// The velocity Phi predicts for the frame from the previous velocity and the density of
-    /// the Gaussians at `previous_means`, before any step on the frame (the joint iterations'
-    /// first carrier), projected.
+    /// The velocity Phi predicts at `time` from `velocity` and the density of `gaussians`
+    /// (not differentiated through), projected: one step of Eq. 9 with no fitting.
     fn predicted_velocity(
         &self,
-        previous_means: &Tensor<2>,
-        previous_velocity: &Tensor<4>,
+        velocity: Tensor<4>,
+        gaussians: &GaussianTensors,
         time: f32,
     ) -> Result<Tensor<4>, TrainError> {
-        let previous = self
-            .state
-            .gaussians
-            .tensors_at(previous_means.clone())
-            .detach();
-        let sigma = density_grid(&previous, &self.grid, SplatOptions::default().cutoff);
+        let sigma = density_grid(gaussians, &self.grid, SplatOptions::default().cutoff).detach();
         let delta = self
             .state
             .phi
-            .forward(previous_velocity.clone(), sigma.clone(), time)?
-            .detach();
-        let update = self.unprojected_update(previous_velocity.clone(), delta, sigma);
-        Ok(self.project(update).detach())
+            .forward(velocity.clone(), sigma.clone(), time)?;
+        Ok(self.project(self.unprojected_update(velocity, delta, sigma)))
     }
 
     /// Of the moves from `previous` to `carried` scaled by each of `shares`, the share whose
@@ -1131,7 +1123,15 @@ impl Trainer {
                 let _phase = phase!("carrier share");
                 let carrier = match &true_velocity {
                     Some(truth) => truth.clone(),
-                    None => self.predicted_velocity(&previous_means, &previous_velocity, time)?,
+                    None => {
+                        let previous = self.state.gaussians.tensors_at(previous_means.clone());
+                        self.predicted_velocity(
+                            previous_velocity.clone(),
+                            &previous.detach(),
+                            time,
+                        )?
+                        .detach()
+                    }
                 };
                 let carried = advect(
                     &self.grid,
@@ -1225,13 +1225,8 @@ impl Trainer {
                 ahead.iter().zip(ahead_lists.iter_mut()).enumerate()
             {
                 if config.lookahead_velocity == LookaheadVelocity::Predicted {
-                    let sigma = density_grid(&carried, &self.grid, splat.cutoff).detach();
-                    let delta = self.state.phi.forward(
-                        carrier.clone(),
-                        sigma.clone(),
-                        (t + 1 + step) as f32 / last_frame,
-                    )?;
-                    carrier = self.project(self.unprojected_update(carrier, delta, sigma));
+                    let time = (t + 1 + step) as f32 / last_frame;
+                    carrier = self.predicted_velocity(carrier, &carried, time)?;
                 }
                 let means = advect(
                     &self.grid,
