@@ -529,3 +529,32 @@ fn blender_layout_round_trips_through_the_dnerf_loader() {
             .unwrap();
     assert_eq!(train["synth"]["density_scale"], 5.0);
 }
+
+#[test]
+fn two_generators_into_one_folder_take_turns() {
+    // Two processes that need the same scene (two `reproduce` runs started together) must
+    // not build it in one partial folder at once: one writes it, the other is refused
+    // because the folder is then full, and what is left is one whole scene.
+    let cfg = SynthConfig::tiny();
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("tiny");
+    let results: Vec<_> = std::thread::scope(|s| {
+        let handles: Vec<_> = (0..2)
+            .map(|_| s.spawn(|| synth::generate(&cfg, &out).map(|_| ())))
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    let written = results.iter().filter(|r| r.is_ok()).count();
+    assert_eq!(written, 1, "{results:?}");
+    let refused = results.iter().find_map(|r| r.as_ref().err()).unwrap();
+    assert!(
+        refused.to_string().contains("exists and is not empty"),
+        "{refused}"
+    );
+    assert!(!tmp.path().join(".tiny.partial").exists());
+    let ds = load_pinf(&out, &LoadOptions::default()).unwrap();
+    assert_eq!(ds.times.len(), cfg.frames);
+    for view in &ds.views {
+        assert_eq!(view.frames.len(), cfg.frames, "{}", view.name);
+    }
+}

@@ -368,8 +368,12 @@ fn train(args: TrainArgs, base: Option<TrainConfig>) -> Result<()> {
                 "no --data given: training on the built-in tiny synthetic scene (24^3, 3 views, \
                  8 frames); pass --data DIR for your own"
             );
-            if !path.join("info.json").is_file() {
-                synth::generate(&SynthConfig::tiny(), &path)?;
+            if !path.join("info.json").is_file()
+                && let Err(e) = synth::generate(&SynthConfig::tiny(), &path)
+                // Another run started beside this one may have finished it meanwhile.
+                && !path.join("info.json").is_file()
+            {
+                return Err(e.into());
             }
             path
         }

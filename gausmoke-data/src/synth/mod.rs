@@ -31,7 +31,8 @@
 //! solid under `obstacles` in world units.
 //!
 //! Nothing is partially written: the scene is built in a sibling `.partial` folder and
-//! renamed into place at the end; an existing non-empty output folder is refused.
+//! renamed into place at the end; an existing non-empty output folder is refused. A sibling
+//! `.lock` file serialises processes that generate into the same folder.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -365,6 +366,25 @@ pub fn generate_with_progress(
     frame_done: impl FnMut(usize),
 ) -> Result<SynthScene> {
     cfg.validate()?;
+    let name = out
+        .file_name()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "scene".into());
+    // Two processes asked for the same scene (two `reproduce` runs started together) would
+    // otherwise build it in the same partial folder at once; the lock makes the second wait
+    // and then find the first one's scene in place. The lock is released when the file closes,
+    // also when the process dies.
+    if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(io_err(parent))?;
+    }
+    let lock_path = out.with_file_name(format!(".{name}.lock"));
+    let lock = std::fs::File::options()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&lock_path)
+        .map_err(io_err(&lock_path))?;
+    lock.lock().map_err(io_err(&lock_path))?;
     if out.exists() {
         let mut entries = std::fs::read_dir(out).map_err(io_err(out))?;
         if entries.next().is_some() {
@@ -375,10 +395,6 @@ pub fn generate_with_progress(
         }
         std::fs::remove_dir(out).map_err(io_err(out))?;
     }
-    let name = out
-        .file_name()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "scene".into());
     let partial = out.with_file_name(format!(".{name}.partial"));
     if partial.exists() {
         std::fs::remove_dir_all(&partial).map_err(io_err(&partial))?;

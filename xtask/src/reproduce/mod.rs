@@ -722,7 +722,16 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
                     "generating the `{preset}` synthetic scene in {}",
                     path.display()
                 );
-                generate(&config, &path)?;
+                if let Err(e) = generate(&config, &path) {
+                    // Another run started beside this one may have finished it meanwhile.
+                    if !is_data_set(&path) {
+                        return Err(e.into());
+                    }
+                    eprintln!(
+                        "another run generated {} meanwhile; using it",
+                        path.display()
+                    );
+                }
             }
             path
         }
