@@ -480,6 +480,15 @@ pub struct TrainConfig {
     /// Split only into rows on a box face (Gaussians that left the box), not into invisible
     /// ones.
     pub split_into_faces_only: bool,
+    /// Share of the way each carried Gaussian's density moves, before each frame's fit from
+    /// frame 1 on, towards the carried density smoothed horizontally around its centre (ours,
+    /// `carried_smoothing` module; 0, the default, is the paper's method): detail the
+    /// training views cannot place in depth fades by `1 - carried_smoothing` a frame instead
+    /// of being carried up the column, while what the views see is fitted back. In [0, 1].
+    pub carried_smoothing: f32,
+    /// Width (standard deviation, in velocity-grid cells, along x and z) of that smoothing.
+    /// In (0, 8].
+    pub carried_smoothing_cells: f32,
     /// From frame 1 on, no smoke Gaussian's standard deviation falls below this multiple of
     /// the initialisation's (`0.5 (V / N)^(1/3)`, as for `split_size_factor`) after an
     /// optimiser step; frame 0's fit, and so the independent per-frame baseline, has no
@@ -622,6 +631,8 @@ impl Default for TrainConfig {
             split_fraction: 0.0,
             split_size_factor: 1.0,
             split_into_faces_only: false,
+            carried_smoothing: 0.0,
+            carried_smoothing_cells: 1.0,
             min_size_factor: 0.0,
             max_size_factor: 0.0,
             uniform_color: false,
@@ -918,6 +929,18 @@ impl TrainConfig {
             return bad(format!(
                 "split_size_factor must be a positive number, got {}",
                 self.split_size_factor
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.carried_smoothing) {
+            return bad(format!(
+                "carried_smoothing must be in [0, 1], got {}",
+                self.carried_smoothing
+            ));
+        }
+        if !(self.carried_smoothing_cells > 0.0 && self.carried_smoothing_cells <= 8.0) {
+            return bad(format!(
+                "carried_smoothing_cells must be in (0, 8], got {}",
+                self.carried_smoothing_cells
             ));
         }
         if !(0.0..=10.0).contains(&self.min_size_factor) {

@@ -160,7 +160,7 @@ pub(crate) fn inverse_softplus(sigma: f32) -> f32 {
     }
 }
 
-fn on_box_face(position: Vec3, lattice: &SpawnLattice) -> bool {
+pub(crate) fn on_box_face(position: Vec3, lattice: &SpawnLattice) -> bool {
     let tolerance = 1e-5 * (lattice.hi - lattice.lo).max_element();
     (position - lattice.lo).min_element() <= tolerance
         || (lattice.hi - position).min_element() <= tolerance

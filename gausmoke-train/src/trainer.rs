@@ -51,6 +51,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::TrainError;
 use crate::arrays::{read_arrays, take_array};
+use crate::carried_smoothing::smooth_carried_densities;
 use crate::config::{
     CarrierShare, CorrectionTarget, EmissionTiming, IntegratorKind, InterpolationKind,
     LookaheadVelocity, Obstacles, OptimizerReset, ProjectionKind, TrainConfig,
@@ -1030,6 +1031,9 @@ impl Trainer {
         if config.gaussian_optimizer_reset == OptimizerReset::EveryFrame {
             self.state.gaussian_optim = gaussian_optimizer();
         }
+        if config.carried_smoothing > 0.0 {
+            self.smooth_carried(t);
+        }
         let observations = &self.sequence.train[t];
         let cameras: Vec<Camera> = observations.iter().map(|o| o.camera).collect();
         let targets: Vec<Tensor<3>> = observations
@@ -1843,6 +1847,29 @@ impl Trainer {
     }
 
     /// The box and lattice recycled and split Gaussians are placed in: the velocity grid's.
+    /// Moves the carried Gaussians' densities towards their horizontal smoothing before
+    /// frame `t`'s fit (`carried_smoothing`; see [`crate::carried_smoothing`]).
+    fn smooth_carried(&mut self, t: usize) {
+        let _phase = phase!("carried smoothing");
+        let mut host = self.state.gaussians.to_host();
+        let report = smooth_carried_densities(
+            &mut host,
+            &self.density_host(),
+            &self.spawn_lattice(),
+            self.config.carried_smoothing,
+            self.config.carried_smoothing_cells,
+        );
+        if report.changed > 0 {
+            self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
+        }
+        tracing::debug!(
+            frame = t,
+            changed = report.changed,
+            mean_change = report.mean_change,
+            "carried smoothing"
+        );
+    }
+
     fn spawn_lattice(&self) -> SpawnLattice {
         SpawnLattice {
             lo: self.grid.lo(),

@@ -58,6 +58,8 @@ const KEYS: &[(&str, bool)] = &[
     ("respawn_near_smoke", true),
     ("split_fraction", true),
     ("split_size_factor", true),
+    ("carried_smoothing", true),
+    ("carried_smoothing_cells", true),
     ("min_size_factor", true),
     ("max_size_factor", true),
     ("seed", true),

@@ -102,6 +102,13 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
         };
         settings.push(("split_fraction", format!("split {fraction} a frame{above}")));
     }
+    if let Some(blend) = weight("carried_smoothing") {
+        let cells = config["carried_smoothing_cells"].as_f64().unwrap_or(1.0) as f32;
+        settings.push((
+            "carried_smoothing",
+            format!("carried densities smoothed {blend} over {cells} cells"),
+        ));
+    }
     if let Some(views) = config["refine_views_per_step"].as_u64().filter(|&n| n > 0) {
         let steps = config["refine_iterations"].as_u64().unwrap_or(0);
         let per = if views == 1 { "view" } else { "views" };
