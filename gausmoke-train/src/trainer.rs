@@ -1846,7 +1846,6 @@ impl Trainer {
         Ok(report)
     }
 
-    /// The box and lattice recycled and split Gaussians are placed in: the velocity grid's.
     /// Moves the carried Gaussians' densities towards their horizontal smoothing before
     /// frame `t`'s fit (`carried_smoothing`; see [`crate::carried_smoothing`]).
     fn smooth_carried(&mut self, t: usize) {
@@ -1870,6 +1869,7 @@ impl Trainer {
         );
     }
 
+    /// The box and lattice recycled and split Gaussians are placed in: the velocity grid's.
     fn spawn_lattice(&self) -> SpawnLattice {
         SpawnLattice {
             lo: self.grid.lo(),
