@@ -30,7 +30,9 @@ pub use density::{
 pub use gaussians::{GaussianModel, INITIAL_RAW_DENSITY, NO_SIZE_BOUNDS, uniform_color};
 pub use grid::{GridError, GridSpec};
 pub use interp::{Interpolation, VelocitySample, grid_from_fn, sample_velocity};
-pub use losses::{advection_loss, divergence_loss, divergence_loss_of, refine_loss};
+pub use losses::{
+    advection_loss, density_tie_loss, divergence_loss, divergence_loss_of, log_density, refine_loss,
+};
 pub use moves::GridScale;
 pub use penalty::{PenaltyOptions, penalty_projection};
 pub use projection::{

@@ -320,6 +320,11 @@ pub struct TrainConfig {
     /// (see `gausmoke_model::GridScale`).
     pub lambda_refine_grid: f32,
     pub lambda_refine_subgrid: f32,
+    /// Weight of a tie on the refinement's change of each Gaussian's density (ours; 0 = the
+    /// paper's method, whose refinement fits densities freely): the mean squared change of
+    /// `ln sigma` from where the refinement started. A change the training views ask for
+    /// outweighs it; one they do not see (detail they cannot place in depth) is pulled back.
+    pub lambda_refine_density: f32,
     /// Weight of a look-ahead render term in the joint iterations (ours; 0 = the paper's
     /// method): the Gaussians carried to frame t are carried on by the same velocity to
     /// frame t+1 (and on: `lookahead_frames`) and rendered against those frames' training
@@ -592,6 +597,7 @@ impl Default for TrainConfig {
             lambda_refine: 0.01,
             lambda_refine_grid: 0.0,
             lambda_refine_subgrid: 0.0,
+            lambda_refine_density: 0.0,
             lambda_lookahead: 0.0,
             lookahead_velocity: LookaheadVelocity::Held,
             lookahead_frames: 1,
@@ -825,6 +831,7 @@ impl TrainConfig {
             ("lambda_refine", self.lambda_refine),
             ("lambda_refine_grid", self.lambda_refine_grid),
             ("lambda_refine_subgrid", self.lambda_refine_subgrid),
+            ("lambda_refine_density", self.lambda_refine_density),
             ("lambda_lookahead", self.lambda_lookahead),
             ("lambda_kinetic", self.lambda_kinetic),
             ("lambda_increment", self.lambda_increment),

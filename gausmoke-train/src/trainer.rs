@@ -36,8 +36,9 @@ use gausmoke_model::{
     BuoyancyForce, GaussianModel, GridScale, GridSpec, INITIAL_RAW_DENSITY, Integrator,
     Interpolation, NO_SIZE_BOUNDS, PenaltyOptions, ProjectionOptions, ProjectionReport, SolidCells,
     SplatOptions, UNetConfig, VelocityUNet, advect, advection_loss, density_and_gradient_grid,
-    density_grid, divergence_loss_of, penalty_projection, project_direct, project_velocity,
-    refine_loss, settle_deferred_solves, transport_velocity, uniform_color,
+    density_grid, density_tie_loss, divergence_loss_of, log_density, penalty_projection,
+    project_direct, project_velocity, refine_loss, settle_deferred_solves, transport_velocity,
+    uniform_color,
 };
 use gausmoke_render::cpu::TILE_SIZE;
 use gausmoke_render::device_traffic::{
@@ -1394,6 +1395,8 @@ impl Trainer {
             .copied()
             .collect();
         let anchor = self.state.gaussians.means.val().detach();
+        let density_anchor = (config.lambda_refine_density > 0.0)
+            .then(|| log_density(self.state.gaussians.raw_densities.val().detach()));
         // The split of the moves is fixed by where they start.
         let grid_scale = (refine_iterations > 0)
             .then(|| GridScale::of(&self.grid, &self.state.gaussians.tensors()));
@@ -1424,6 +1427,11 @@ impl Trainer {
                     + scale.mean_square(grid_part.clone())
                         * (config.lambda_refine_grid * tie_factor)
                     + scale.mean_square(moves - grid_part) * config.lambda_refine_subgrid;
+            }
+            if let Some(density_anchor) = &density_anchor {
+                loss = loss
+                    + density_tie_loss(&gaussians.raw_densities, density_anchor)
+                        * config.lambda_refine_density;
             }
             log.push(
                 (t, Phase::Refine, iteration),

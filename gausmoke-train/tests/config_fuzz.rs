@@ -41,6 +41,7 @@ const KEYS: &[(&str, bool)] = &[
     ("lambda_refine", true),
     ("lambda_refine_grid", true),
     ("lambda_refine_subgrid", true),
+    ("lambda_refine_density", true),
     ("lambda_lookahead", true),
     ("lookahead_frames", true),
     ("lambda_kinetic", true),

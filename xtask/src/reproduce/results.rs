@@ -120,6 +120,9 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
     if let Some(w) = weight("lambda_refine_grid") {
         settings.push(("lambda_refine_grid", format!("grid-scale tie {w}")));
     }
+    if let Some(w) = weight("lambda_refine_density") {
+        settings.push(("lambda_refine_density", format!("density tie {w}")));
+    }
     if let Some(w) = config["increment_horizontal_weight"]
         .as_f64()
         .map(|w| w as f32)
