@@ -1395,8 +1395,10 @@ impl Trainer {
             .copied()
             .collect();
         let anchor = self.state.gaussians.means.val().detach();
+        // Detached after the log too: burn's detach keeps `require_grad`, so the log's nodes
+        // would be tracked and consumed by the first step's backward.
         let density_anchor = (config.lambda_refine_density > 0.0)
-            .then(|| log_density(self.state.gaussians.raw_densities.val().detach()));
+            .then(|| log_density(self.state.gaussians.raw_densities.val().detach()).detach());
         // The split of the moves is fixed by where they start.
         let grid_scale = (refine_iterations > 0)
             .then(|| GridScale::of(&self.grid, &self.state.gaussians.tensors()));
