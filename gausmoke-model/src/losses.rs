@@ -32,9 +32,10 @@ pub fn refine_loss(refined: &Tensor<2>, advected: &Tensor<2>) -> Tensor<1> {
 }
 
 /// A tie on the refinement's change of each Gaussian's density (ours): mean over Gaussians
-/// of the squared change of `ln sigma`, `sigma = softplus(raw)`, from `anchor` (the same
-/// of the densities the refinement started from, `[N]`). Relative, so a 10% change costs the
-/// same at any density; `sigma` is floored at 1e-6 so that invisible Gaussians stay finite.
+/// of the squared change of `ln sigma`, `sigma = softplus(raw)`, from `anchor` (the
+/// [`log_density`] of the densities the refinement started from, `[N]`). Relative, so a 10%
+/// change costs the same at any density; 1e-6 is added to `sigma` so that invisible
+/// Gaussians stay finite.
 pub fn density_tie_loss(raw_densities: &Tensor<1>, anchor: &Tensor<1>) -> Tensor<1> {
     (log_density(raw_densities.clone()) - anchor.clone())
         .powi_scalar(2)

@@ -22,6 +22,7 @@ use gausmoke_core::glam::Vec3;
 use gausmoke_render::HostGaussians;
 use gausmoke_render::math::softplus;
 
+use crate::host_grid::{sample, smoothed};
 use crate::respawn::{SpawnLattice, inverse_softplus, on_box_face};
 
 /// Bounds on one frame's scaling of a Gaussian's density.
@@ -41,61 +42,24 @@ pub struct SmoothingReport {
 /// `density` (`[nx, ny, nz]`, z fastest) blurred along x and z by a Gaussian of `std` cells,
 /// cut at three deviations and renormalised at the box's sides.
 pub fn blur_horizontally(density: &[f32], resolution: [usize; 3], std: f32) -> Vec<f32> {
-    let [nx, ny, nz] = resolution;
-    assert_eq!(density.len(), nx * ny * nz, "density grid size");
-    let reach = (3.0 * std).ceil() as isize;
-    let weights: Vec<f32> = (-reach..=reach)
-        .map(|d| (-0.5 * (d as f32 / std).powi(2)).exp())
-        .collect();
-    let index = |i: usize, j: usize, k: usize| (i * ny + j) * nz + k;
-    let pass = |input: &[f32], along_x: bool| {
-        let mut out = vec![0.0f32; input.len()];
-        for i in 0..nx {
-            for j in 0..ny {
-                for k in 0..nz {
-                    let (centre, len) = if along_x { (i, nx) } else { (k, nz) };
-                    let (mut sum, mut total) = (0.0f32, 0.0f32);
-                    for (w, d) in weights.iter().zip(-reach..=reach) {
-                        let at = centre as isize + d;
-                        if at < 0 || at >= len as isize {
-                            continue;
-                        }
-                        let at = at as usize;
-                        let value = if along_x {
-                            input[index(at, j, k)]
-                        } else {
-                            input[index(i, j, at)]
-                        };
-                        sum += w * value;
-                        total += w;
-                    }
-                    out[index(i, j, k)] = sum / total;
-                }
-            }
-        }
-        out
-    };
-    pass(&pass(density, true), false)
+    smoothed(density, resolution, 1, std, [true, false, true])
 }
 
 /// `grid` (`[nx, ny, nz]`, z fastest, values at the cell centres of `lattice`) read
 /// trilinearly at `point`, clamped to the outermost centres.
 fn trilinear(grid: &[f32], lattice: &SpawnLattice, point: Vec3) -> f32 {
-    let [nx, ny, nz] = lattice.resolution;
-    let cell = (point - lattice.lo) / lattice.cell_size() - Vec3::splat(0.5);
-    let axis = |x: f32, n: usize| {
-        let x = x.clamp(0.0, (n - 1) as f32);
-        let lo = (x.floor() as usize).min(n.saturating_sub(2));
-        let hi = (lo + 1).min(n - 1);
-        (lo, hi, x - lo as f32)
-    };
-    let (i0, i1, fx) = axis(cell.x, nx);
-    let (j0, j1, fy) = axis(cell.y, ny);
-    let (k0, k1, fz) = axis(cell.z, nz);
-    let at = |i: usize, j: usize, k: usize| grid[(i * ny + j) * nz + k];
-    let along_z = |i: usize, j: usize| at(i, j, k0) * (1.0 - fz) + at(i, j, k1) * fz;
-    let along_y = |i: usize| along_z(i, j0) * (1.0 - fy) + along_z(i, j1) * fy;
-    along_y(i0) * (1.0 - fx) + along_y(i1) * fx
+    let mut out = [0.0f64];
+    let cell = lattice.cell_size();
+    sample(
+        lattice.lo,
+        cell,
+        lattice.resolution,
+        grid,
+        1,
+        point,
+        &mut out,
+    );
+    out[0] as f32
 }
 
 /// Moves each Gaussian's density a fraction `blend` of the way towards `density` (the

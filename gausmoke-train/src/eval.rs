@@ -77,34 +77,8 @@ fn mean(values: impl Iterator<Item = Option<f64>>) -> Option<f64> {
 /// Cell-centred trilinear sample of a `[nx, ny, nz, C]` grid at world point `p` (clamped to
 /// the outermost cell centres).
 fn sample_grid(grid: &GridSpec, values: &[f32], channels: usize, p: Vec3, out: &mut [f64]) {
-    let res = grid.resolution();
-    let cell = grid.cell_size();
-    let local = (p - grid.lo()) / cell - Vec3::splat(0.5);
-    let mut base = [0usize; 3];
-    let mut frac = [0f32; 3];
-    for a in 0..3 {
-        let x = local[a].clamp(0.0, (res[a] - 1) as f32);
-        base[a] = (x.floor() as usize).min(res[a].saturating_sub(2));
-        frac[a] = x - base[a] as f32;
-    }
-    out.iter_mut().for_each(|o| *o = 0.0);
-    for corner in 0..8 {
-        let offset = [(corner >> 2) & 1, (corner >> 1) & 1, corner & 1];
-        let mut weight = 1.0f32;
-        let mut index = [0usize; 3];
-        for a in 0..3 {
-            index[a] = (base[a] + offset[a]).min(res[a] - 1);
-            weight *= if offset[a] == 1 {
-                frac[a]
-            } else {
-                1.0 - frac[a]
-            };
-        }
-        let cell_index = (index[0] * res[1] + index[1]) * res[2] + index[2];
-        for c in 0..channels {
-            out[c] += (weight * values[cell_index * channels + c]) as f64;
-        }
-    }
+    let (lo, cell) = (grid.lo(), grid.cell_size());
+    crate::host_grid::sample(lo, cell, grid.resolution(), values, channels, p, out);
 }
 
 /// One frame against the generator's ground truth (see [`FrameEval`]).

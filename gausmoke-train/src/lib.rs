@@ -25,6 +25,7 @@ pub mod emission;
 pub mod eval;
 pub mod export;
 mod hash;
+mod host_grid;
 pub mod logging;
 pub mod lpips;
 pub mod memory;

@@ -58,6 +58,7 @@ use crate::config::{
     LookaheadVelocity, Obstacles, OptimizerReset, ProjectionKind, TrainConfig,
 };
 use crate::emission::{EmissionOptions, EmissionReport, emit};
+use crate::host_grid::smoothed;
 use crate::respawn::{
     DeficitView, RespawnOptions, RespawnReport, SpawnLattice, recycling_candidates, respawn,
 };
@@ -191,45 +192,6 @@ fn cells_per_world_unit(grid: &GridSpec, device: &Device) -> Tensor<1> {
         TensorData::new(vec![1.0 / cell.x, 1.0 / cell.y, 1.0 / cell.z], [3]),
         device,
     )
-}
-
-/// `values` (`[nx, ny, nz, 3]`, z fastest) smoothed by a Gaussian of `sigma` cells along each
-/// axis in turn, cut off at 3 sigma; near the walls the weights inside the grid are
-/// renormalised, so a uniform field stays uniform.
-fn smoothed(values: &[f32], resolution: [usize; 3], sigma: f32) -> Vec<f32> {
-    let reach = (3.0 * sigma).ceil() as isize;
-    let weights: Vec<f64> = (-reach..=reach)
-        .map(|d| (-0.5 * (d as f64 / sigma as f64).powi(2)).exp())
-        .collect();
-    let [nx, ny, nz] = resolution;
-    // The stride of one step along each axis, in rows of 3.
-    let strides = [ny * nz, nz, 1];
-    let mut field = values.to_vec();
-    for (axis, &stride) in strides.iter().enumerate() {
-        let size = resolution[axis] as isize;
-        let mut next = vec![0.0f32; field.len()];
-        for cell in 0..nx * ny * nz {
-            let at = ((cell / stride) % resolution[axis]) as isize;
-            let mut sum = [0.0f64; 3];
-            let mut total = 0.0;
-            for (d, &w) in (-reach..=reach).zip(&weights) {
-                let j = at + d;
-                if !(0..size).contains(&j) {
-                    continue;
-                }
-                let other = (cell as isize + (j - at) * stride as isize) as usize;
-                for (c, s) in sum.iter_mut().enumerate() {
-                    *s += w * field[3 * other + c] as f64;
-                }
-                total += w;
-            }
-            for (c, s) in sum.iter().enumerate() {
-                next[3 * cell + c] = (s / total) as f32;
-            }
-        }
-        field = next;
-    }
-    field
 }
 
 /// 1 for each of `n` rows listed in `rows`, 0 for the others.
@@ -1562,7 +1524,7 @@ impl Trainer {
             return field.field.clone();
         }
         let resolution = self.grid.resolution();
-        let smooth = smoothed(&read.moves, resolution, sigma);
+        let smooth = smoothed(&read.moves, resolution, 3, sigma, [true; 3]);
         let smooth = per_axis(smooth, &self.grid, |x, cell| x * cell);
         let [nx, ny, nz] = resolution;
         Tensor::from_data(TensorData::new(smooth, [nx, ny, nz, 3]), &self.device)
@@ -2620,7 +2582,7 @@ mod tests {
         let resolution = [23, 23, 23];
         let cells = 23 * 23 * 23;
         let uniform: Vec<f32> = (0..cells).flat_map(|_| [0.5, -1.0, 2.0]).collect();
-        let smooth = smoothed(&uniform, resolution, 2.0);
+        let smooth = smoothed(&uniform, resolution, 3, 2.0, [true; 3]);
         assert!(
             smooth
                 .iter()
@@ -2631,7 +2593,7 @@ mod tests {
         let mut impulse = vec![0.0f32; 3 * cells];
         impulse[3 * index(11, 11, 11) + 1] = 1.0;
         let sigma = 1.5;
-        let smooth = smoothed(&impulse, resolution, sigma);
+        let smooth = smoothed(&impulse, resolution, 3, sigma, [true; 3]);
         let mut sum = 0.0f64;
         let mut second = [0.0f64; 3];
         for x in 0..23 {
