@@ -160,21 +160,31 @@ impl GaussianModel {
     /// Replaces every parameter's values with `host`'s (same count), keeping the parameter
     /// ids so the optimiser's state carries over (used when Gaussians are recycled).
     pub fn with_host_values(self, host: &HostGaussians) -> Self {
-        assert_eq!(host.len(), self.len(), "recycling keeps the Gaussian count");
         let device = self.means.val().device();
         let fresh = host
             .to_tensors(&device)
             .expect("host Gaussians hold N rows of every attribute");
-        let keep = |id, tensor: Tensor<2>| Param::initialized(id, tensor.require_grad());
+        self.with_values(fresh)
+    }
+
+    /// Replaces every parameter's values with `values` (same count, detached), keeping the
+    /// parameter ids so the optimiser's state carries over.
+    pub fn with_values(self, values: GaussianTensors) -> Self {
+        assert_eq!(
+            values.raw_densities.dims()[0],
+            self.len(),
+            "new values keep the Gaussian count"
+        );
+        let values = values.detach();
         Self {
-            means: keep(self.means.id, fresh.means),
-            rotations: keep(self.rotations.id, fresh.rotations),
-            log_scales: keep(self.log_scales.id, fresh.log_scales),
+            means: Param::initialized(self.means.id, values.means.require_grad()),
+            rotations: Param::initialized(self.rotations.id, values.rotations.require_grad()),
+            log_scales: Param::initialized(self.log_scales.id, values.log_scales.require_grad()),
             raw_densities: Param::initialized(
                 self.raw_densities.id,
-                fresh.raw_densities.require_grad(),
+                values.raw_densities.require_grad(),
             ),
-            colors: keep(self.colors.id, fresh.colors),
+            colors: Param::initialized(self.colors.id, values.colors.require_grad()),
         }
     }
 

@@ -144,6 +144,17 @@ pub enum OptimizerReset {
     EveryFrame,
 }
 
+/// Which attributes `refine_view_agreement` masks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AgreementAttributes {
+    /// Every attribute.
+    All,
+    /// The densities alone (what one view's rays ask of Gaussians at every depth); the other
+    /// attributes take the mean of the views' gradients, as an all-view step does.
+    Densities,
+}
+
 /// What the velocity correction fits the frame's velocity to (see `correction_iterations`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -288,6 +299,23 @@ pub struct TrainConfig {
     /// loss is the mean over its views; the frame's train L1, the mean over its last turn of
     /// steps (as many as there are views), which renders each view equally often.
     pub refine_views_per_step: usize,
+    /// Refinement steps whose Gaussians are averaged into the frame's result (ours; 0 = the
+    /// paper's method, the last step's state): the mean of every attribute over the last this
+    /// many steps, at most K'. With one view a step the last step's state leans towards the
+    /// last view fitted, the same view at every frame; a whole turn's mean weighs them alike.
+    /// The frame's train L1 stays the steps' own.
+    pub refine_average_steps: usize,
+    /// Sign agreement the training views must reach for a refinement step to move a
+    /// Gaussian's parameter (ours; 0 = off, the paper's method): each step takes every view's
+    /// gradient on its own and keeps each element of their mean where `|sum of the views'
+    /// signs| >= refine_view_agreement * views` (1: every view agrees; 0.75: three of four,
+    /// the fourth silent). What one view alone asks of Gaussians along its rays is what it
+    /// cannot place in depth. The ties' gradients are added in full; static Gaussians are
+    /// held during the refinement. Needs `refine_views_per_step = 0`; a step costs one render
+    /// and backward per view.
+    pub refine_view_agreement: f32,
+    /// The attributes `refine_view_agreement` masks (`all` or `densities`).
+    pub refine_view_agreement_attributes: AgreementAttributes,
     /// Adam learning rate of the velocity network Phi.
     pub lr_velocity: f64,
     /// Adam learning rate of the Gaussians after frame 0.
@@ -584,6 +612,9 @@ impl Default for TrainConfig {
             advect_iterations: 250,
             refine_iterations: 50,
             refine_views_per_step: 0,
+            refine_average_steps: 0,
+            refine_view_agreement: 0.0,
+            refine_view_agreement_attributes: AgreementAttributes::All,
             lr_velocity: 1e-3,
             lr_gaussians: 5e-4,
             lr_means: None,
@@ -840,6 +871,19 @@ impl TrainConfig {
             if !(value.is_finite() && value >= 0.0) {
                 return bad(format!("{name} must be >= 0, got {value}"));
             }
+        }
+        if !(0.0..=1.0).contains(&self.refine_view_agreement) {
+            return bad(format!(
+                "refine_view_agreement must be in [0, 1], got {}",
+                self.refine_view_agreement
+            ));
+        }
+        if self.refine_view_agreement > 0.0 && self.refine_views_per_step != 0 {
+            return bad(format!(
+                "refine_view_agreement takes every training view's gradient at each refinement \
+                 step, and refine_views_per_step is {}: set refine_views_per_step = 0",
+                self.refine_views_per_step
+            ));
         }
         if !(0.0..=1000.0).contains(&self.increment_horizontal_weight) {
             return bad(format!(
@@ -1268,6 +1312,21 @@ mod tests {
                     ..TrainConfig::default()
                 },
                 "open_face_flow",
+            ),
+            (
+                TrainConfig {
+                    refine_view_agreement: 1.5,
+                    ..TrainConfig::default()
+                },
+                "refine_view_agreement",
+            ),
+            (
+                TrainConfig {
+                    refine_view_agreement: 0.75,
+                    refine_views_per_step: 1,
+                    ..TrainConfig::default()
+                },
+                "refine_views_per_step = 0",
             ),
         ];
         for (config, named) in invalid {

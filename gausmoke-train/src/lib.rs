@@ -26,6 +26,7 @@ pub mod eval;
 pub mod export;
 mod hash;
 mod host_grid;
+mod iterate_mean;
 pub mod logging;
 pub mod lpips;
 pub mod memory;
@@ -41,6 +42,7 @@ pub mod state;
 mod step_log;
 pub mod tensorboard;
 pub mod trainer;
+pub mod view_agreement;
 pub mod viridis;
 pub mod visuals;
 

@@ -54,11 +54,12 @@ use crate::TrainError;
 use crate::arrays::{read_arrays, take_array};
 use crate::carried_smoothing::smooth_carried_densities;
 use crate::config::{
-    CarrierShare, CorrectionTarget, EmissionTiming, IntegratorKind, InterpolationKind,
-    LookaheadVelocity, Obstacles, OptimizerReset, ProjectionKind, TrainConfig,
+    AgreementAttributes, CarrierShare, CorrectionTarget, EmissionTiming, IntegratorKind,
+    InterpolationKind, LookaheadVelocity, Obstacles, OptimizerReset, ProjectionKind, TrainConfig,
 };
 use crate::emission::{EmissionOptions, EmissionReport, emit};
 use crate::host_grid::smoothed;
+use crate::iterate_mean::IterateMean;
 use crate::respawn::{
     DeficitView, RespawnOptions, RespawnReport, SpawnLattice, recycling_candidates, respawn,
 };
@@ -69,6 +70,7 @@ use crate::state::{
     Buoyancy, LoopTraffic, LossRow, Phase, RefineMoveField, StaticGaussians, TrainState,
 };
 use crate::step_log::{StepLog, StepLosses};
+use crate::view_agreement::{attribute_grads, combine, per_attribute_params};
 
 /// What training one frame produced.
 #[derive(Debug, Clone)]
@@ -389,14 +391,44 @@ impl ListCapacities {
 /// One Adam step per attribute of `model` with its own learning rate (0 skips it), the
 /// gradients taken from `grads`; every log-scale ends within `log_scale_bounds`.
 fn adam_per_attribute(
-    mut model: GaussianModel,
+    model: GaussianModel,
     optim: &mut ModuleOptimizer,
     grads: &mut Gradients,
     learning_rates: Gaussians<f64>,
     log_scale_bounds: [f32; 2],
 ) -> GaussianModel {
-    for (id, lr) in model.param_ids().zip(learning_rates).into_array() {
-        let params = GradientsParams::from_params(grads, &model, &[id]);
+    let per_attribute = attribute_params(grads, &model);
+    adam_on_attributes(
+        model,
+        optim,
+        per_attribute,
+        learning_rates,
+        log_scale_bounds,
+    )
+}
+
+/// `model`'s gradients taken out of `grads`, one [`GradientsParams`] per attribute.
+fn attribute_params(grads: &mut Gradients, model: &GaussianModel) -> Gaussians<GradientsParams> {
+    model
+        .param_ids()
+        .map(|_, id| GradientsParams::from_params(grads, model, &[id]))
+}
+
+/// [`adam_per_attribute`] on gradients already taken out, one [`GradientsParams`] per
+/// attribute.
+fn adam_on_attributes(
+    mut model: GaussianModel,
+    optim: &mut ModuleOptimizer,
+    grads: Gaussians<GradientsParams>,
+    learning_rates: Gaussians<f64>,
+    log_scale_bounds: [f32; 2],
+) -> GaussianModel {
+    let steps = model
+        .param_ids()
+        .zip(learning_rates)
+        .zip(grads)
+        .into_array();
+    for ((_, lr), params) in steps {
         if lr > 0.0 && !params.is_empty() {
             let _phase = phase!("optimizer");
             model = optim.step(lr, model, params);
@@ -899,7 +931,18 @@ impl Trainer {
         learning_rates: Gaussians<f64>,
         log_scale_bounds: [f32; 2],
     ) {
-        self.state.gaussians = adam_per_attribute(
+        let per_attribute = attribute_params(grads, &self.state.gaussians);
+        self.step_gaussians_with(per_attribute, learning_rates, log_scale_bounds);
+    }
+
+    /// [`Trainer::step_gaussians`] on gradients already taken out, one per attribute.
+    fn step_gaussians_with(
+        &mut self,
+        grads: Gaussians<GradientsParams>,
+        learning_rates: Gaussians<f64>,
+        log_scale_bounds: [f32; 2],
+    ) {
+        self.state.gaussians = adam_on_attributes(
             self.state.gaussians.clone(),
             &mut self.state.gaussian_optim,
             grads,
@@ -1368,53 +1411,121 @@ impl Trainer {
         let mut group_lists: Vec<ListCapacities> = (0..cameras.len())
             .map(|_| ListCapacities::new(config.tile_list_headroom))
             .collect();
+        // The steps whose states are averaged into the frame's result (none: the last one).
+        let average_from = refine_iterations.saturating_sub(config.refine_average_steps);
+        let mut iterate_mean = IterateMean::new();
         let start = Traffic::now();
-        for iteration in 0..refine_iterations {
-            let gaussians = self.state.gaussians.tensors();
-            let group = refinement_views(iteration, cameras.len(), config.refine_views_per_step);
-            let group_cameras: Vec<Camera> = group.iter().map(|&v| cameras[v]).collect();
-            let group_targets: Vec<Tensor<3>> = group.iter().map(|&v| targets[v].clone()).collect();
-            let (render, check) = self.render_loss(
-                &self.scene(gaussians.clone(), true),
-                &group_cameras,
-                &group_targets,
-                &mut group_lists[group[0]],
-            )?;
+        // The refinement's ties (lines 11-13 and ours): the centres to the advected ones, the
+        // moves' grid-scale part, the densities; `(L_refine, the ties' weighted sum)`.
+        let tie_losses = |gaussians: &GaussianTensors| {
             let refine = refine_loss(&gaussians.means, &anchor);
-            let mut loss = render.clone() + refine.clone() * config.lambda_refine;
+            let mut ties = refine.clone() * config.lambda_refine;
             if let Some(scale) = &grid_scale
                 && (config.lambda_refine_grid > 0.0 || config.lambda_refine_subgrid > 0.0)
             {
                 let moves = gaussians.means.clone() - anchor.clone();
                 let grid_part = scale.grid_part(moves.clone());
-                loss = loss
+                ties = ties
                     + scale.mean_square(grid_part.clone())
                         * (config.lambda_refine_grid * tie_factor)
                     + scale.mean_square(moves - grid_part) * config.lambda_refine_subgrid;
             }
             if let Some(density_anchor) = &density_anchor {
-                loss = loss
+                ties = ties
                     + density_tie_loss(&gaussians.raw_densities, density_anchor)
                         * config.lambda_refine_density;
             }
-            log.push(
-                (t, Phase::Refine, iteration),
-                StepLosses {
-                    total: loss.clone(),
-                    render,
-                    divergence: None,
-                    advection: None,
-                    refine: Some(refine),
-                },
-                None,
-                vec![check],
-            );
-            let mut grads = {
-                let _phase = phase!("backward (all ops)");
-                loss.backward()
-            };
-            self.step_gaussians(&mut grads, rates, log_scale_bounds);
-            self.step_statics(&mut grads, lr_gaussians);
+            (refine, ties)
+        };
+        for iteration in 0..refine_iterations {
+            if config.refine_view_agreement > 0.0 {
+                // Each view's gradient on its own, kept where the views agree; the static
+                // Gaussians (obstacle scenes) are held meanwhile.
+                let mut per_view = Vec::with_capacity(cameras.len());
+                let mut render_sum: Option<Tensor<1>> = None;
+                let mut checks = Vec::with_capacity(cameras.len());
+                for (view, lists) in group_lists.iter_mut().enumerate() {
+                    let (render, check) = self.render_loss(
+                        &self.scene(self.state.gaussians.tensors(), false),
+                        &cameras[view..=view],
+                        &targets[view..=view],
+                        lists,
+                    )?;
+                    let mut grads = {
+                        let _phase = phase!("backward (all ops)");
+                        render.clone().backward()
+                    };
+                    per_view.push(attribute_grads(&mut grads, &self.state.gaussians));
+                    let render = render.detach();
+                    render_sum = Some(render_sum.map_or(render.clone(), |sum| sum + render));
+                    checks.push(check);
+                }
+                let render = render_sum.expect("at least one training view") / cameras.len() as f32;
+                let (refine, ties) = tie_losses(&self.state.gaussians.tensors());
+                let mut tie_grads = {
+                    let _phase = phase!("backward (all ops)");
+                    ties.clone().backward()
+                };
+                let ties_grads = attribute_grads(&mut tie_grads, &self.state.gaussians);
+                log.push(
+                    (t, Phase::Refine, iteration),
+                    StepLosses {
+                        total: render.clone() + ties.detach(),
+                        render,
+                        divergence: None,
+                        advection: None,
+                        refine: Some(refine.detach()),
+                    },
+                    None,
+                    checks,
+                );
+                let masked = match config.refine_view_agreement_attributes {
+                    AgreementAttributes::All => Gaussians::default().map(|_, ()| true),
+                    AgreementAttributes::Densities => Gaussians {
+                        raw_densities: true,
+                        ..Gaussians::default()
+                    },
+                };
+                let agreed = combine(per_view, ties_grads, config.refine_view_agreement, masked);
+                let params = per_attribute_params(agreed, &self.state.gaussians);
+                self.step_gaussians_with(params, rates, log_scale_bounds);
+            } else {
+                let gaussians = self.state.gaussians.tensors();
+                let group =
+                    refinement_views(iteration, cameras.len(), config.refine_views_per_step);
+                let group_cameras: Vec<Camera> = group.iter().map(|&v| cameras[v]).collect();
+                let group_targets: Vec<Tensor<3>> =
+                    group.iter().map(|&v| targets[v].clone()).collect();
+                let (render, check) = self.render_loss(
+                    &self.scene(gaussians.clone(), true),
+                    &group_cameras,
+                    &group_targets,
+                    &mut group_lists[group[0]],
+                )?;
+                let (refine, ties) = tie_losses(&gaussians);
+                let loss = render.clone() + ties;
+                log.push(
+                    (t, Phase::Refine, iteration),
+                    StepLosses {
+                        total: loss.clone(),
+                        render,
+                        divergence: None,
+                        advection: None,
+                        refine: Some(refine),
+                    },
+                    None,
+                    vec![check],
+                );
+                let mut grads = {
+                    let _phase = phase!("backward (all ops)");
+                    loss.backward()
+                };
+                self.step_gaussians(&mut grads, rates, log_scale_bounds);
+                self.step_statics(&mut grads, lr_gaussians);
+            }
+            if config.refine_average_steps > 1 && iteration >= average_from {
+                iterate_mean.add(self.state.gaussians.tensors());
+            }
             if log.due() || iteration + 1 == refine_iterations {
                 read_log(&mut log, &mut losses, &bar, None)?;
                 group_lists.iter_mut().for_each(ListCapacities::expire);
@@ -1422,6 +1533,12 @@ impl Trainer {
             bar.inc(1);
         }
         bar.finish_and_clear();
+        if iterate_mean.count() > 1
+            && let Some(mean) = iterate_mean.mean()
+        {
+            self.state.gaussians = self.state.gaussians.clone().with_values(mean);
+            self.keep_out_of_obstacles();
+        }
         traffic.push(LoopTraffic::of(Phase::Refine, refine_iterations, start));
         let (refine_moves, refine_move_field) = match grid_scale {
             Some(scale) => {

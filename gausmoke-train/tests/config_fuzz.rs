@@ -24,6 +24,8 @@ const KEYS: &[(&str, bool)] = &[
     ("advect_iterations", false),
     ("refine_iterations", false),
     ("refine_views_per_step", true),
+    ("refine_average_steps", true),
+    ("refine_view_agreement", true),
     ("correction_iterations", false),
     ("refine_velocity_share", true),
     ("refine_velocity_blur", true),

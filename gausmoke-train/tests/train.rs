@@ -12,6 +12,7 @@ use gausmoke_data::synth::{SynthConfig, generate};
 use gausmoke_model::SolidCells;
 use gausmoke_render::backends::device_by_name;
 use gausmoke_train::arrays::read_arrays;
+use gausmoke_train::config::AgreementAttributes;
 use gausmoke_train::metrics::mean_abs_error;
 use gausmoke_train::sequence::Sequence;
 use gausmoke_train::{Phase, Run, TrainConfig, eval};
@@ -1406,6 +1407,74 @@ fn the_refinement_densities_can_be_tied() {
     let tied = change(1e4, "tied");
     assert!(free > 0.0, "the refinement changed no density");
     assert!(tied < 0.1 * free, "tied {tied} against free {free}");
+}
+
+/// `refine_average_steps` (ours): the frame ends on the mean of the refinement's last steps'
+/// states. Two steps averaged land halfway between where one step and two steps leave every
+/// attribute (the runs are deterministic and share their first step).
+#[test]
+fn the_refinement_can_end_on_the_mean_of_its_last_steps() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let after = |steps, average, name| {
+        let config = TrainConfig {
+            frames: Some(2),
+            advect_iterations: 0,
+            refine_iterations: steps,
+            refine_views_per_step: 1,
+            refine_average_steps: average,
+            ..joint_terms_config()
+        };
+        let mut run = after_frame_0(&data, dir.path(), config, name);
+        run.trainer.advance_to(1).unwrap();
+        run.trainer.state.gaussians.to_host()
+    };
+    let one = after(1, 0, "one");
+    let two = after(2, 0, "two");
+    let mean = after(2, 2, "mean");
+    let attributes = one.zip(two).zip(mean).into_array();
+    let mut moved = 0.0f32;
+    for ((one, two), mean) in attributes {
+        for ((a, b), m) in one.iter().zip(&two).zip(&mean) {
+            moved = moved.max((a - b).abs());
+            let halfway = 0.5 * (a + b);
+            assert!(
+                (m - halfway).abs() <= 1e-5 * (1.0 + halfway.abs()),
+                "{m} is not halfway between {a} and {b}"
+            );
+        }
+    }
+    assert!(moved > 0.0, "the second step moved nothing");
+}
+
+/// `refine_view_agreement` (ours): a refinement step moves a Gaussian's density only where
+/// every training view asks for the same direction, so one step moves fewer densities than
+/// the plain all-view step from the same state (Adam moves nothing whose first gradient is 0).
+#[test]
+fn a_refinement_step_can_keep_to_what_the_views_agree_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let moved = |agreement: f32, name| {
+        let config = TrainConfig {
+            frames: Some(2),
+            advect_iterations: 0,
+            refine_iterations: 1,
+            refine_view_agreement: agreement,
+            refine_view_agreement_attributes: AgreementAttributes::Densities,
+            ..joint_terms_config()
+        };
+        let mut run = after_frame_0(&data, dir.path(), config, name);
+        let before = run.trainer.state.gaussians.to_host().raw_densities;
+        run.trainer.advance_to(1).unwrap();
+        let after = run.trainer.state.gaussians.to_host().raw_densities;
+        assert!(after.iter().all(|v| v.is_finite()));
+        before.iter().zip(&after).filter(|(b, a)| b != a).count()
+    };
+    let plain = moved(0.0, "plain");
+    let agreed = moved(1.0, "agreed");
+    assert!(plain > 0, "the plain step moved no density");
+    assert!(agreed > 0, "the views agreed on no density");
+    assert!(agreed < plain, "agreed {agreed} against plain {plain}");
 }
 
 /// `refine_views_per_step` (ours): each refinement step renders that many training views in

@@ -844,6 +844,7 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             "test_ssim_per_frame": per_frame(|f| f.test_ssim),
             "test_lpips_per_frame": per_frame(|f| f.test_lpips),
             "velocity_relative_error_per_frame": per_frame(|f| f.velocity_relative_error),
+            "velocity_rmse_per_frame": per_frame(|f| f.velocity_rmse),
             "velocity_cosine_per_frame": per_frame(|f| f.velocity_cosine),
             "density_relative_error_per_frame": per_frame(|f| f.density_relative_error),
             "density_correlation_per_frame": per_frame(|f| f.density_correlation),

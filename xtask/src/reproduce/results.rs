@@ -117,6 +117,22 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
             format!("K' = {steps} of {views} {per} a step"),
         ));
     }
+    if let Some(steps) = config["refine_average_steps"].as_u64().filter(|&n| n > 1) {
+        settings.push((
+            "refine_average_steps",
+            format!("mean of the refinement's last {steps} steps"),
+        ));
+    }
+    if let Some(share) = weight("refine_view_agreement") {
+        let what = match config["refine_view_agreement_attributes"].as_str() {
+            Some("densities") => "densities",
+            _ => "refinement",
+        };
+        settings.push((
+            "refine_view_agreement",
+            format!("{what} where the views agree ({share})"),
+        ));
+    }
     if let Some(w) = weight("lambda_refine_grid") {
         settings.push(("lambda_refine_grid", format!("grid-scale tie {w}")));
     }
