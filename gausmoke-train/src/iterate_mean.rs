@@ -61,6 +61,7 @@ mod tests {
     use super::*;
     use burn::tensor::{Device, TensorData};
     use gausmoke_render::backends::device_by_name;
+    use gausmoke_render::device_traffic::read_floats;
 
     fn state(value: f32, device: &Device) -> GaussianTensors {
         let rows = |columns: usize| {
@@ -87,7 +88,7 @@ mod tests {
         }
         assert_eq!(mean.count(), 3);
         let mean = mean.mean().expect("three states were added");
-        let values = |t: Tensor<1>| t.into_data().to_vec::<f32>().unwrap();
+        let values = |t: Tensor<1>| read_floats(t);
         for attribute in [mean.means, mean.rotations, mean.log_scales, mean.colors] {
             let flat = attribute.flatten::<1>(0, 1);
             assert!(values(flat).iter().all(|&v| (v - 3.0).abs() < 1e-6));

@@ -137,9 +137,10 @@ mod tests {
     use super::*;
     use burn::tensor::TensorData;
     use gausmoke_render::backends::device_by_name;
+    use gausmoke_render::device_traffic::read_floats;
 
     fn values(t: Tensor<1>) -> Vec<f32> {
-        t.into_data().to_vec::<f32>().unwrap()
+        read_floats(t)
     }
 
     /// Four views, five elements: all agree; three agree and one is silent; three agree and
