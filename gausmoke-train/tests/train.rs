@@ -12,7 +12,7 @@ use gausmoke_data::synth::{SynthConfig, generate};
 use gausmoke_model::SolidCells;
 use gausmoke_render::backends::device_by_name;
 use gausmoke_train::arrays::read_arrays;
-use gausmoke_train::config::AgreementAttributes;
+use gausmoke_train::config::{AgreementAttributes, OptimizerReset};
 use gausmoke_train::metrics::mean_abs_error;
 use gausmoke_train::sequence::Sequence;
 use gausmoke_train::{Phase, Run, TrainConfig, eval};
@@ -1116,7 +1116,6 @@ fn each_attribute_can_have_its_own_learning_rate_after_frame_0() {
 /// that remembers earlier steps by other amounts.
 #[test]
 fn the_gaussians_adam_state_starts_afresh_when_asked() {
-    use gausmoke_train::config::OptimizerReset;
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
     let lr = 1e-3;
@@ -1449,7 +1448,8 @@ fn the_refinement_can_end_on_the_mean_of_its_last_steps() {
 
 /// `refine_view_agreement` (ours): a refinement step moves a Gaussian's density only where
 /// every training view asks for the same direction, so one step moves fewer densities than
-/// the plain all-view step from the same state (Adam moves nothing whose first gradient is 0).
+/// the plain all-view step from the same state. Adam starts afresh after frame 0, so what
+/// has no gradient in that first step does not move (frame 0's momentum would move it).
 #[test]
 fn a_refinement_step_can_keep_to_what_the_views_agree_on() {
     let dir = tempfile::tempdir().unwrap();
@@ -1461,6 +1461,7 @@ fn a_refinement_step_can_keep_to_what_the_views_agree_on() {
             refine_iterations: 1,
             refine_view_agreement: agreement,
             refine_view_agreement_attributes: AgreementAttributes::Densities,
+            gaussian_optimizer_reset: OptimizerReset::AfterFirstFrame,
             ..joint_terms_config()
         };
         let mut run = after_frame_0(&data, dir.path(), config, name);
