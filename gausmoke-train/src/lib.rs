@@ -17,6 +17,7 @@
 use std::path::PathBuf;
 
 pub mod arrays;
+pub mod attribute_grads;
 pub mod carried_smoothing;
 pub mod chart;
 pub mod checkpoint;

@@ -52,10 +52,11 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::TrainError;
 use crate::arrays::{read_arrays, take_array};
+use crate::attribute_grads::{attribute_grads, attribute_params, per_attribute_params};
 use crate::carried_smoothing::smooth_carried_densities;
 use crate::config::{
-    AgreementAttributes, CarrierShare, CorrectionTarget, EmissionTiming, IntegratorKind,
-    InterpolationKind, LookaheadVelocity, Obstacles, OptimizerReset, ProjectionKind, TrainConfig,
+    CarrierShare, CorrectionTarget, EmissionTiming, IntegratorKind, InterpolationKind,
+    LookaheadVelocity, Obstacles, OptimizerReset, ProjectionKind, TrainConfig,
 };
 use crate::emission::{EmissionOptions, EmissionReport, emit};
 use crate::host_grid::smoothed;
@@ -70,7 +71,7 @@ use crate::state::{
     Buoyancy, LoopTraffic, LossRow, Phase, RefineMoveField, StaticGaussians, TrainState,
 };
 use crate::step_log::{StepLog, StepLosses};
-use crate::view_agreement::{attribute_grads, combine, per_attribute_params};
+use crate::view_agreement::{combine, masked_attributes};
 
 /// What training one frame produced.
 #[derive(Debug, Clone)]
@@ -405,13 +406,6 @@ fn adam_per_attribute(
         learning_rates,
         log_scale_bounds,
     )
-}
-
-/// `model`'s gradients taken out of `grads`, one [`GradientsParams`] per attribute.
-fn attribute_params(grads: &mut Gradients, model: &GaussianModel) -> Gaussians<GradientsParams> {
-    model
-        .param_ids()
-        .map(|_, id| GradientsParams::from_params(grads, model, &[id]))
 }
 
 /// [`adam_per_attribute`] on gradients already taken out, one [`GradientsParams`] per
@@ -1437,6 +1431,7 @@ impl Trainer {
             }
             (refine, ties)
         };
+        let masked = masked_attributes(config.refine_view_agreement_attributes);
         for iteration in 0..refine_iterations {
             if config.refine_view_agreement > 0.0 {
                 // Each view's gradient on its own, kept where the views agree; the static
@@ -1479,13 +1474,6 @@ impl Trainer {
                     None,
                     checks,
                 );
-                let masked = match config.refine_view_agreement_attributes {
-                    AgreementAttributes::All => Gaussians::default().map(|_, ()| true),
-                    AgreementAttributes::Densities => Gaussians {
-                        raw_densities: true,
-                        ..Gaussians::default()
-                    },
-                };
                 let agreed = combine(per_view, ties_grads, config.refine_view_agreement, masked);
                 let params = per_attribute_params(agreed, &self.state.gaussians);
                 self.step_gaussians_with(params, rates, log_scale_bounds);

@@ -14,26 +14,20 @@
 //! The ties of the refinement (to the advected centres, the grid-scale moves, the
 //! densities) are not views: their gradient is added in full.
 
-use burn::module::ParamId;
-use burn::optim::GradientsParams;
-use burn::tensor::{Gradients, Tensor};
-use gausmoke_model::GaussianModel;
+use burn::tensor::Tensor;
 use gausmoke_render::Gaussians;
 
-/// One loss's gradient with respect to each Gaussian attribute (`None` where it did not reach
-/// the attribute).
-pub type AttributeGrads = Gaussians<Option<Tensor<2>>, Option<Tensor<1>>>;
+use crate::attribute_grads::AttributeGrads;
+use crate::config::AgreementAttributes;
 
-/// Takes the gradient of each of `model`'s attributes out of `grads`.
-pub fn attribute_grads(grads: &mut Gradients, model: &GaussianModel) -> AttributeGrads {
-    let ids = model.param_ids();
-    let mut take = |id: ParamId| GradientsParams::from_params(grads, model, &[id]);
-    Gaussians {
-        means: take(ids.means).remove::<2>(ids.means),
-        rotations: take(ids.rotations).remove::<2>(ids.rotations),
-        log_scales: take(ids.log_scales).remove::<2>(ids.log_scales),
-        raw_densities: take(ids.raw_densities).remove::<1>(ids.raw_densities),
-        colors: take(ids.colors).remove::<2>(ids.colors),
+/// The attributes `which` masks.
+pub fn masked_attributes(which: AgreementAttributes) -> Gaussians<bool> {
+    match which {
+        AgreementAttributes::All => Gaussians::default().map(|_, ()| true),
+        AgreementAttributes::Densities => Gaussians {
+            raw_densities: true,
+            ..Gaussians::default()
+        },
     }
 }
 
@@ -106,29 +100,6 @@ pub fn combine(
             masked.raw_densities,
         ),
         colors: one(colors, ties.colors, threshold, masked.colors),
-    }
-}
-
-/// `grads` as one [`GradientsParams`] per attribute of `model` (empty where `None`), what
-/// the per-attribute optimiser steps take.
-pub fn per_attribute_params(
-    grads: AttributeGrads,
-    model: &GaussianModel,
-) -> Gaussians<GradientsParams> {
-    let ids = model.param_ids();
-    fn params<const D: usize>(id: ParamId, grad: Option<Tensor<D>>) -> GradientsParams {
-        let mut params = GradientsParams::new();
-        if let Some(grad) = grad {
-            params.register(id, grad);
-        }
-        params
-    }
-    Gaussians {
-        means: params(ids.means, grads.means),
-        rotations: params(ids.rotations, grads.rotations),
-        log_scales: params(ids.log_scales, grads.log_scales),
-        raw_densities: params(ids.raw_densities, grads.raw_densities),
-        colors: params(ids.colors, grads.colors),
     }
 }
 
