@@ -33,6 +33,7 @@ pub mod lpips;
 pub mod memory;
 pub mod metrics;
 pub mod novel_views;
+pub mod residual_blur;
 pub mod respawn;
 pub mod run;
 pub mod run_folder;

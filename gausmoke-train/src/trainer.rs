@@ -55,12 +55,13 @@ use crate::arrays::{read_arrays, take_array};
 use crate::attribute_grads::{attribute_grads, attribute_params, per_attribute_params};
 use crate::carried_smoothing::smooth_carried_densities;
 use crate::config::{
-    CarrierShare, CorrectionTarget, EmissionTiming, IntegratorKind, InterpolationKind,
+    BlurAxes, CarrierShare, CorrectionTarget, EmissionTiming, IntegratorKind, InterpolationKind,
     LookaheadVelocity, Obstacles, OptimizerReset, ProjectionKind, TrainConfig,
 };
 use crate::emission::{EmissionOptions, EmissionReport, emit};
 use crate::host_grid::smoothed;
 use crate::iterate_mean::IterateMean;
+use crate::residual_blur::ResidualBlur;
 use crate::respawn::{
     DeficitView, RespawnOptions, RespawnReport, SpawnLattice, recycling_candidates, respawn,
 };
@@ -730,6 +731,19 @@ impl Trainer {
         targets: &[Tensor<3>],
         lists: &mut ListCapacities,
     ) -> Result<(Tensor<1>, InputCheck), TrainError> {
+        self.render_loss_blurred(gaussians, cameras, targets, lists, None)
+    }
+
+    /// `render_loss`, each view's residual blurred first by the matching entry of `blurs`
+    /// when given (`refine_loss_blur`).
+    fn render_loss_blurred(
+        &self,
+        gaussians: &GaussianTensors,
+        cameras: &[Camera],
+        targets: &[Tensor<3>],
+        lists: &mut ListCapacities,
+        blurs: Option<&[ResidualBlur]>,
+    ) -> Result<(Tensor<1>, InputCheck), TrainError> {
         let lengths = list_buffer_lengths(gaussians, cameras, &self.raster);
         let most: Vec<u64> = cameras
             .iter()
@@ -744,14 +758,21 @@ impl Trainer {
         let check = InputCheck::new(gaussians, &self.background)?
             .with_list_capacities(lengths, capacities.clone())?;
         let mut total: Option<Tensor<1>> = None;
-        for ((camera, target), capacity) in cameras.iter().zip(targets).zip(capacities) {
+        for (view, ((camera, target), capacity)) in
+            cameras.iter().zip(targets).zip(capacities).enumerate()
+        {
             let options = RasterOptions {
                 tile_list_capacity: Some(capacity),
                 ..self.raster
             };
             let out =
                 render_volume_deferred(gaussians, camera, &self.background, &options, &check)?;
-            let l1 = (out.rgb - target.clone()).abs().mean();
+            let residual = out.rgb - target.clone();
+            let residual = match blurs {
+                Some(blurs) => blurs[view].apply(residual),
+                None => residual,
+            };
+            let l1 = residual.abs().mean();
             total = Some(match total {
                 Some(t) => t + l1,
                 None => l1,
@@ -1407,6 +1428,16 @@ impl Trainer {
             .collect();
         // The steps whose states are averaged into the frame's result (none: the last one).
         let average_from = refine_iterations.saturating_sub(config.refine_average_steps);
+        let blurs: Option<Vec<ResidualBlur>> = (config.refine_loss_blur > 0.0).then(|| {
+            cameras
+                .iter()
+                .map(|c| {
+                    let [h, w] = [c.height() as usize, c.width() as usize];
+                    let horizontal_only = config.refine_loss_blur_axes == BlurAxes::Horizontal;
+                    ResidualBlur::new(h, w, config.refine_loss_blur, horizontal_only, &self.device)
+                })
+                .collect()
+        });
         let mut iterate_mean = IterateMean::new();
         let start = Traffic::now();
         // The refinement's ties (lines 11-13 and ours): the centres to the advected ones, the
@@ -1440,11 +1471,12 @@ impl Trainer {
                 let mut render_sum: Option<Tensor<1>> = None;
                 let mut checks = Vec::with_capacity(cameras.len());
                 for (view, lists) in group_lists.iter_mut().enumerate() {
-                    let (render, check) = self.render_loss(
+                    let (render, check) = self.render_loss_blurred(
                         &self.scene(self.state.gaussians.tensors(), false),
                         &cameras[view..=view],
                         &targets[view..=view],
                         lists,
+                        blurs.as_ref().map(|b| &b[view..=view]),
                     )?;
                     let mut grads = {
                         let _phase = phase!("backward (all ops)");
@@ -1484,11 +1516,15 @@ impl Trainer {
                 let group_cameras: Vec<Camera> = group.iter().map(|&v| cameras[v]).collect();
                 let group_targets: Vec<Tensor<3>> =
                     group.iter().map(|&v| targets[v].clone()).collect();
-                let (render, check) = self.render_loss(
+                let group_blurs: Option<Vec<ResidualBlur>> = blurs
+                    .as_ref()
+                    .map(|b| group.iter().map(|&v| b[v].clone()).collect());
+                let (render, check) = self.render_loss_blurred(
                     &self.scene(gaussians.clone(), true),
                     &group_cameras,
                     &group_targets,
                     &mut group_lists[group[0]],
+                    group_blurs.as_deref(),
                 )?;
                 let (refine, ties) = tie_losses(&gaussians);
                 let loss = render.clone() + ties;

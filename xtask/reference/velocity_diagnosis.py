@@ -9,7 +9,11 @@ correlation of each component; and two yardsticks computed from the
 truth alone: the best uniform velocity (the smoke's mean flow) and the truth blurred by a
 Gaussian of 1, 2 and 4 cells (how well a field that smooth could do). Also the truth's rms
 displacement per frame in cells. A second line splits the error by height (bands of grid
-rows, bottom to top): each band's relative error and its share of the error's energy. Arrays are read from the safetensors files directly:
+rows, bottom to top): each band's relative error and its share of the error's energy. A
+third takes the part of the flow that pictures can see, `grad rho . u` (transport along a
+surface of equal density changes nothing): ours' and the blurred truth's relative error,
+scale and correlation there, and how much of the truth's flow is of that kind. Arrays are
+read from the safetensors files directly:
 the run's `frames/frame_TTT.safetensors` (velocity [nx, ny, nz, 3], x slowest) and the
 scene's `gt/frame_TTT.safetensors` (velocity [z, y, x, 3], x fastest), both in world units
 per frame on the same box (the grids must have the same resolution).
@@ -48,11 +52,21 @@ def by_height(ours, truth, smoke):
 
 
 def along_gradient(ours, truth, blurred, density, smoke):
-    """Relative error of `grad rho . u` inside `smoke`, for ours and for `blurred` (the truth
-    blurred by 2 cells)."""
-    gradient = np.stack(np.gradient(density), axis=-1)
+    """`grad rho . u` inside `smoke`, for ours and for `blurred` (the truth blurred by 2 cells)
+    against the truth's: each one's relative error, its scale (the least-squares factor on
+    the truth's) and its correlation with it. Also how much of the truth's flow that is: the
+    share of its energy along the unit gradient, and the share of smoke cells whose density
+    is nearly flat (gradient under a tenth of its 95th percentile)."""
+    gradient = np.stack(np.gradient(density.astype(np.float64)), axis=-1)
     seen = lambda v: (gradient * v).sum(axis=-1)[smoke]
-    return relative(seen(ours), seen(truth)), relative(seen(blurred), seen(truth))
+    want = seen(truth)
+    compare = lambda got: (relative(got, want), (got * want).sum() / (want**2).sum(),
+                           np.corrcoef(got, want)[0, 1])
+    size = np.linalg.norm(gradient, axis=-1)
+    along = (truth * gradient).sum(axis=-1) / np.maximum(size, 1e-12)
+    share = (along[smoke] ** 2).sum() / (truth[smoke] ** 2).sum()
+    flat = (size[smoke] < 0.1 * np.percentile(size[smoke], 95)).mean()
+    return compare(seen(ours)), compare(seen(blurred)), share, flat
 
 
 def main(run, data, frames):
@@ -80,9 +94,12 @@ def main(run, data, frames):
               + "/".join(f"{v:.2f}" for v in blurred)
               + f", rms displacement {cells:.2f} cells/frame")
         print("           by height " + by_height(ours, velocity, smoke))
-        seen, seen_blurred = along_gradient(ours, velocity, smooth[2.0], density, smoke)
-        print(f"           along the density's gradient: rel. error {seen:.2f} "
-              f"(truth blurred by 2 cells {seen_blurred:.2f})")
+        seen, seen_blurred, share, flat = along_gradient(ours, velocity, smooth[2.0], density,
+                                                         smoke)
+        print("           along the density's gradient: rel. error / scale / corr. "
+              + "/".join(f"{v:.2f}" for v in seen) + " (truth blurred by 2 cells "
+              + "/".join(f"{v:.2f}" for v in seen_blurred) + f"); the truth's energy there "
+              f"{share:.2f}, flat smoke cells {flat:.2f}")
 
 
 if __name__ == "__main__":

@@ -133,6 +133,17 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
             format!("{what} where the views agree ({share})"),
         ));
     }
+    if let Some(sigma) = weight("refine_loss_blur") {
+        settings.push((
+            "refine_loss_blur",
+            match config["refine_loss_blur_axes"].as_str() {
+                Some("horizontal") => {
+                    format!("refinement on residuals blurred by {sigma} px along rows")
+                }
+                _ => format!("refinement on residuals blurred by {sigma} px"),
+            },
+        ));
+    }
     if let Some(w) = weight("lambda_refine_grid") {
         settings.push(("lambda_refine_grid", format!("grid-scale tie {w}")));
     }
