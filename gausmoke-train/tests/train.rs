@@ -12,8 +12,9 @@ use gausmoke_data::synth::{SynthConfig, generate};
 use gausmoke_model::SolidCells;
 use gausmoke_render::backends::device_by_name;
 use gausmoke_train::arrays::read_arrays;
-use gausmoke_train::config::{AgreementAttributes, OptimizerReset};
+use gausmoke_train::config::{AgreementAttributes, BlurAxes, OptimizerReset};
 use gausmoke_train::metrics::mean_abs_error;
+use gausmoke_train::residual_blur::blur_matrix;
 use gausmoke_train::sequence::Sequence;
 use gausmoke_train::{Phase, Run, TrainConfig, eval};
 
@@ -1476,6 +1477,75 @@ fn a_refinement_step_can_keep_to_what_the_views_agree_on() {
     assert!(plain > 0, "the plain step moved no density");
     assert!(agreed > 0, "the views agreed on no density");
     assert!(agreed < plain, "agreed {agreed} against plain {plain}");
+}
+
+/// `refine_loss_blur` (ours): the refinement's L1 is that of each view's residual blurred
+/// (here along both axes, then along the rows alone). With no joint iterations its first step
+/// starts from frame 0's fit, so its logged loss is the blurred residual's, computed here on
+/// the host from the same renders, and differs from the plain L1.
+#[test]
+fn the_refinement_can_fit_blurred_residuals() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let sigma = 1.5;
+    for (axes, name) in [(BlurAxes::Both, "both"), (BlurAxes::Horizontal, "rows")] {
+        let config = TrainConfig {
+            frames: Some(2),
+            advect_iterations: 0,
+            refine_iterations: 1,
+            refine_views_per_step: 1,
+            refine_loss_blur: sigma,
+            refine_loss_blur_axes: axes,
+            log_every: 1,
+            ..joint_terms_config()
+        };
+        let mut run = after_frame_0(&data, dir.path(), config, name);
+        let views = run.trainer.sequence.train[1].clone();
+        let render = run.trainer.render_host(&views[..1]).unwrap().remove(0);
+        let (w, h) = (
+            views[0].camera.width() as usize,
+            views[0].camera.height() as usize,
+        );
+        let residual: Vec<f32> = render
+            .iter()
+            .zip(views[0].image.data())
+            .map(|(r, t)| r - t)
+            .collect();
+        let vertical = blur_matrix(h, if axes == BlurAxes::Both { sigma } else { 0.0 });
+        let horizontal = blur_matrix(w, sigma);
+        let mut blurred = 0.0f64;
+        for y in 0..h {
+            for x in 0..w {
+                for c in 0..3 {
+                    let mut v = 0.0f64;
+                    for yy in 0..h {
+                        for xx in 0..w {
+                            let weight = vertical[y * h + yy] * horizontal[x * w + xx];
+                            v += (weight * residual[(yy * w + xx) * 3 + c]) as f64;
+                        }
+                    }
+                    blurred += v.abs();
+                }
+            }
+        }
+        let blurred = (blurred / (h * w * 3) as f64) as f32;
+        let plain = mean_abs_error(&render, views[0].image.data()) as f32;
+        let outcome = run.trainer.advance_to(1).unwrap();
+        let logged = outcome
+            .losses
+            .iter()
+            .find(|row| row.phase == Phase::Refine)
+            .expect("one refinement step")
+            .render;
+        assert!(
+            (logged - blurred).abs() < 1e-3 * blurred,
+            "{name}: logged {logged}, blurred on the host {blurred}"
+        );
+        assert!(
+            (plain - blurred).abs() > 1e-2 * plain,
+            "{name}: the blur changed nothing ({plain} against {blurred})"
+        );
+    }
 }
 
 /// `refine_views_per_step` (ours): each refinement step renders that many training views in
