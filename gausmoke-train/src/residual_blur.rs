@@ -11,7 +11,9 @@ use burn::tensor::{Device, Tensor, TensorData};
 /// The row-normalised blur matrices for one image size.
 #[derive(Debug, Clone)]
 pub struct ResidualBlur {
-    rows: Tensor<2>,
+    /// Mixes the image's rows (the vertical blur); `None` when it blurs along rows alone.
+    rows: Option<Tensor<2>>,
+    /// Mixes the image's columns (the horizontal blur).
     columns: Tensor<2>,
 }
 
@@ -28,21 +30,23 @@ impl ResidualBlur {
         let matrix = |n: usize, sigma: f32| {
             Tensor::<2>::from_data(TensorData::new(blur_matrix(n, sigma), [n, n]), device)
         };
-        let vertical = if horizontal_only { 0.0 } else { sigma };
         Self {
-            rows: matrix(height, vertical),
+            rows: (!horizontal_only).then(|| matrix(height, sigma)),
             columns: matrix(width, sigma),
         }
     }
 
-    /// `image` `[H, W, C]` blurred along both image axes.
+    /// `image` `[H, W, C]` blurred along the image axes this blur acts on.
     pub fn apply(&self, image: Tensor<3>) -> Tensor<3> {
         let [h, w, c] = image.dims();
-        let along_rows = self.rows.clone().matmul(image.reshape([h, w * c]));
-        let by_column = along_rows
-            .reshape([h, w, c])
-            .swap_dims(0, 1)
-            .reshape([w, h * c]);
+        let image = match &self.rows {
+            Some(rows) => rows
+                .clone()
+                .matmul(image.reshape([h, w * c]))
+                .reshape([h, w, c]),
+            None => image,
+        };
+        let by_column = image.swap_dims(0, 1).reshape([w, h * c]);
         let both = self.columns.clone().matmul(by_column);
         both.reshape([w, h, c]).swap_dims(0, 1)
     }

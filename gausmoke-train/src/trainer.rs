@@ -1428,12 +1428,12 @@ impl Trainer {
             .collect();
         // The steps whose states are averaged into the frame's result (none: the last one).
         let average_from = refine_iterations.saturating_sub(config.refine_average_steps);
+        let horizontal_only = config.refine_loss_blur_axes == BlurAxes::Horizontal;
         let blurs: Option<Vec<ResidualBlur>> = (config.refine_loss_blur > 0.0).then(|| {
             cameras
                 .iter()
                 .map(|c| {
                     let [h, w] = [c.height() as usize, c.width() as usize];
-                    let horizontal_only = config.refine_loss_blur_axes == BlurAxes::Horizontal;
                     ResidualBlur::new(h, w, config.refine_loss_blur, horizontal_only, &self.device)
                 })
                 .collect()
