@@ -567,6 +567,16 @@ pub struct TrainConfig {
     /// every parameter by the learning rate. Measured on the long plume: within the seeds'
     /// spread after frame 0, worse at every frame (docs/RESULTS.md, issue 18's item).
     pub gaussian_optimizer_reset: OptimizerReset,
+    /// From frame 1 on, Adam's epsilon for the smoke Gaussians relative to each attribute's
+    /// gradient (ours; 0 = off: the tiny absolute epsilon of 3DGS practice throughout).
+    /// Each attribute's gradient is divided by its root mean square over the Gaussians at
+    /// that step and Adam's state starts afresh after frame 0 with this epsilon. Adam then
+    /// moves a parameter by about the learning rate only where its gradient is large beside
+    /// the others', and in proportion to it elsewhere, as plain gradient descent does, so a
+    /// fit keeps more of the carried state where the views say little (a step of plain
+    /// Adam moves every parameter by about the learning rate whatever its gradient).
+    /// In [0, 100].
+    pub relative_adam_epsilon: f32,
     /// A diagnostic for synthetic scenes (ours; off by default): from frame 1 on, the joint
     /// iterations carry the Gaussians along the data set's true velocity of frame t
     /// (`gt/frame_TTT.safetensors`, on a grid of `grid_resolution` cells) instead of Phi's,
@@ -696,6 +706,7 @@ impl Default for TrainConfig {
             max_size_factor: 0.0,
             uniform_color: false,
             gaussian_optimizer_reset: OptimizerReset::Never,
+            relative_adam_epsilon: 0.0,
             velocity_from_ground_truth: false,
             ground_truth_velocity_scale: 1.0,
             seed: 2026,
@@ -1032,6 +1043,12 @@ impl TrainConfig {
             return bad(format!(
                 "ground_truth_velocity_scale must be in [0, 10], got {}",
                 self.ground_truth_velocity_scale
+            ));
+        }
+        if !(0.0..=100.0).contains(&self.relative_adam_epsilon) {
+            return bad(format!(
+                "relative_adam_epsilon must be in [0, 100], got {}",
+                self.relative_adam_epsilon
             ));
         }
         let ceiling = self.max_size_factor;

@@ -172,10 +172,10 @@ impl Run {
                 }
             };
             self.check_resumable(dir, &trained)?;
-            let fresh = self.trainer.fresh_state();
+            let fresh = self.trainer.fresh_state_for_resume();
             match checkpoint::load(dir, fresh, &self.trainer.device) {
                 Ok((state, meta)) => {
-                    self.trainer.state = state;
+                    self.trainer.restore(state);
                     self.frame = Some(meta.frame);
                     self.losses = meta.losses;
                     self.reports = meta.reports;

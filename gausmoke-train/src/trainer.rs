@@ -52,7 +52,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::TrainError;
 use crate::arrays::{read_arrays, take_array};
-use crate::attribute_grads::{attribute_grads, attribute_params, per_attribute_params};
+use crate::attribute_grads::{
+    attribute_grads, attribute_params, grads_over_their_rms, per_attribute_params,
+};
 use crate::carried_smoothing::smooth_carried_densities;
 use crate::config::{
     BlurAxes, CarrierShare, CorrectionTarget, EmissionTiming, IntegratorKind, InterpolationKind,
@@ -459,6 +461,9 @@ pub struct Trainer {
     /// far (`carrier_share = "explained_of_best"`); a resumed run takes it from its reports.
     pub best_explained: f32,
     quiet: bool,
+    /// Frame 0's fit is done (or a checkpoint was loaded): the Gaussians step as the frames
+    /// after it do (`relative_adam_epsilon`).
+    past_first_frame: bool,
 }
 
 fn image_tensor(observation: &Observation, device: &Device) -> Tensor<3> {
@@ -522,6 +527,7 @@ impl Trainer {
             last_moves: None,
             best_explained: 0.0,
             quiet: false,
+            past_first_frame: false,
         })
     }
 
@@ -536,9 +542,22 @@ impl Trainer {
         self
     }
 
-    /// A fresh state of this trainer's shape (what a checkpoint is loaded into).
-    pub fn fresh_state(&self) -> TrainState {
-        fresh_state(&self.sequence, &self.config, &self.grid, &self.device)
+    /// A fresh state of this trainer's shape for a checkpoint to be loaded into. Every
+    /// checkpoint is written after a frame, so its Gaussians' optimizer is the one the frames
+    /// after frame 0 step with.
+    pub fn fresh_state_for_resume(&self) -> TrainState {
+        let mut state = fresh_state(&self.sequence, &self.config, &self.grid, &self.device);
+        if self.config.relative_adam_epsilon > 0.0 {
+            state.gaussian_optim = frame_gaussian_optimizer(&self.config);
+        }
+        state
+    }
+
+    /// Takes the state a checkpoint held (see [`Trainer::fresh_state_for_resume`]): the
+    /// Gaussians step from now on as they do past frame 0.
+    pub fn restore(&mut self, state: TrainState) {
+        self.state = state;
+        self.past_first_frame = true;
     }
 
     fn interpolation(&self) -> Interpolation {
@@ -957,6 +976,11 @@ impl Trainer {
         learning_rates: Gaussians<f64>,
         log_scale_bounds: [f32; 2],
     ) {
+        let grads = if self.past_first_frame && self.config.relative_adam_epsilon > 0.0 {
+            grads_over_their_rms(grads, &self.state.gaussians)
+        } else {
+            grads
+        };
         self.state.gaussians = adam_on_attributes(
             self.state.gaussians.clone(),
             &mut self.state.gaussian_optim,
@@ -1025,9 +1049,12 @@ impl Trainer {
         // The statics were fitted first; frame 0 fits the smoke in front of them.
         losses.extend(self.fit_to_images(StillFit::FirstFrame, &observations, &targets)?);
         let traffic = vec![LoopTraffic::of(Phase::Init, losses.len(), start)];
-        if self.config.gaussian_optimizer_reset == OptimizerReset::AfterFirstFrame {
-            self.state.gaussian_optim = gaussian_optimizer();
+        if self.config.gaussian_optimizer_reset == OptimizerReset::AfterFirstFrame
+            || self.config.relative_adam_epsilon > 0.0
+        {
+            self.state.gaussian_optim = frame_gaussian_optimizer(&self.config);
         }
+        self.past_first_frame = true;
         Ok(FrameOutcome {
             frame: 0,
             train_l1: losses.last().map_or(f32::NAN, |r| r.render) as f64,
@@ -1050,7 +1077,7 @@ impl Trainer {
     pub fn advance_to(&mut self, t: usize) -> Result<FrameOutcome, TrainError> {
         let config = self.config.clone();
         if config.gaussian_optimizer_reset == OptimizerReset::EveryFrame {
-            self.state.gaussian_optim = gaussian_optimizer();
+            self.state.gaussian_optim = frame_gaussian_optimizer(&config);
         }
         if config.carried_smoothing > 0.0 {
             self.smooth_carried(t);
@@ -2303,6 +2330,18 @@ fn warm_start(path: &Path, count: usize, device: &Device) -> Result<GaussianMode
 fn gaussian_optimizer() -> ModuleOptimizer {
     // 3DGS practice: a tiny epsilon, so rarely-seen Gaussians still move.
     AdamConfig::new().with_epsilon(1e-15).init()
+}
+
+/// A fresh Adam state for the smoke Gaussians past frame 0: with `relative_adam_epsilon`
+/// its epsilon, in units of each attribute's gradient RMS (see [`grads_over_their_rms`]).
+fn frame_gaussian_optimizer(config: &TrainConfig) -> ModuleOptimizer {
+    if config.relative_adam_epsilon > 0.0 {
+        AdamConfig::new()
+            .with_epsilon(config.relative_adam_epsilon)
+            .init()
+    } else {
+        gaussian_optimizer()
+    }
 }
 
 #[cfg(test)]

@@ -66,6 +66,7 @@ const KEYS: &[(&str, bool)] = &[
     ("carried_smoothing_cells", true),
     ("min_size_factor", true),
     ("max_size_factor", true),
+    ("relative_adam_epsilon", true),
     ("seed", true),
     ("output_every", true),
     ("log_every", true),
