@@ -1154,7 +1154,8 @@ impl TrainConfig {
         }
         if flow != 1.0 && self.open_faces.is_empty() {
             return bad(format!(
-                "open_face_flow = {flow} has no effect with no open faces: set open_faces too"
+                "open_face_flow = {flow} has no effect with no open faces: set open_faces \
+                 too, or open_face_flow = 1 (a preset may set it: the long plume's does)"
             ));
         }
         if !self.open_faces.is_empty() && self.projection != ProjectionKind::Exact {

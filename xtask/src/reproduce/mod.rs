@@ -223,6 +223,7 @@ fn quick_synthetic_long() -> TrainConfig {
         frames: None,
         image_size: None,
         open_faces: synthetic_open_faces(),
+        open_face_flow: SYNTHETIC_TOP_FLOW,
         ..quick_scalar_real()
     }
 }
@@ -231,6 +232,7 @@ fn quick_synthetic_long() -> TrainConfig {
 fn full_synthetic_long() -> TrainConfig {
     TrainConfig {
         open_faces: synthetic_open_faces(),
+        open_face_flow: SYNTHETIC_TOP_FLOW,
         ..TrainConfig::default()
     }
 }
@@ -239,6 +241,14 @@ fn full_synthetic_long() -> TrainConfig {
 fn synthetic_open_faces() -> Vec<String> {
     vec!["y+".into()]
 }
+
+/// The synthetic solver's top is open to pressure but its divergence reads a still cell above
+/// it: half the top cell's velocity on the face. The scene's true velocity lies closer to
+/// what this projection returns than to an outflow's or a wall's, and on the long plume it
+/// gains +0.28 +- 0.32 dB held out and lowers the velocity's error by 0.029 +- 0.018 against
+/// the outflow (eight paired seeds), its sampled frames against the frames fitted alone
+/// within the spread of a placebo. docs/RESULTS.md, "Why we fall short", item 1.
+const SYNTHETIC_TOP_FLOW: f32 = 0.5;
 
 /// The plume rises through the box's top and draws air in at the bottom; with these two faces
 /// solid the quick preset fell below fitting each frame alone after frame 60 (three paired
@@ -1043,6 +1053,8 @@ mod tests {
             );
             assert_eq!(config.lambda_refine_grid, tie, "{target:?}");
             assert_eq!(config.increment_horizontal_weight, horizontal, "{target:?}");
+            let top_flow = if one_view { SYNTHETIC_TOP_FLOW } else { 1.0 };
+            assert_eq!(config.open_face_flow, top_flow, "{target:?}");
             config.validate().unwrap();
 
             let args = ReproduceArgs {
@@ -1072,6 +1084,7 @@ mod tests {
             assert_eq!(config.increment_horizontal_weight, 1.0);
             // Everything else is the preset's.
             assert_eq!(config.open_faces, ours.config.open_faces);
+            assert_eq!(config.open_face_flow, ours.config.open_face_flow);
             assert_eq!(config.gaussians, ours.config.gaussians);
         }
         // Presets of other scenes keep the paper's update.
@@ -1110,6 +1123,7 @@ mod tests {
         };
         let recorded = TrainConfig {
             open_faces: Vec::new(),
+            open_face_flow: 1.0,
             gaussians: 1234,
             seed: 3,
             ..quick_synthetic_long()

@@ -164,6 +164,13 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
     if !faces.is_empty() {
         settings.push(("open_faces", format!("open faces {}", faces.join(" "))));
     }
+    if let Some(flow) = config["open_face_flow"]
+        .as_f64()
+        .map(|f| f as f32)
+        .filter(|&f| f != 1.0)
+    {
+        settings.push(("open_face_flow", format!("open-face flow {flow}")));
+    }
     settings
 }
 
@@ -702,6 +709,20 @@ mod tests {
              prediction, inertia prior 0.01, recycled into [0.35, 0, 0.35, 0.65, 0.15, 0.65], \
              open faces y+"
         );
+        // A half-open top: named when a preset sets it, not twice when --set did, not at 1.
+        let top = |label: &str, flow: f64| {
+            variant(&json!({"variant": label,
+                            "config": {"open_faces": ["y+"], "open_face_flow": flow}}))
+        };
+        assert_eq!(
+            top("full method", 0.5),
+            "full method, open faces y+, open-face flow 0.5"
+        );
+        assert_eq!(
+            top("full method, open_face_flow=0.5", 0.5),
+            "full method, open_face_flow=0.5, open faces y+"
+        );
+        assert_eq!(top("full method", 1.0), "full method, open faces y+");
         // The sizes' own learning rate: named when a preset sets it, not twice when --set did.
         let sizes = json!({"variant": "full method", "config": {"lr_log_scales": 0.0005}});
         assert_eq!(variant(&sizes), "full method, sizes at lr 0.0005");
