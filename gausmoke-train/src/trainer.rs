@@ -546,11 +546,10 @@ impl Trainer {
     /// checkpoint is written after a frame, so its Gaussians' optimizer is the one the frames
     /// after frame 0 step with.
     pub fn fresh_state_for_resume(&self) -> TrainState {
-        let mut state = fresh_state(&self.sequence, &self.config, &self.grid, &self.device);
-        if self.config.relative_adam_epsilon > 0.0 {
-            state.gaussian_optim = frame_gaussian_optimizer(&self.config);
+        TrainState {
+            gaussian_optim: frame_gaussian_optimizer(&self.config),
+            ..fresh_state(&self.sequence, &self.config, &self.grid, &self.device)
         }
-        state
     }
 
     /// Takes the state a checkpoint held (see [`Trainer::fresh_state_for_resume`]): the
