@@ -12,7 +12,7 @@
 //! initialisation); their arithmetic is [`crate::conv`], which on the CPU backends replaces
 //! burn's (no 3D pooling is needed).
 
-use burn::module::{Initializer, Module};
+use burn::module::{Initializer, Module, ModuleVisitor, Param};
 use burn::nn::PaddingConfig3d;
 use burn::nn::conv::{Conv3d, Conv3dConfig, ConvTranspose3d, ConvTranspose3dConfig};
 use burn::tensor::activation::silu;
@@ -75,6 +75,15 @@ impl DoubleConv {
     }
 }
 
+/// Reads every float parameter once, which draws the lazily initialised ones.
+struct DrawInitialWeights;
+
+impl ModuleVisitor for DrawInitialWeights {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        let _ = param.val();
+    }
+}
+
 /// Phi: `(u, sigma_grid, t) -> Delta u`.
 #[derive(Module, Debug)]
 pub struct VelocityUNet {
@@ -105,7 +114,7 @@ impl VelocityUNet {
                 .with_stride([2, 2, 2])
                 .init(device)
         };
-        Self {
+        let unet = Self {
             encode1: DoubleConv::new(input, c, device),
             down1: down(c, 2 * c),
             encode2: DoubleConv::new(2 * c, 2 * c, device),
@@ -119,7 +128,14 @@ impl VelocityUNet {
                 .with_initializer(Initializer::Zeros)
                 .init(device),
             time_frequencies: config.time_frequencies,
-        }
+        };
+        // burn draws a layer's initial weights when they are first read, from the backend's
+        // generator, which is shared by everything in the process: drawn here, right after the
+        // caller seeds it, they do not depend on what else the process draws before Phi's
+        // first use. The module order is the forward pass's, so the weights are those that
+        // a first forward pass would draw.
+        unet.visit(&mut DrawInitialWeights);
+        unet
     }
 
     /// `Delta u [nx, ny, nz, 3]` from `velocity [nx, ny, nz, 3]`, `density [nx, ny, nz]` and
@@ -194,6 +210,7 @@ impl VelocityUNet {
 #[allow(clippy::disallowed_methods)] // tests read tensors freely
 mod tests {
     use super::*;
+    use burn::tensor::Distribution;
     use gausmoke_render::backends::cpu_devices;
 
     fn inputs(device: &Device, n: [usize; 3]) -> (Tensor<4>, Tensor<3>) {
@@ -242,6 +259,47 @@ mod tests {
             assert!(
                 g.iter().any(|v| v.abs() > 1e-6),
                 "{backend}: gradient reaches the output layer"
+            );
+        }
+    }
+
+    /// Every float parameter's values, in module order.
+    struct Values(Vec<f32>);
+
+    impl ModuleVisitor for Values {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            let values = param.val().into_data().try_into_vec_as::<f32>().unwrap();
+            self.0.extend(values);
+        }
+    }
+
+    /// The seed alone decides Phi's initial weights: what the process draws from the
+    /// backend's generator between making Phi and using it does not move them.
+    #[test]
+    fn its_initial_weights_depend_on_the_seed_alone() {
+        let config = UNetConfig {
+            base_channels: 2,
+            time_frequencies: 1,
+        };
+        for (backend, device) in cpu_devices() {
+            let weights = |draw_between: bool| {
+                device.seed(7);
+                let unet = VelocityUNet::new(&config, &device);
+                if draw_between {
+                    let _ = Tensor::<1>::random([64], Distribution::Default, &device).into_data();
+                }
+                let mut values = Values(Vec::new());
+                unet.visit(&mut values);
+                values.0
+            };
+            let plain = weights(false);
+            assert!(
+                plain == weights(true),
+                "{backend}: a draw between making Phi and using it moved its initial weights"
+            );
+            assert!(
+                plain.iter().any(|&v| v != 0.0),
+                "{backend}: weights were drawn"
             );
         }
     }
