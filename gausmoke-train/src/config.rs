@@ -106,6 +106,20 @@ pub enum CarrierShare {
     ExplainedOfBest,
 }
 
+/// Whether the refinement holds one training view back (see `refine_held_view`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum HeldView {
+    /// Every training view is fitted (the paper's method).
+    Off,
+    /// View `t mod views` is left out of frame t's refinement, and the frame keeps the
+    /// refinement's state at which that view's L1 was lowest.
+    EarlyStop,
+    /// View `t mod views` is left out and its L1 checked, but the frame keeps the last state:
+    /// what leaving a view out costs without the stop.
+    LeftOut,
+}
+
 /// Which velocity carries the Gaussians on from frame t+1 in the look-ahead (see
 /// `lambda_lookahead` and `lookahead_frames`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -316,6 +330,17 @@ pub struct TrainConfig {
     /// last view fitted, the same view at every frame; a whole turn's mean weighs them alike.
     /// The frame's train L1 stays the steps' own.
     pub refine_average_steps: usize,
+    /// One training view held back from each frame's refinement (ours; `off`, the paper's
+    /// method, by default): with `early_stop`, view `t mod views` is not fitted by frame t's
+    /// refinement, its L1 is checked before the first step and after each turn of the other
+    /// views, and the frame keeps the state (static Gaussians included) where it was lowest;
+    /// `left_out` checks it and keeps the last state. The joint iterations and frame 0's fit
+    /// still fit every view.
+    pub refine_held_view: HeldView,
+    /// Records the held-out views' PSNR before the refinement's first step and after each
+    /// turn of its views (ours, a diagnostic; off by default): `refine_test_psnr` in each
+    /// frame's report. Nothing is fed back; the run learns what it learns without it.
+    pub refine_test_trace: bool,
     /// Sign agreement the training views must reach for a refinement step to move a
     /// Gaussian's parameter (ours; 0 = off, the paper's method): each step takes every view's
     /// gradient on its own and keeps each element of their mean where `|sum of the views'
@@ -643,6 +668,8 @@ impl Default for TrainConfig {
             refine_iterations: 50,
             refine_views_per_step: 0,
             refine_average_steps: 0,
+            refine_held_view: HeldView::Off,
+            refine_test_trace: false,
             refine_view_agreement: 0.0,
             refine_view_agreement_attributes: AgreementAttributes::All,
             refine_loss_blur: 0.0,
@@ -916,6 +943,16 @@ impl TrainConfig {
                 "refine_view_agreement takes every training view's gradient at each refinement \
                  step, and refine_views_per_step is {}: set refine_views_per_step = 0",
                 self.refine_views_per_step
+            ));
+        }
+        if self.refine_held_view != HeldView::Off
+            && (self.refine_view_agreement > 0.0 || self.refine_average_steps > 1)
+        {
+            return bad(format!(
+                "refine_held_view keeps one of the refinement's states, which \
+                 refine_view_agreement ({}) and refine_average_steps ({}) replace: set them to 0 \
+                 or refine_held_view = \"off\"",
+                self.refine_view_agreement, self.refine_average_steps
             ));
         }
         if !(0.0..=32.0).contains(&self.refine_loss_blur) {

@@ -6,6 +6,9 @@ use burn::tensor::Tensor;
 use gausmoke_model::{BuoyancyForce, GaussianModel, VelocityUNet};
 use serde::{Deserialize, Serialize};
 
+use crate::held_view::HeldViewReport;
+use crate::test_trace::StepPsnr;
+
 /// Everything the optimisation changes; what a checkpoint stores.
 pub struct TrainState {
     pub gaussians: GaussianModel,
@@ -182,6 +185,12 @@ pub struct FrameReport {
     /// "predicted"`, `"explained"` or `"explained_of_best"`).
     #[serde(default)]
     pub carrier_explained: Option<f64>,
+    /// What the training view held back from the refinement showed (`refine_held_view`).
+    #[serde(default)]
+    pub held_view: Option<HeldViewReport>,
+    /// The held-out views' PSNR along the refinement (`refine_test_trace`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub refine_test_psnr: Vec<StepPsnr>,
     /// Mean and largest speed of the velocity grid (world units per frame).
     pub mean_speed: f64,
     pub max_speed: f64,

@@ -57,10 +57,13 @@ use crate::attribute_grads::{
 };
 use crate::carried_smoothing::smooth_carried_densities;
 use crate::config::{
-    BlurAxes, CarrierShare, CorrectionTarget, EmissionTiming, IntegratorKind, InterpolationKind,
-    LookaheadVelocity, Obstacles, OptimizerReset, ProjectionKind, TrainConfig,
+    BlurAxes, CarrierShare, CorrectionTarget, EmissionTiming, HeldView, IntegratorKind,
+    InterpolationKind, LookaheadVelocity, Obstacles, OptimizerReset, ProjectionKind, TrainConfig,
 };
 use crate::emission::{EmissionOptions, EmissionReport, emit};
+use crate::held_view::{
+    HeldViewChecks, HeldViewReport, KeptState, fitted_views, held_view, steps_per_turn,
+};
 use crate::host_grid::smoothed;
 use crate::iterate_mean::IterateMean;
 use crate::residual_blur::ResidualBlur;
@@ -74,6 +77,7 @@ use crate::state::{
     Buoyancy, LoopTraffic, LossRow, Phase, RefineMoveField, StaticGaussians, TrainState,
 };
 use crate::step_log::{StepLog, StepLosses};
+use crate::test_trace::{StepPsnr, TestTrace};
 use crate::view_agreement::{combine, masked_attributes};
 
 /// What training one frame produced.
@@ -109,6 +113,10 @@ pub struct FrameOutcome {
     /// The share of the still prediction's loss that the carrier's prediction removed
     /// (`carrier_share = "predicted"`, `"explained"` or `"explained_of_best"`).
     pub carrier_explained: Option<f32>,
+    /// What the view held back from the refinement showed (`refine_held_view`).
+    pub held_view: Option<HeldViewReport>,
+    /// The held-out views' PSNR along the refinement (`refine_test_trace`).
+    pub refine_test_psnr: Vec<StepPsnr>,
 }
 
 /// The shares of the predicted move that `carrier_share = "predicted"` renders.
@@ -495,6 +503,21 @@ impl Trainer {
                     config.refine_views_per_step
                 ),
             });
+        }
+        if config.refine_held_view != HeldView::Off {
+            let fitted = views.saturating_sub(1);
+            if fitted == 0 || config.refine_views_per_step > fitted {
+                return Err(TrainError::Config {
+                    origin: "configuration".into(),
+                    reason: format!(
+                        "refine_held_view holds one of the data set's {views} training views \
+                         back from the refinement, which leaves {fitted} to fit, and \
+                         refine_views_per_step is {}: it needs two views or more, and at most \
+                         {fitted} a step",
+                        config.refine_views_per_step
+                    ),
+                });
+            }
         }
         if config.velocity_from_ground_truth && sequence.ground_truth.is_none() {
             return Err(TrainError::Config {
@@ -1069,6 +1092,8 @@ impl Trainer {
             buoyancy: self.buoyancy_coefficient(),
             carrier_share: None,
             carrier_explained: None,
+            held_view: None,
+            refine_test_psnr: Vec::new(),
         })
     }
 
@@ -1465,7 +1490,33 @@ impl Trainer {
                 .collect()
         });
         let mut iterate_mean = IterateMean::new();
+        // With a held view (`refine_held_view`), the refinement fits the other views and
+        // checks the held one before its first step and after each turn of them.
+        let held = (config.refine_held_view != HeldView::Off && refine_iterations > 0)
+            .then(|| held_view(t, cameras.len()));
+        let fitted = match held {
+            Some(view) => fitted_views(cameras.len(), view),
+            None => (0..cameras.len()).collect(),
+        };
+        let turn = steps_per_turn(fitted.len(), config.refine_views_per_step);
+        let mut held_checks = held.map(HeldViewChecks::new);
+        let mut held_lists = ListCapacities::new(config.tile_list_headroom);
+        // The held-out views, for the diagnostic trace (`refine_test_trace`).
+        let held_out: Vec<(Camera, Tensor<3>)> = match self.sequence.test.get(t) {
+            Some(test) if config.refine_test_trace && refine_iterations > 0 => test
+                .iter()
+                .map(|o| (o.camera, image_tensor(o, &self.device)))
+                .collect(),
+            _ => Vec::new(),
+        };
+        let mut test_trace = (!held_out.is_empty()).then(TestTrace::new);
         let start = Traffic::now();
+        if let (Some(view), Some(checks)) = (held, held_checks.as_mut()) {
+            self.check_held_view(checks, 0, (&cameras[view], &targets[view]), &mut held_lists)?;
+        }
+        if let Some(trace) = test_trace.as_mut() {
+            self.trace_held_out(trace, 0, &held_out)?;
+        }
         // The refinement's ties (lines 11-13 and ours): the centres to the advected ones, the
         // moves' grid-scale part, the densities; `(L_refine, the ties' weighted sum)`.
         let tie_losses = |gaussians: &GaussianTensors| {
@@ -1537,8 +1588,11 @@ impl Trainer {
                 self.step_gaussians_with(params, rates, log_scale_bounds);
             } else {
                 let gaussians = self.state.gaussians.tensors();
-                let group =
-                    refinement_views(iteration, cameras.len(), config.refine_views_per_step);
+                let group: Vec<usize> =
+                    refinement_views(iteration, fitted.len(), config.refine_views_per_step)
+                        .into_iter()
+                        .map(|i| fitted[i])
+                        .collect();
                 let group_cameras: Vec<Camera> = group.iter().map(|&v| cameras[v]).collect();
                 let group_targets: Vec<Tensor<3>> =
                     group.iter().map(|&v| targets[v].clone()).collect();
@@ -1576,6 +1630,16 @@ impl Trainer {
             if config.refine_average_steps > 1 && iteration >= average_from {
                 iterate_mean.add(self.state.gaussians.tensors());
             }
+            let done = iteration + 1;
+            if done % turn == 0 || done == refine_iterations {
+                if let (Some(view), Some(checks)) = (held, held_checks.as_mut()) {
+                    let view = (&cameras[view], &targets[view]);
+                    self.check_held_view(checks, done, view, &mut held_lists)?;
+                }
+                if let Some(trace) = test_trace.as_mut() {
+                    self.trace_held_out(trace, done, &held_out)?;
+                }
+            }
             if log.due() || iteration + 1 == refine_iterations {
                 read_log(&mut log, &mut losses, &bar, None)?;
                 group_lists.iter_mut().for_each(ListCapacities::expire);
@@ -1589,6 +1653,16 @@ impl Trainer {
             self.state.gaussians = self.state.gaussians.clone().with_values(mean);
             self.keep_out_of_obstacles();
         }
+        let keep_best = config.refine_held_view == HeldView::EarlyStop;
+        let held_report = match held_checks.and_then(|checks| checks.finish(keep_best)) {
+            Some((report, kept)) => {
+                if let Some(kept) = kept {
+                    self.keep_refinement_state(kept);
+                }
+                Some(report)
+            }
+            None => None,
+        };
         traffic.push(LoopTraffic::of(Phase::Refine, refine_iterations, start));
         let (refine_moves, refine_move_field) = match grid_scale {
             Some(scale) => {
@@ -1627,7 +1701,7 @@ impl Trainer {
         self.state.velocity = velocity;
         Ok(FrameOutcome {
             frame: t,
-            train_l1: last_turn_l1(&losses, cameras.len(), config.refine_views_per_step),
+            train_l1: last_turn_l1(&losses, fitted.len(), config.refine_views_per_step),
             losses,
             projection: Some(self.projection_report(unprojected)),
             clamped_to_box: clamped,
@@ -1640,7 +1714,68 @@ impl Trainer {
             buoyancy: self.buoyancy_coefficient(),
             carrier_share,
             carrier_explained: prediction.map(|(_, explained)| explained),
+            held_view: held_report,
+            refine_test_psnr: test_trace.map(TestTrace::finish).unwrap_or_default(),
         })
+    }
+
+    /// Renders the held view (`refine_held_view`) from the refinement's state after `step`
+    /// steps, outside the autodiff graph, and records its L1 with the state.
+    fn check_held_view(
+        &self,
+        checks: &mut HeldViewChecks,
+        step: usize,
+        (camera, target): (&Camera, &Tensor<3>),
+        lists: &mut ListCapacities,
+    ) -> Result<(), TrainError> {
+        let _phase = phase!("held view check");
+        let smoke = self.state.gaussians.tensors().detach();
+        let statics = self
+            .state
+            .statics
+            .as_ref()
+            .map(|s| s.gaussians.tensors().detach());
+        let (l1, _) = self.render_loss(
+            &self.scene(smoke.clone(), false).detach(),
+            std::slice::from_ref(camera),
+            std::slice::from_ref(target),
+            lists,
+        )?;
+        checks.record(step, l1, smoke, statics);
+        Ok(())
+    }
+
+    /// Records the held-out views' squared errors from the refinement's state after `step`
+    /// steps (`refine_test_trace`), outside the autodiff graph, clamped as the reports' PSNR
+    /// clamps them.
+    fn trace_held_out(
+        &self,
+        trace: &mut TestTrace,
+        step: usize,
+        held_out: &[(Camera, Tensor<3>)],
+    ) -> Result<(), TrainError> {
+        let _phase = phase!("held-out trace");
+        let scene = self.scene(self.state.gaussians.tensors(), false).detach();
+        let errors = held_out
+            .iter()
+            .map(|(camera, target)| {
+                let out = render_volume(&scene, camera, &self.background, &self.raster)?;
+                let residual = out.rgb.clamp(0.0, 1.0) - target.clone().clamp(0.0, 1.0);
+                Ok(residual.powi_scalar(2).mean())
+            })
+            .collect::<Result<Vec<_>, TrainError>>()?;
+        trace.record(step, Tensor::cat(errors, 0));
+        Ok(())
+    }
+
+    /// Ends the refinement on an earlier state of it (the held view's best, static
+    /// Gaussians included), keeping the parameters' ids for the optimisers.
+    fn keep_refinement_state(&mut self, kept: KeptState) {
+        self.state.gaussians = self.state.gaussians.clone().with_values(kept.smoke);
+        if let (Some(statics), Some(values)) = (self.state.statics.as_mut(), kept.statics) {
+            statics.gaussians = statics.gaussians.clone().with_values(values);
+        }
+        self.keep_out_of_obstacles();
     }
 
     /// The data set's true velocity of frame `t` on the grid (`velocity_from_ground_truth`),

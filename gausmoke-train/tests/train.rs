@@ -12,7 +12,7 @@ use gausmoke_data::synth::{SynthConfig, generate};
 use gausmoke_model::SolidCells;
 use gausmoke_render::backends::device_by_name;
 use gausmoke_train::arrays::read_arrays;
-use gausmoke_train::config::{AgreementAttributes, BlurAxes, OptimizerReset};
+use gausmoke_train::config::{AgreementAttributes, BlurAxes, HeldView, OptimizerReset};
 use gausmoke_train::metrics::mean_abs_error;
 use gausmoke_train::residual_blur::blur_matrix;
 use gausmoke_train::sequence::Sequence;
@@ -1445,6 +1445,135 @@ fn the_refinement_can_end_on_the_mean_of_its_last_steps() {
         }
     }
     assert!(moved > 0.0, "the second step moved nothing");
+}
+
+/// `refine_held_view` (ours): frame t's refinement fits the views other than `t mod views`
+/// and checks that one after each turn of them. With `early_stop` the frame ends on the
+/// state where it was lowest: the state that the same refinement, left running as long as
+/// that (`left_out`, deterministic), ends on. The refinement's rate is raised until its late
+/// steps overshoot, so that the best state is not the last.
+#[test]
+fn a_held_back_view_stops_the_refinement_at_its_best_state() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let views = Sequence::open(&data, &joint_terms_config()).unwrap().train[0].len();
+    let config = |steps, held| TrainConfig {
+        frames: Some(2),
+        advect_iterations: 0,
+        refine_iterations: steps,
+        refine_views_per_step: 1,
+        refine_held_view: held,
+        lr_gaussians: 0.1,
+        ..joint_terms_config()
+    };
+    let after = |steps, held, name| {
+        let mut run = after_frame_0(&data, dir.path(), config(steps, held), name);
+        let outcome = run.trainer.advance_to(1).unwrap();
+        let report = outcome.held_view.expect("a held view is reported");
+        (report, run.trainer.state.gaussians.to_host())
+    };
+    let steps = 8 * (views - 1);
+    let (left_out, last) = after(steps, HeldView::LeftOut, "left_out");
+    assert_eq!(left_out.view, 1 % views);
+    assert!(!left_out.kept_best);
+    assert!(
+        left_out.best_step < steps,
+        "the held view was best at the last step: {left_out:?}"
+    );
+    assert_eq!(left_out.best_step % (views - 1), 0, "{left_out:?}");
+    assert!(
+        left_out.l1_best < left_out.l1_last.min(left_out.l1_before),
+        "{left_out:?}"
+    );
+    let (stopped, kept) = after(steps, HeldView::EarlyStop, "early_stop");
+    assert!(stopped.kept_best);
+    assert_eq!(
+        (stopped.best_step, stopped.l1_best),
+        (left_out.best_step, left_out.l1_best)
+    );
+    let (_, at_best) = after(left_out.best_step, HeldView::LeftOut, "at_best");
+    for ((kept, at_best), last) in kept.zip(at_best).zip(last).into_array() {
+        assert_eq!(kept, at_best);
+        assert_ne!(kept, last);
+    }
+    // One view left to fit, or one view in all, is refused with the setting named.
+    let mut averaged = config(steps, HeldView::EarlyStop);
+    averaged.refine_average_steps = 2;
+    let err = refusal(&data, dir.path(), averaged, "averaged");
+    assert!(
+        err.contains("refine_held_view") && err.contains("refine_average_steps"),
+        "{err}"
+    );
+    let mut every_view = config(steps, HeldView::EarlyStop);
+    every_view.refine_views_per_step = views;
+    let err = refusal(&data, dir.path(), every_view, "every_view");
+    assert!(
+        err.contains("refine_held_view") && err.contains("refine_views_per_step"),
+        "{err}"
+    );
+}
+
+/// Two runs of one configuration stepped in turn in one process repeat each other: what one
+/// draws from the backend's generator (Phi's initial weights, drawn when Phi is made) does not
+/// move the other's.
+#[test]
+fn two_runs_stepped_in_turn_repeat_each_other() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let config = TrainConfig {
+        frames: Some(2),
+        ..joint_terms_config()
+    };
+    let mut first = quiet_run(&data, dir.path(), config.clone(), "first");
+    let mut second = quiet_run(&data, dir.path(), config, "second");
+    for t in 0..2 {
+        let first = first.train_frame(t).unwrap().test_psnr;
+        let second = second.train_frame(t).unwrap().test_psnr;
+        assert_eq!(first, second, "frame {t}");
+    }
+    let state = |run: &Run| run.trainer.state.gaussians.to_host();
+    assert_eq!(state(&first), state(&second));
+}
+
+/// `refine_test_trace` (ours, a diagnostic): the held-out views' PSNR before the refinement
+/// and after each turn of its views. Tracing changes nothing the run learns, and the trace
+/// ends on the frame's own held-out PSNR.
+#[test]
+fn the_refinement_can_be_traced_on_the_held_out_views_without_changing_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let views = Sequence::open(&data, &joint_terms_config()).unwrap().train[0].len();
+    let config = |traced| TrainConfig {
+        frames: Some(2),
+        refine_iterations: 2 * views + 1,
+        refine_views_per_step: 1,
+        refine_test_trace: traced,
+        ..joint_terms_config()
+    };
+    let mut plain = quiet_run(&data, dir.path(), config(false), "plain");
+    let plain_reports: Vec<_> = (0..2)
+        .map(|t| plain.train_frame(t).unwrap().clone())
+        .collect();
+    let mut traced = quiet_run(&data, dir.path(), config(true), "traced");
+    for (t, plain) in plain_reports.iter().enumerate() {
+        let traced = traced.train_frame(t).unwrap().clone();
+        assert!(plain.refine_test_psnr.is_empty());
+        if t == 0 {
+            assert!(
+                traced.refine_test_psnr.is_empty(),
+                "frame 0 has no refinement"
+            );
+            continue;
+        }
+        let steps: Vec<usize> = traced.refine_test_psnr.iter().map(|s| s.step).collect();
+        assert_eq!(steps, vec![0, views, 2 * views, 2 * views + 1]);
+        let last = traced.refine_test_psnr.last().unwrap().psnr;
+        let reported = traced.test_psnr.unwrap();
+        assert!((last - reported).abs() < 1e-3, "{last} against {reported}");
+        assert_eq!(plain.test_psnr, traced.test_psnr);
+    }
+    let state = |run: &Run| run.trainer.state.gaussians.to_host();
+    assert_eq!(state(&plain), state(&traced));
 }
 
 /// `refine_view_agreement` (ours): a refinement step moves a Gaussian's density only where
