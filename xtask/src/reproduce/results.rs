@@ -123,17 +123,6 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
             format!("mean of the refinement's last {steps} steps"),
         ));
     }
-    match config["refine_held_view"].as_str() {
-        Some("early_stop") => settings.push((
-            "refine_held_view",
-            "refinement stopped where a held-back view is best".to_string(),
-        )),
-        Some("left_out") => settings.push((
-            "refine_held_view",
-            "one view held back from the refinement".to_string(),
-        )),
-        _ => {}
-    }
     if let Some(share) = weight("refine_view_agreement") {
         let what = match config["refine_view_agreement_attributes"].as_str() {
             Some("densities") => "densities",
