@@ -337,10 +337,12 @@ pub struct TrainConfig {
     /// `left_out` checks it and keeps the last state. The joint iterations and frame 0's fit
     /// still fit every view.
     pub refine_held_view: HeldView,
-    /// Records the held-out views' PSNR before the refinement's first step and after each
-    /// turn of its views (ours, a diagnostic; off by default): `refine_test_psnr` in each
+    /// Records the held-out views' PSNR through each frame after frame 0 (ours, a diagnostic;
+    /// off by default): the frame before's state where it stands, the state each joint
+    /// iteration renders (carried by that iteration's velocity), and the refinement's state
+    /// before its first step and after each turn of its views; `held_out_trace` in each
     /// frame's report. Nothing is fed back; the run learns what it learns without it.
-    pub refine_test_trace: bool,
+    pub held_out_trace: bool,
     /// Sign agreement the training views must reach for a refinement step to move a
     /// Gaussian's parameter (ours; 0 = off, the paper's method): each step takes every view's
     /// gradient on its own and keeps each element of their mean where `|sum of the views'
@@ -669,7 +671,7 @@ impl Default for TrainConfig {
             refine_views_per_step: 0,
             refine_average_steps: 0,
             refine_held_view: HeldView::Off,
-            refine_test_trace: false,
+            held_out_trace: false,
             refine_view_agreement: 0.0,
             refine_view_agreement_attributes: AgreementAttributes::All,
             refine_loss_blur: 0.0,

@@ -545,7 +545,7 @@ fn frame_report(
         carrier_share: outcome.carrier_share.map(f64::from),
         carrier_explained: outcome.carrier_explained.map(f64::from),
         held_view: outcome.held_view,
-        refine_test_psnr: outcome.refine_test_psnr.clone(),
+        held_out_trace: outcome.held_out_trace.clone(),
         mean_speed: speeds.iter().sum::<f64>() / speeds.len().max(1) as f64,
         max_speed: speeds.iter().cloned().fold(0.0, f64::max),
         seconds: start.elapsed().as_secs_f64(),

@@ -6,8 +6,8 @@ use burn::tensor::Tensor;
 use gausmoke_model::{BuoyancyForce, GaussianModel, VelocityUNet};
 use serde::{Deserialize, Serialize};
 
+use crate::held_out_trace::TracePoint;
 use crate::held_view::HeldViewReport;
-use crate::test_trace::StepPsnr;
 
 /// Everything the optimisation changes; what a checkpoint stores.
 pub struct TrainState {
@@ -188,9 +188,9 @@ pub struct FrameReport {
     /// What the training view held back from the refinement showed (`refine_held_view`).
     #[serde(default)]
     pub held_view: Option<HeldViewReport>,
-    /// The held-out views' PSNR along the refinement (`refine_test_trace`).
+    /// The held-out views' PSNR through the frame (`held_out_trace`).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub refine_test_psnr: Vec<StepPsnr>,
+    pub held_out_trace: Vec<TracePoint>,
     /// Mean and largest speed of the velocity grid (world units per frame).
     pub mean_speed: f64,
     pub max_speed: f64,

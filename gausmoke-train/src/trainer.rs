@@ -61,6 +61,7 @@ use crate::config::{
     InterpolationKind, LookaheadVelocity, Obstacles, OptimizerReset, ProjectionKind, TrainConfig,
 };
 use crate::emission::{EmissionOptions, EmissionReport, emit};
+use crate::held_out_trace::{HeldOutTrace, Stage, TracePoint};
 use crate::held_view::{
     HeldViewChecks, HeldViewReport, KeptState, fitted_views, held_view, steps_per_turn,
 };
@@ -77,7 +78,6 @@ use crate::state::{
     Buoyancy, LoopTraffic, LossRow, Phase, RefineMoveField, StaticGaussians, TrainState,
 };
 use crate::step_log::{StepLog, StepLosses};
-use crate::test_trace::{StepPsnr, TestTrace};
 use crate::view_agreement::{combine, masked_attributes};
 
 /// What training one frame produced.
@@ -115,8 +115,8 @@ pub struct FrameOutcome {
     pub carrier_explained: Option<f32>,
     /// What the view held back from the refinement showed (`refine_held_view`).
     pub held_view: Option<HeldViewReport>,
-    /// The held-out views' PSNR along the refinement (`refine_test_trace`).
-    pub refine_test_psnr: Vec<StepPsnr>,
+    /// The held-out views' PSNR through the frame (`held_out_trace`).
+    pub held_out_trace: Vec<TracePoint>,
 }
 
 /// The shares of the predicted move that `carrier_share = "predicted"` renders.
@@ -1093,7 +1093,7 @@ impl Trainer {
             carrier_share: None,
             carrier_explained: None,
             held_view: None,
-            refine_test_psnr: Vec::new(),
+            held_out_trace: Vec::new(),
         })
     }
 
@@ -1247,6 +1247,19 @@ impl Trainer {
             .iter()
             .map(|_| ListCapacities::new(config.tile_list_headroom))
             .collect();
+        // The held-out views, for the diagnostic trace (`held_out_trace`).
+        let held_out: Vec<(Camera, Tensor<3>)> = match self.sequence.test.get(t) {
+            Some(test) if config.held_out_trace => test
+                .iter()
+                .map(|o| (o.camera, image_tensor(o, &self.device)))
+                .collect(),
+            _ => Vec::new(),
+        };
+        let mut held_out_trace = (!held_out.is_empty()).then(HeldOutTrace::new);
+        if let Some(trace) = held_out_trace.as_mut() {
+            let state = self.state.gaussians.tensors();
+            self.trace_held_out(trace, (Stage::Still, 0), state, &held_out)?;
+        }
         let start = Traffic::now();
         for iteration in 0..config.advect_iterations {
             let previous = self.state.gaussians.tensors_at(previous_means.clone());
@@ -1285,6 +1298,10 @@ impl Trainer {
             );
             let positions = hold_born(moved.positions.clone());
             let next = self.state.gaussians.tensors_at(positions.clone());
+            if let Some(trace) = held_out_trace.as_mut() {
+                let point = (Stage::Joint, iteration);
+                self.trace_held_out(trace, point, next.clone(), &held_out)?;
+            }
             let (render, check) = self.render_loss(
                 &self.scene(next.clone(), true),
                 &cameras,
@@ -1501,21 +1518,13 @@ impl Trainer {
         let turn = steps_per_turn(fitted.len(), config.refine_views_per_step);
         let mut held_checks = held.map(HeldViewChecks::new);
         let mut held_lists = ListCapacities::new(config.tile_list_headroom);
-        // The held-out views, for the diagnostic trace (`refine_test_trace`).
-        let held_out: Vec<(Camera, Tensor<3>)> = match self.sequence.test.get(t) {
-            Some(test) if config.refine_test_trace && refine_iterations > 0 => test
-                .iter()
-                .map(|o| (o.camera, image_tensor(o, &self.device)))
-                .collect(),
-            _ => Vec::new(),
-        };
-        let mut test_trace = (!held_out.is_empty()).then(TestTrace::new);
         let start = Traffic::now();
         if let (Some(view), Some(checks)) = (held, held_checks.as_mut()) {
             self.check_held_view(checks, 0, (&cameras[view], &targets[view]), &mut held_lists)?;
         }
-        if let Some(trace) = test_trace.as_mut() {
-            self.trace_held_out(trace, 0, &held_out)?;
+        if let Some(trace) = held_out_trace.as_mut() {
+            let state = self.state.gaussians.tensors();
+            self.trace_held_out(trace, (Stage::Refine, 0), state, &held_out)?;
         }
         // The refinement's ties (lines 11-13 and ours): the centres to the advected ones, the
         // moves' grid-scale part, the densities; `(L_refine, the ties' weighted sum)`.
@@ -1636,8 +1645,9 @@ impl Trainer {
                     let view = (&cameras[view], &targets[view]);
                     self.check_held_view(checks, done, view, &mut held_lists)?;
                 }
-                if let Some(trace) = test_trace.as_mut() {
-                    self.trace_held_out(trace, done, &held_out)?;
+                if let Some(trace) = held_out_trace.as_mut() {
+                    let state = self.state.gaussians.tensors();
+                    self.trace_held_out(trace, (Stage::Refine, done), state, &held_out)?;
                 }
             }
             if log.due() || iteration + 1 == refine_iterations {
@@ -1715,7 +1725,7 @@ impl Trainer {
             carrier_share,
             carrier_explained: prediction.map(|(_, explained)| explained),
             held_view: held_report,
-            refine_test_psnr: test_trace.map(TestTrace::finish).unwrap_or_default(),
+            held_out_trace: held_out_trace.map(HeldOutTrace::finish).unwrap_or_default(),
         })
     }
 
@@ -1745,17 +1755,17 @@ impl Trainer {
         Ok(())
     }
 
-    /// Records the held-out views' squared errors from the refinement's state after `step`
-    /// steps (`refine_test_trace`), outside the autodiff graph, clamped as the reports' PSNR
-    /// clamps them.
+    /// Records the held-out views' squared errors from `smoke` at `point` (`held_out_trace`),
+    /// outside the autodiff graph, clamped as the reports' PSNR clamps them.
     fn trace_held_out(
         &self,
-        trace: &mut TestTrace,
-        step: usize,
+        trace: &mut HeldOutTrace,
+        point: (Stage, usize),
+        smoke: GaussianTensors,
         held_out: &[(Camera, Tensor<3>)],
     ) -> Result<(), TrainError> {
         let _phase = phase!("held-out trace");
-        let scene = self.scene(self.state.gaussians.tensors(), false).detach();
+        let scene = self.scene(smoke.detach(), false).detach();
         let errors = held_out
             .iter()
             .map(|(camera, target)| {
@@ -1764,7 +1774,7 @@ impl Trainer {
                 Ok(residual.powi_scalar(2).mean())
             })
             .collect::<Result<Vec<_>, TrainError>>()?;
-        trace.record(step, Tensor::cat(errors, 0));
+        trace.record(point, Tensor::cat(errors, 0));
         Ok(())
     }
 

@@ -13,6 +13,7 @@ use gausmoke_model::SolidCells;
 use gausmoke_render::backends::device_by_name;
 use gausmoke_train::arrays::read_arrays;
 use gausmoke_train::config::{AgreementAttributes, BlurAxes, HeldView, OptimizerReset};
+use gausmoke_train::held_out_trace::Stage;
 use gausmoke_train::metrics::mean_abs_error;
 use gausmoke_train::residual_blur::blur_matrix;
 use gausmoke_train::sequence::Sequence;
@@ -1535,11 +1536,12 @@ fn two_runs_stepped_in_turn_repeat_each_other() {
     assert_eq!(state(&first), state(&second));
 }
 
-/// `refine_test_trace` (ours, a diagnostic): the held-out views' PSNR before the refinement
-/// and after each turn of its views. Tracing changes nothing the run learns, and the trace
-/// ends on the frame's own held-out PSNR.
+/// `held_out_trace` (ours, a diagnostic): the held-out views' PSNR through each frame after
+/// frame 0: the frame before's state, each joint iteration's, and the refinement's before its
+/// first step and after each turn of its views. Tracing changes nothing the run learns, and
+/// the trace ends on the frame's own held-out PSNR.
 #[test]
-fn the_refinement_can_be_traced_on_the_held_out_views_without_changing_it() {
+fn a_frame_can_be_traced_on_the_held_out_views_without_changing_it() {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
     let views = Sequence::open(&data, &joint_terms_config()).unwrap().train[0].len();
@@ -1547,30 +1549,34 @@ fn the_refinement_can_be_traced_on_the_held_out_views_without_changing_it() {
         frames: Some(2),
         refine_iterations: 2 * views + 1,
         refine_views_per_step: 1,
-        refine_test_trace: traced,
+        held_out_trace: traced,
         ..joint_terms_config()
     };
     let mut plain = quiet_run(&data, dir.path(), config(false), "plain");
-    let plain_reports: Vec<_> = (0..2)
-        .map(|t| plain.train_frame(t).unwrap().clone())
-        .collect();
     let mut traced = quiet_run(&data, dir.path(), config(true), "traced");
-    for (t, plain) in plain_reports.iter().enumerate() {
+    let joint = config(true).advect_iterations;
+    for t in 0..2 {
+        let plain = plain.train_frame(t).unwrap().clone();
         let traced = traced.train_frame(t).unwrap().clone();
-        assert!(plain.refine_test_psnr.is_empty());
+        assert!(plain.held_out_trace.is_empty());
+        assert_eq!(plain.test_psnr, traced.test_psnr, "frame {t}");
         if t == 0 {
-            assert!(
-                traced.refine_test_psnr.is_empty(),
-                "frame 0 has no refinement"
-            );
+            assert!(traced.held_out_trace.is_empty(), "frame 0 is fitted alone");
             continue;
         }
-        let steps: Vec<usize> = traced.refine_test_psnr.iter().map(|s| s.step).collect();
-        assert_eq!(steps, vec![0, views, 2 * views, 2 * views + 1]);
-        let last = traced.refine_test_psnr.last().unwrap().psnr;
+        let points: Vec<(Stage, usize)> = traced
+            .held_out_trace
+            .iter()
+            .map(|p| (p.stage, p.step))
+            .collect();
+        let expected: Vec<(Stage, usize)> = std::iter::once((Stage::Still, 0))
+            .chain((0..joint).map(|i| (Stage::Joint, i)))
+            .chain([0, views, 2 * views, 2 * views + 1].map(|s| (Stage::Refine, s)))
+            .collect();
+        assert_eq!(points, expected);
+        let last = traced.held_out_trace.last().unwrap().psnr;
         let reported = traced.test_psnr.unwrap();
         assert!((last - reported).abs() < 1e-3, "{last} against {reported}");
-        assert_eq!(plain.test_psnr, traced.test_psnr);
     }
     let state = |run: &Run| run.trainer.state.gaussians.to_host();
     assert_eq!(state(&plain), state(&traced));
