@@ -139,22 +139,10 @@ fn lowest(values: &[f32]) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use burn::tensor::{Device, TensorData};
-    use gausmoke_render::Gaussians;
+    use burn::tensor::TensorData;
     use gausmoke_render::backends::device_by_name;
 
-    fn state(value: f32, device: &Device) -> GaussianTensors {
-        let rows = |width: usize| {
-            Tensor::<2>::from_data(TensorData::new(vec![value; 2 * width], [2, width]), device)
-        };
-        Gaussians {
-            means: rows(3),
-            rotations: rows(4),
-            log_scales: rows(3),
-            raw_densities: Tensor::<1>::from_data(TensorData::new(vec![value; 2], [2]), device),
-            colors: rows(3),
-        }
-    }
+    use crate::iterate_mean::tests::state;
 
     #[test]
     fn the_views_rotate_and_each_turn_fits_the_others() {

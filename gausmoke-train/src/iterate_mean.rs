@@ -57,13 +57,14 @@ impl IterateMean {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use burn::tensor::{Device, TensorData};
     use gausmoke_render::backends::device_by_name;
     use gausmoke_render::device_traffic::read_floats;
 
-    fn state(value: f32, device: &Device) -> GaussianTensors {
+    /// Two Gaussians with every value `value`.
+    pub(crate) fn state(value: f32, device: &Device) -> GaussianTensors {
         let rows = |columns: usize| {
             Tensor::<2>::from_data(
                 TensorData::new(vec![value; 2 * columns], [2, columns]),

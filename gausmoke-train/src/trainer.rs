@@ -1765,7 +1765,7 @@ impl Trainer {
         held_out: &[(Camera, Tensor<3>)],
     ) -> Result<(), TrainError> {
         let _phase = phase!("held-out trace");
-        let scene = self.scene(smoke.detach(), false).detach();
+        let scene = self.scene(smoke, false).detach();
         let errors = held_out
             .iter()
             .map(|(camera, target)| {
