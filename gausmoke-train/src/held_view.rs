@@ -76,6 +76,11 @@ impl HeldViewChecks {
         }
     }
 
+    /// The training view held back.
+    pub fn view(&self) -> usize {
+        self.view
+    }
+
     /// Records the state after `step` refinement steps, whose held view's L1 is `l1`
     /// (detached here).
     pub fn record(

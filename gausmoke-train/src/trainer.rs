@@ -1509,18 +1509,17 @@ impl Trainer {
         let mut iterate_mean = IterateMean::new();
         // With a held view (`refine_held_view`), the refinement fits the other views and
         // checks the held one before its first step and after each turn of them.
-        let held = (config.refine_held_view != HeldView::Off && refine_iterations > 0)
-            .then(|| held_view(t, cameras.len()));
-        let fitted = match held {
-            Some(view) => fitted_views(cameras.len(), view),
+        let mut held_checks = (config.refine_held_view != HeldView::Off && refine_iterations > 0)
+            .then(|| HeldViewChecks::new(held_view(t, cameras.len())));
+        let fitted = match &held_checks {
+            Some(checks) => fitted_views(cameras.len(), checks.view()),
             None => (0..cameras.len()).collect(),
         };
         let turn = steps_per_turn(fitted.len(), config.refine_views_per_step);
-        let mut held_checks = held.map(HeldViewChecks::new);
         let mut held_lists = ListCapacities::new(config.tile_list_headroom);
         let start = Traffic::now();
-        if let (Some(view), Some(checks)) = (held, held_checks.as_mut()) {
-            self.check_held_view(checks, 0, (&cameras[view], &targets[view]), &mut held_lists)?;
+        if let Some(checks) = held_checks.as_mut() {
+            self.check_held_view(checks, 0, (&cameras, &targets), &mut held_lists)?;
         }
         if let Some(trace) = held_out_trace.as_mut() {
             let state = self.state.gaussians.tensors();
@@ -1641,9 +1640,8 @@ impl Trainer {
             }
             let done = iteration + 1;
             if done % turn == 0 || done == refine_iterations {
-                if let (Some(view), Some(checks)) = (held, held_checks.as_mut()) {
-                    let view = (&cameras[view], &targets[view]);
-                    self.check_held_view(checks, done, view, &mut held_lists)?;
+                if let Some(checks) = held_checks.as_mut() {
+                    self.check_held_view(checks, done, (&cameras, &targets), &mut held_lists)?;
                 }
                 if let Some(trace) = held_out_trace.as_mut() {
                     let state = self.state.gaussians.tensors();
@@ -1729,26 +1727,29 @@ impl Trainer {
         })
     }
 
-    /// Renders the held view (`refine_held_view`) from the refinement's state after `step`
-    /// steps, outside the autodiff graph, and records its L1 with the state.
+    /// Renders the held view (`refine_held_view`, one of the frame's `cameras` and `targets`)
+    /// from the refinement's state after `step` steps, outside the autodiff graph, and records
+    /// its L1 with the state.
     fn check_held_view(
         &self,
         checks: &mut HeldViewChecks,
         step: usize,
-        (camera, target): (&Camera, &Tensor<3>),
+        (cameras, targets): (&[Camera], &[Tensor<3>]),
         lists: &mut ListCapacities,
     ) -> Result<(), TrainError> {
         let _phase = phase!("held view check");
+        let view = checks.view();
         let smoke = self.state.gaussians.tensors().detach();
         let statics = self
             .state
             .statics
             .as_ref()
             .map(|s| s.gaussians.tensors().detach());
+        // Both parts are detached: the smoke here, the statics by `scene`.
         let (l1, _) = self.render_loss(
-            &self.scene(smoke.clone(), false).detach(),
-            std::slice::from_ref(camera),
-            std::slice::from_ref(target),
+            &self.scene(smoke.clone(), false),
+            &cameras[view..=view],
+            &targets[view..=view],
             lists,
         )?;
         checks.record(step, l1, smoke, statics);
