@@ -84,6 +84,11 @@ impl ModuleVisitor for DrawInitialWeights {
     }
 }
 
+/// Held while the backend's generator is seeded and Phi's weights are drawn from it: the
+/// generator is one per process, so two threads making Phi at once (parallel tests, two
+/// runs in one program) would otherwise draw each other's numbers.
+static INITIAL_DRAW: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 /// Phi: `(u, sigma_grid, t) -> Delta u`.
 #[derive(Module, Debug)]
 pub struct VelocityUNet {
@@ -101,7 +106,12 @@ pub struct VelocityUNet {
 }
 
 impl VelocityUNet {
-    pub fn new(config: &UNetConfig, device: &Device) -> Self {
+    /// Phi with initial weights that depend on `seed` alone.
+    pub fn new(config: &UNetConfig, seed: u64, device: &Device) -> Self {
+        let _draw = INITIAL_DRAW
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        device.seed(seed);
         let c = config.base_channels;
         let input = 4 + 2 * config.time_frequencies;
         let down = |i, o| {
@@ -129,11 +139,10 @@ impl VelocityUNet {
                 .init(device),
             time_frequencies: config.time_frequencies,
         };
-        // burn draws a layer's initial weights when they are first read, from the backend's
-        // generator, which is shared by everything in the process: drawn here, right after the
-        // caller seeds it, they do not depend on what else the process draws before Phi's
-        // first use. The module order is the forward pass's, so the weights are those that
-        // a first forward pass would draw.
+        // burn draws a layer's initial weights when they are first read: drawn here, under
+        // the lock and right after the seed, they do not depend on what else the process
+        // draws before Phi's first use. The module order is the forward pass's, so the
+        // weights are those that a first forward pass would draw.
         unet.visit(&mut DrawInitialWeights);
         unet
     }
@@ -237,6 +246,7 @@ mod tests {
                     base_channels: 4,
                     time_frequencies: 2,
                 },
+                0,
                 &device,
             );
             let (u, d) = inputs(&device, [8, 12, 4]);
@@ -273,34 +283,63 @@ mod tests {
         }
     }
 
-    /// The seed alone decides Phi's initial weights: what the process draws from the
-    /// backend's generator between making Phi and using it does not move them.
+    /// The seed alone decides Phi's initial weights: neither what the process draws from
+    /// the backend's generator between making Phi and using it, nor other threads making
+    /// Phi with other seeds at the same time, moves them.
     #[test]
     fn its_initial_weights_depend_on_the_seed_alone() {
         let config = UNetConfig {
             base_channels: 2,
             time_frequencies: 1,
         };
+        let weights = |seed: u64, device: &Device| {
+            let mut values = Values(Vec::new());
+            VelocityUNet::new(&config, seed, device).visit(&mut values);
+            values.0
+        };
         for (backend, device) in cpu_devices() {
-            let weights = |draw_between: bool| {
-                device.seed(7);
-                let unet = VelocityUNet::new(&config, &device);
-                if draw_between {
-                    let _ = Tensor::<1>::random([64], Distribution::Default, &device).into_data();
-                }
-                let mut values = Values(Vec::new());
-                unet.visit(&mut values);
-                values.0
-            };
-            let plain = weights(false);
-            assert!(
-                plain == weights(true),
-                "{backend}: a draw between making Phi and using it moved its initial weights"
-            );
+            let plain = weights(7, &device);
             assert!(
                 plain.iter().any(|&v| v != 0.0),
                 "{backend}: weights were drawn"
             );
+            assert!(
+                plain != weights(8, &device),
+                "{backend}: the seed decides the weights"
+            );
+            let unet = VelocityUNet::new(&config, 7, &device);
+            let _ = Tensor::<1>::random([64], Distribution::Default, &device).into_data();
+            let mut drawn_between = Values(Vec::new());
+            unet.visit(&mut drawn_between);
+            assert!(
+                plain == drawn_between.0,
+                "{backend}: a draw between making Phi and using it moved its initial weights"
+            );
+            std::thread::scope(|scope| {
+                let makers: Vec<_> = (0..4u64)
+                    .map(|thread| {
+                        let (device, weights) = (&device, &weights);
+                        scope.spawn(move || {
+                            (0..8)
+                                .map(|_| weights(7 + thread % 2, device))
+                                .collect::<Vec<_>>()
+                        })
+                    })
+                    .collect();
+                for (thread, maker) in makers.into_iter().enumerate() {
+                    let expected = if thread % 2 == 0 {
+                        plain.clone()
+                    } else {
+                        weights(8, &device)
+                    };
+                    for made in maker.join().unwrap() {
+                        assert!(
+                            made == expected,
+                            "{backend}: threads making Phi at once moved each other's weights"
+                        );
+                    }
+                }
+            });
         }
     }
 
@@ -312,6 +351,7 @@ mod tests {
                 base_channels: 2,
                 time_frequencies: 1,
             },
+            0,
             &device,
         );
         let (u, d) = inputs(&device, [8, 6, 4]);

@@ -2423,9 +2423,6 @@ fn fresh_state(
         base_channels: config.unet_channels,
         time_frequencies: config.time_frequencies,
     };
-    // Phi's initial weights come from the backend's generator: seed it, so a run is
-    // reproducible (and a resumed run matches an uninterrupted one).
-    device.seed(config.seed);
     TrainState {
         gaussians: GaussianModel::init_in_box(
             config.gaussians,
@@ -2439,7 +2436,7 @@ fn fresh_state(
             optim: AdamConfig::new().with_epsilon(1e-15).init(),
         }),
         velocity: Tensor::zeros([nx, ny, nz, 3], device),
-        phi: VelocityUNet::new(&unet, device),
+        phi: VelocityUNet::new(&unet, config.seed, device),
         gaussian_optim: gaussian_optimizer(),
         phi_optim: AdamConfig::new().init(),
         buoyancy: config.buoyancy_force.then(|| Buoyancy {

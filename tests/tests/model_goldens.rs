@@ -217,7 +217,7 @@ fn unet_forward_and_gradients_match_torch() {
             path: Vec::new(),
             loaded: Vec::new(),
         };
-        let unet = VelocityUNet::new(&unet_config, &ad).map(&mut weights);
+        let unet = VelocityUNet::new(&unet_config, 0, &ad).map(&mut weights);
         // 5 double convolutions (2 layers each), 2 down, 2 up and the output layer.
         assert_eq!(weights.loaded.len(), 2 * 15, "{:?}", weights.loaded);
         let velocity = tensor::<4>(&golden, "velocity", &ad).require_grad();

@@ -573,7 +573,7 @@ fn physics(args: PhysicsArgs) -> Result<()> {
         base_channels: args.unet_channels,
         ..UNetConfig::default()
     };
-    let unet = VelocityUNet::new(&unet_config, &ad);
+    let unet = VelocityUNet::new(&unet_config, 0, &ad);
     let velocity = Tensor::<4>::from_data(TensorData::new(field.clone(), [n, n, n, 3]), &ad);
     let density = Tensor::<3>::zeros([n, n, n], &ad);
     let unet_ms = time_ms(args.reps, || {
