@@ -363,6 +363,13 @@ pub struct TrainConfig {
     pub refine_loss_blur: f32,
     /// The image axes `refine_loss_blur` acts along (`both` or `horizontal`).
     pub refine_loss_blur_axes: BlurAxes,
+    /// Standard deviation, in pixels, of a Gaussian blur on each view's residual in the first
+    /// joint iteration (ours; 0 = off, the paper's method), shrinking linearly to none at the
+    /// last. Coarse to fine: a photometric gradient reaches only as far as the Gaussians
+    /// overlap their targets, so smoke that moves further than that between frames pulls
+    /// the velocity too little; the blurred residual reaches further. The look-ahead's
+    /// frames are blurred alike.
+    pub joint_loss_blur: f32,
     /// Adam learning rate of the velocity network Phi.
     pub lr_velocity: f64,
     /// Adam learning rate of the Gaussians after frame 0.
@@ -676,6 +683,7 @@ impl Default for TrainConfig {
             refine_view_agreement_attributes: AgreementAttributes::All,
             refine_loss_blur: 0.0,
             refine_loss_blur_axes: BlurAxes::Both,
+            joint_loss_blur: 0.0,
             lr_velocity: 1e-3,
             lr_gaussians: 5e-4,
             lr_means: None,
@@ -961,6 +969,12 @@ impl TrainConfig {
             return bad(format!(
                 "refine_loss_blur (pixels) must be in [0, 32], got {}",
                 self.refine_loss_blur
+            ));
+        }
+        if !(0.0..=32.0).contains(&self.joint_loss_blur) {
+            return bad(format!(
+                "joint_loss_blur (pixels) must be in [0, 32], got {}",
+                self.joint_loss_blur
             ));
         }
         if !(0.0..=1000.0).contains(&self.increment_horizontal_weight) {
@@ -1426,6 +1440,13 @@ mod tests {
                     ..TrainConfig::default()
                 },
                 "refine_loss_blur",
+            ),
+            (
+                TrainConfig {
+                    joint_loss_blur: 40.0,
+                    ..TrainConfig::default()
+                },
+                "joint_loss_blur",
             ),
         ];
         for (config, named) in invalid {

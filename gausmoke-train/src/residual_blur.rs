@@ -1,10 +1,15 @@
-//! A refinement loss on the image residual blurred by a Gaussian (`refine_loss_blur`, ours;
-//! issue 18).
+//! Losses on the image residual blurred by a Gaussian (ours; issue 18).
 //!
-//! With four views, what a view's residual asks for at a scale finer than the views can place
-//! in depth goes back along its rays as stripes. The carried state holds that detail from the
-//! frames before; fitting only the residual's coarse part leaves it there. The blur is
-//! separable: two matrix products per image, differentiable through burn's own ops.
+//! The refinement's (`refine_loss_blur`): with four views, what a view's residual asks for at
+//! a scale finer than the views can place in depth goes back along its rays as stripes. The
+//! carried state holds that detail from the frames before; fitting only the residual's coarse
+//! part leaves it there.
+//!
+//! The joint iterations' (`joint_loss_blur`), coarse to fine: the velocity is fitted first to
+//! the residual's coarse part, whose gradient reaches smoke that moved further than the
+//! Gaussians' own size.
+//!
+//! The blur is separable: two matrix products per image, differentiable through burn's own ops.
 
 use burn::tensor::{Device, Tensor, TensorData};
 
@@ -52,6 +57,15 @@ impl ResidualBlur {
     }
 }
 
+/// The blur, in pixels, of joint iteration `iteration` of `iterations` when the first is
+/// blurred by `first`: linearly down to none at the last.
+pub fn coarse_to_fine(first: f32, iteration: usize, iterations: usize) -> f32 {
+    if iterations < 2 {
+        return 0.0;
+    }
+    first * (iterations - 1 - iteration.min(iterations - 1)) as f32 / (iterations - 1) as f32
+}
+
 /// An `n x n` matrix whose row `i` holds the Gaussian weights of pixel `i`'s neighbours within
 /// three standard deviations, normalised over the pixels inside the image (so a constant
 /// image stays constant up to its borders); the identity for `sigma = 0`.
@@ -82,6 +96,18 @@ mod tests {
     use super::*;
     use gausmoke_render::backends::device_by_name;
     use gausmoke_render::device_traffic::read_floats;
+
+    #[test]
+    fn the_joint_blur_shrinks_linearly_to_none_at_the_last_iteration() {
+        let sigmas: Vec<f32> = (0..5).map(|k| coarse_to_fine(2.0, k, 5)).collect();
+        assert_eq!(sigmas, [2.0, 1.5, 1.0, 0.5, 0.0]);
+        assert_eq!(
+            coarse_to_fine(2.0, 0, 1),
+            0.0,
+            "one iteration is the plain loss"
+        );
+        assert_eq!(coarse_to_fine(0.0, 0, 10), 0.0);
+    }
 
     #[test]
     fn the_blur_matrix_keeps_constants_and_spreads_a_point_symmetrically() {

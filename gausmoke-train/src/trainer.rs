@@ -67,7 +67,7 @@ use crate::held_view::{
 };
 use crate::host_grid::smoothed;
 use crate::iterate_mean::IterateMean;
-use crate::residual_blur::ResidualBlur;
+use crate::residual_blur::{ResidualBlur, coarse_to_fine};
 use crate::respawn::{
     DeficitView, RespawnOptions, RespawnReport, SpawnLattice, recycling_candidates, respawn,
 };
@@ -1302,11 +1302,24 @@ impl Trainer {
                 let point = (Stage::Joint, iteration);
                 self.trace_held_out(trace, point, next.clone(), &held_out)?;
             }
-            let (render, check) = self.render_loss(
+            let sigma = coarse_to_fine(config.joint_loss_blur, iteration, config.advect_iterations);
+            let blurs_of = |views: &[Camera]| {
+                (sigma > 0.0).then(|| {
+                    views
+                        .iter()
+                        .map(|c| {
+                            let (h, w) = (c.height() as usize, c.width() as usize);
+                            ResidualBlur::new(h, w, sigma, false, &self.device)
+                        })
+                        .collect::<Vec<_>>()
+                })
+            };
+            let (render, check) = self.render_loss_blurred(
                 &self.scene(next.clone(), true),
                 &cameras,
                 &targets,
                 &mut lists,
+                blurs_of(&cameras).as_deref(),
             )?;
             let mut checks = vec![check];
             let mut loss = render.clone();
@@ -1334,11 +1347,12 @@ impl Trainer {
                     means,
                     ..held.clone().expect("made when there are frames ahead")
                 };
-                let (lookahead, check) = self.render_loss(
+                let (lookahead, check) = self.render_loss_blurred(
                     &self.scene(carried.clone(), false),
                     views,
                     ahead_targets,
                     lists,
+                    blurs_of(views).as_deref(),
                 )?;
                 checks.push(check);
                 loss = loss + lookahead * config.lambda_lookahead;

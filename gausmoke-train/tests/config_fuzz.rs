@@ -27,6 +27,7 @@ const KEYS: &[(&str, bool)] = &[
     ("refine_average_steps", true),
     ("refine_view_agreement", true),
     ("refine_loss_blur", true),
+    ("joint_loss_blur", true),
     ("correction_iterations", false),
     ("refine_velocity_share", true),
     ("refine_velocity_blur", true),

@@ -1614,6 +1614,88 @@ fn a_refinement_step_can_keep_to_what_the_views_agree_on() {
     assert!(agreed < plain, "agreed {agreed} against plain {plain}");
 }
 
+/// The mean absolute value of `residual` `[h, w, 3]` blurred by `sigmas` pixels along the
+/// image's columns and rows, in float64 on the host.
+fn blurred_l1(residual: &[f32], [h, w]: [usize; 2], [vertical, horizontal]: [f32; 2]) -> f32 {
+    let (vertical, horizontal) = (blur_matrix(h, vertical), blur_matrix(w, horizontal));
+    let mut total = 0.0f64;
+    for y in 0..h {
+        for x in 0..w {
+            for c in 0..3 {
+                let mut v = 0.0f64;
+                for yy in 0..h {
+                    for xx in 0..w {
+                        let weight = vertical[y * h + yy] * horizontal[x * w + xx];
+                        v += (weight * residual[(yy * w + xx) * 3 + c]) as f64;
+                    }
+                }
+                total += v.abs();
+            }
+        }
+    }
+    (total / (h * w * 3) as f64) as f32
+}
+
+/// `joint_loss_blur` (ours): the first joint iteration's L1 is the mean over the training views
+/// of each residual blurred by the setting's pixels, the last one's is plain. After frame 0
+/// the velocity is zero and Phi starts at zero, so the first iteration renders frame 0's fit
+/// where it stands; its blurred L1 is computed here on the host from the same renders.
+#[test]
+fn the_joint_iterations_can_go_coarse_to_fine() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let sigma = 2.0;
+    let config = |blur: f32| TrainConfig {
+        frames: Some(2),
+        advect_iterations: 3,
+        joint_loss_blur: blur,
+        log_every: 1,
+        ..joint_terms_config()
+    };
+    let mut run = after_frame_0(&data, dir.path(), config(sigma), "blurred");
+    let views = run.trainer.sequence.train[1].clone();
+    let renders = run.trainer.render_host(&views).unwrap();
+    let mut plain = 0.0;
+    let mut blurred = 0.0;
+    for (render, view) in renders.iter().zip(&views) {
+        let (w, h) = (view.camera.width() as usize, view.camera.height() as usize);
+        let residual: Vec<f32> = render
+            .iter()
+            .zip(view.image.data())
+            .map(|(r, t)| r - t)
+            .collect();
+        blurred += blurred_l1(&residual, [h, w], [sigma, sigma]) / views.len() as f32;
+        plain += mean_abs_error(render, view.image.data()) as f32 / views.len() as f32;
+    }
+    let joint_rows = |run: &mut Run| -> Vec<f32> {
+        let outcome = run.trainer.advance_to(1).unwrap();
+        outcome
+            .losses
+            .iter()
+            .filter(|row| row.phase == Phase::Advect)
+            .map(|row| row.render)
+            .collect()
+    };
+    let with_blur = joint_rows(&mut run);
+    assert_eq!(with_blur.len(), 3);
+    assert!(
+        (with_blur[0] - blurred).abs() < 1e-3 * blurred,
+        "first joint iteration logged {}, blurred on the host {blurred}",
+        with_blur[0]
+    );
+    assert!(
+        (plain - blurred).abs() > 1e-2 * plain,
+        "the blur changed nothing ({plain} against {blurred})"
+    );
+    let mut unblurred = after_frame_0(&data, dir.path(), config(0.0), "plain");
+    let without_blur = joint_rows(&mut unblurred);
+    assert!(
+        (without_blur[0] - plain).abs() < 1e-3 * plain,
+        "first joint iteration logged {} without the blur, plain on the host {plain}",
+        without_blur[0]
+    );
+}
+
 /// `refine_loss_blur` (ours): the refinement's L1 is that of each view's residual blurred
 /// (here along both axes, then along the rows alone). With no joint iterations its first step
 /// starts from frame 0's fit, so its logged loss is the blurred residual's, computed here on
@@ -1646,24 +1728,8 @@ fn the_refinement_can_fit_blurred_residuals() {
             .zip(views[0].image.data())
             .map(|(r, t)| r - t)
             .collect();
-        let vertical = blur_matrix(h, if axes == BlurAxes::Both { sigma } else { 0.0 });
-        let horizontal = blur_matrix(w, sigma);
-        let mut blurred = 0.0f64;
-        for y in 0..h {
-            for x in 0..w {
-                for c in 0..3 {
-                    let mut v = 0.0f64;
-                    for yy in 0..h {
-                        for xx in 0..w {
-                            let weight = vertical[y * h + yy] * horizontal[x * w + xx];
-                            v += (weight * residual[(yy * w + xx) * 3 + c]) as f64;
-                        }
-                    }
-                    blurred += v.abs();
-                }
-            }
-        }
-        let blurred = (blurred / (h * w * 3) as f64) as f32;
+        let vertical = if axes == BlurAxes::Both { sigma } else { 0.0 };
+        let blurred = blurred_l1(&residual, [h, w], [vertical, sigma]);
         let plain = mean_abs_error(&render, views[0].image.data()) as f32;
         let outcome = run.trainer.advance_to(1).unwrap();
         let logged = outcome

@@ -144,6 +144,12 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
             },
         ));
     }
+    if let Some(sigma) = weight("joint_loss_blur") {
+        settings.push((
+            "joint_loss_blur",
+            format!("joint iterations coarse to fine from {sigma} px"),
+        ));
+    }
     if let Some(w) = weight("lambda_refine_grid") {
         settings.push(("lambda_refine_grid", format!("grid-scale tie {w}")));
     }
