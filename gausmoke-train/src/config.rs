@@ -370,6 +370,10 @@ pub struct TrainConfig {
     /// the velocity too little; the blurred residual reaches further. The look-ahead's
     /// frames are blurred alike.
     pub joint_loss_blur: f32,
+    /// With `joint_loss_blur`, only the velocity fits the blurred residual; the joint
+    /// iterations' steps on the Gaussians' own attributes fit the plain one (a second render
+    /// of each view per blurred iteration).
+    pub joint_loss_blur_velocity_only: bool,
     /// Adam learning rate of the velocity network Phi.
     pub lr_velocity: f64,
     /// Adam learning rate of the Gaussians after frame 0.
@@ -684,6 +688,7 @@ impl Default for TrainConfig {
             refine_loss_blur: 0.0,
             refine_loss_blur_axes: BlurAxes::Both,
             joint_loss_blur: 0.0,
+            joint_loss_blur_velocity_only: false,
             lr_velocity: 1e-3,
             lr_gaussians: 5e-4,
             lr_means: None,

@@ -1314,15 +1314,50 @@ impl Trainer {
                         .collect::<Vec<_>>()
                 })
             };
-            let (render, check) = self.render_loss_blurred(
-                &self.scene(next.clone(), true),
-                &cameras,
-                &targets,
-                &mut lists,
-                blurs_of(&cameras).as_deref(),
-            )?;
+            let blurs = blurs_of(&cameras);
+            let (render, check, appearance) = match &blurs {
+                Some(blurs) if config.joint_loss_blur_velocity_only => {
+                    // Two renders of the same state: the carrier's gradient comes through the
+                    // blurred residual, the appearance's through the plain one.
+                    let carried = Gaussians {
+                        means: next.means.clone(),
+                        ..next.clone().detach()
+                    };
+                    let placed = Gaussians {
+                        means: next.means.clone().detach(),
+                        ..next.clone()
+                    };
+                    let (render, check) = self.render_loss_blurred(
+                        &self.scene(carried, false),
+                        &cameras,
+                        &targets,
+                        &mut lists,
+                        Some(blurs),
+                    )?;
+                    let (appearance, _) = self.render_loss(
+                        &self.scene(placed, true),
+                        &cameras,
+                        &targets,
+                        &mut lists,
+                    )?;
+                    (render, check, Some(appearance))
+                }
+                _ => {
+                    let (render, check) = self.render_loss_blurred(
+                        &self.scene(next.clone(), true),
+                        &cameras,
+                        &targets,
+                        &mut lists,
+                        blurs.as_deref(),
+                    )?;
+                    (render, check, None)
+                }
+            };
             let mut checks = vec![check];
-            let mut loss = render.clone();
+            let mut loss = match appearance {
+                Some(appearance) => render.clone() + appearance,
+                None => render.clone(),
+            };
             // Frames further on; only the velocity learns here.
             let mut carrier = projected.clone();
             let mut carried = next.clone();

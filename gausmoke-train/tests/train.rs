@@ -1667,16 +1667,16 @@ fn the_joint_iterations_can_go_coarse_to_fine() {
         blurred += blurred_l1(&residual, [h, w], [sigma, sigma]) / views.len() as f32;
         plain += mean_abs_error(render, view.image.data()) as f32 / views.len() as f32;
     }
-    let joint_rows = |run: &mut Run| -> Vec<f32> {
+    let joint_rows = |run: &mut Run| -> Vec<(f32, f32)> {
         let outcome = run.trainer.advance_to(1).unwrap();
         outcome
             .losses
             .iter()
             .filter(|row| row.phase == Phase::Advect)
-            .map(|row| row.render)
+            .map(|row| (row.render, row.total))
             .collect()
     };
-    let with_blur = joint_rows(&mut run);
+    let (with_blur, totals): (Vec<f32>, Vec<f32>) = joint_rows(&mut run).into_iter().unzip();
     assert_eq!(with_blur.len(), 3);
     assert!(
         (with_blur[0] - blurred).abs() < 1e-3 * blurred,
@@ -1688,11 +1688,28 @@ fn the_joint_iterations_can_go_coarse_to_fine() {
         "the blur changed nothing ({plain} against {blurred})"
     );
     let mut unblurred = after_frame_0(&data, dir.path(), config(0.0), "plain");
-    let without_blur = joint_rows(&mut unblurred);
+    let (without_blur, _): (Vec<f32>, Vec<f32>) = joint_rows(&mut unblurred).into_iter().unzip();
     assert!(
         (without_blur[0] - plain).abs() < 1e-3 * plain,
         "first joint iteration logged {} without the blur, plain on the host {plain}",
         without_blur[0]
+    );
+    // With `joint_loss_blur_velocity_only` the first iteration's loss holds both: the
+    // blurred L1 (logged as its render loss) and the plain one, on the same state.
+    let velocity_only = TrainConfig {
+        joint_loss_blur_velocity_only: true,
+        ..config(sigma)
+    };
+    let mut run = after_frame_0(&data, dir.path(), velocity_only, "velocity only");
+    let (render, total) = joint_rows(&mut run)[0];
+    assert!(
+        (render - blurred).abs() < 1e-3 * blurred,
+        "velocity only: logged {render}, blurred on the host {blurred}"
+    );
+    assert!(
+        (total - totals[0] - plain).abs() < 1e-3 * totals[0],
+        "velocity only: total {total} is not the blurred run's {} plus the plain L1 {plain}",
+        totals[0]
     );
 }
 

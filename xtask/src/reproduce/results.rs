@@ -147,7 +147,11 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
     if let Some(sigma) = weight("joint_loss_blur") {
         settings.push((
             "joint_loss_blur",
-            format!("joint iterations coarse to fine from {sigma} px"),
+            if config["joint_loss_blur_velocity_only"].as_bool() == Some(true) {
+                format!("velocity fitted coarse to fine from {sigma} px")
+            } else {
+                format!("joint iterations coarse to fine from {sigma} px")
+            },
         ));
     }
     if let Some(w) = weight("lambda_refine_grid") {
