@@ -12,6 +12,7 @@
 //! The blur is separable: two matrix products per image, differentiable through burn's own ops.
 
 use burn::tensor::{Device, Tensor, TensorData};
+use gausmoke_core::Camera;
 
 /// The row-normalised blur matrices for one image size.
 #[derive(Debug, Clone)]
@@ -39,6 +40,24 @@ impl ResidualBlur {
             rows: (!horizontal_only).then(|| matrix(height, sigma)),
             columns: matrix(width, sigma),
         }
+    }
+
+    /// One blur of `sigma` pixels per view, sized to its image; `None` for `sigma = 0`.
+    pub fn for_views(
+        views: &[Camera],
+        sigma: f32,
+        horizontal_only: bool,
+        device: &Device,
+    ) -> Option<Vec<Self>> {
+        (sigma > 0.0).then(|| {
+            views
+                .iter()
+                .map(|c| {
+                    let [h, w] = [c.height() as usize, c.width() as usize];
+                    Self::new(h, w, sigma, horizontal_only, device)
+                })
+                .collect()
+        })
     }
 
     /// `image` `[H, W, C]` blurred along the image axes this blur acts on.

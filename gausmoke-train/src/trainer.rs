@@ -825,6 +825,45 @@ impl Trainer {
         ))
     }
 
+    /// A joint iteration's render loss of the carried Gaussians `next`, each view's residual
+    /// blurred by the matching entry of `blurs` when given (`joint_loss_blur`). With
+    /// `joint_loss_blur_velocity_only` the same state is rendered twice: the carrier's
+    /// gradient comes through the blurred residual and the Gaussians' own attributes' through
+    /// the plain one, returned third (the first stays the loss that is logged).
+    fn joint_render_loss(
+        &self,
+        next: &GaussianTensors,
+        cameras: &[Camera],
+        targets: &[Tensor<3>],
+        lists: &mut ListCapacities,
+        blurs: Option<&[ResidualBlur]>,
+    ) -> Result<(Tensor<1>, InputCheck, Option<Tensor<1>>), TrainError> {
+        match blurs {
+            Some(blurs) if self.config.joint_loss_blur_velocity_only => {
+                let carried = Gaussians {
+                    means: next.means.clone(),
+                    ..next.clone().detach()
+                };
+                let placed = Gaussians {
+                    means: next.means.clone().detach(),
+                    ..next.clone()
+                };
+                let scene = self.scene(carried, false);
+                let (render, check) =
+                    self.render_loss_blurred(&scene, cameras, targets, lists, Some(blurs))?;
+                let scene = self.scene(placed, true);
+                let (appearance, _) = self.render_loss(&scene, cameras, targets, lists)?;
+                Ok((render, check, Some(appearance)))
+            }
+            _ => {
+                let scene = self.scene(next.clone(), true);
+                let (render, check) =
+                    self.render_loss_blurred(&scene, cameras, targets, lists, blurs)?;
+                Ok((render, check, None))
+            }
+        }
+    }
+
     /// What the renders composite: the smoke Gaussians `smoke` (in their mean colour with
     /// `uniform_color`) and, when there are any, the static ones after them, tracked for
     /// their optimiser when `learn_statics`.
@@ -1303,56 +1342,15 @@ impl Trainer {
                 self.trace_held_out(trace, point, next.clone(), &held_out)?;
             }
             let sigma = coarse_to_fine(config.joint_loss_blur, iteration, config.advect_iterations);
-            let blurs_of = |views: &[Camera]| {
-                (sigma > 0.0).then(|| {
-                    views
-                        .iter()
-                        .map(|c| {
-                            let (h, w) = (c.height() as usize, c.width() as usize);
-                            ResidualBlur::new(h, w, sigma, false, &self.device)
-                        })
-                        .collect::<Vec<_>>()
-                })
-            };
-            let blurs = blurs_of(&cameras);
-            let (render, check, appearance) = match &blurs {
-                Some(blurs) if config.joint_loss_blur_velocity_only => {
-                    // Two renders of the same state: the carrier's gradient comes through the
-                    // blurred residual, the appearance's through the plain one.
-                    let carried = Gaussians {
-                        means: next.means.clone(),
-                        ..next.clone().detach()
-                    };
-                    let placed = Gaussians {
-                        means: next.means.clone().detach(),
-                        ..next.clone()
-                    };
-                    let (render, check) = self.render_loss_blurred(
-                        &self.scene(carried, false),
-                        &cameras,
-                        &targets,
-                        &mut lists,
-                        Some(blurs),
-                    )?;
-                    let (appearance, _) = self.render_loss(
-                        &self.scene(placed, true),
-                        &cameras,
-                        &targets,
-                        &mut lists,
-                    )?;
-                    (render, check, Some(appearance))
-                }
-                _ => {
-                    let (render, check) = self.render_loss_blurred(
-                        &self.scene(next.clone(), true),
-                        &cameras,
-                        &targets,
-                        &mut lists,
-                        blurs.as_deref(),
-                    )?;
-                    (render, check, None)
-                }
-            };
+            let blurs_of =
+                |views: &[Camera]| ResidualBlur::for_views(views, sigma, false, &self.device);
+            let (render, check, appearance) = self.joint_render_loss(
+                &next,
+                &cameras,
+                &targets,
+                &mut lists,
+                blurs_of(&cameras).as_deref(),
+            )?;
             let mut checks = vec![check];
             let mut loss = match appearance {
                 Some(appearance) => render.clone() + appearance,
@@ -1546,15 +1544,12 @@ impl Trainer {
         // The steps whose states are averaged into the frame's result (none: the last one).
         let average_from = refine_iterations.saturating_sub(config.refine_average_steps);
         let horizontal_only = config.refine_loss_blur_axes == BlurAxes::Horizontal;
-        let blurs: Option<Vec<ResidualBlur>> = (config.refine_loss_blur > 0.0).then(|| {
-            cameras
-                .iter()
-                .map(|c| {
-                    let [h, w] = [c.height() as usize, c.width() as usize];
-                    ResidualBlur::new(h, w, config.refine_loss_blur, horizontal_only, &self.device)
-                })
-                .collect()
-        });
+        let blurs = ResidualBlur::for_views(
+            &cameras,
+            config.refine_loss_blur,
+            horizontal_only,
+            &self.device,
+        );
         let mut iterate_mean = IterateMean::new();
         // With a held view (`refine_held_view`), the refinement fits the other views and
         // checks the held one before its first step and after each turn of them.
