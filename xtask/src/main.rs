@@ -8,11 +8,14 @@
 //! * `reproduce scalar-real|synthetic [--quick]`: train, evaluate, and record the results in
 //!   `docs/results/` and `docs/RESULTS.md`.
 //! * `results`: rebuild the generated tables of `docs/RESULTS.md` from `docs/results/`.
+//! * `compare --base KEY --variant KEY --seeds 1,2,3`: a variant's records against a
+//!   control's, paired by seed.
 
 // The reproduction record is one large `json!` literal.
 #![recursion_limit = "256"]
 
 mod bench;
+mod compare;
 mod lpips_weights;
 mod reproduce;
 mod venv;
@@ -53,6 +56,10 @@ enum Task {
     /// Rebuild the generated tables of docs/RESULTS.md from docs/results/*.json, without
     /// training.
     Results,
+    /// A variant's records in docs/results against a control's, paired by seed: held-out
+    /// PSNR over the video and per block, density and velocity against the ground truth,
+    /// and sampled frames against the frames fitted alone.
+    Compare(compare::CompareArgs),
 }
 
 /// Root of the workspace (xtask lives one level below it).
@@ -82,5 +89,6 @@ fn main() -> Result<()> {
         Task::LpipsWeights => lpips_weights::run(),
         Task::Reevaluate(args) => reproduce::reevaluate::run(args),
         Task::Results => reproduce::write_results_md(&workspace_root().join("docs")),
+        Task::Compare(args) => compare::run(args),
     }
 }
