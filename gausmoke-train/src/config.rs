@@ -982,6 +982,13 @@ impl TrainConfig {
                 self.joint_loss_blur
             ));
         }
+        if self.joint_loss_blur_velocity_only && self.joint_loss_blur == 0.0 {
+            return bad(
+                "joint_loss_blur_velocity_only = true needs joint_loss_blur above 0 (pixels): \
+                 without a blur it changes nothing"
+                    .into(),
+            );
+        }
         if !(0.0..=1000.0).contains(&self.increment_horizontal_weight) {
             return bad(format!(
                 "increment_horizontal_weight must be in [0, 1000], got {}",
@@ -1452,6 +1459,13 @@ mod tests {
                     ..TrainConfig::default()
                 },
                 "joint_loss_blur",
+            ),
+            (
+                TrainConfig {
+                    joint_loss_blur_velocity_only: true,
+                    ..TrainConfig::default()
+                },
+                "joint_loss_blur_velocity_only",
             ),
         ];
         for (config, named) in invalid {
