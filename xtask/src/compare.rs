@@ -238,19 +238,18 @@ fn report(base: &str, variant: &str, pairs: &[Pair], margin: f64) -> String {
             2,
         );
     }
-    let density: Vec<f64> = pairs
-        .iter()
-        .filter_map(|p| p.density.map(|[b, v]| v - b))
-        .collect();
-    if density.len() == pairs.len() {
-        out += &line("density correlation", density, 4);
-    }
-    let velocity: Vec<f64> = pairs
-        .iter()
-        .filter_map(|p| p.velocity_error.map(|[b, v]| v - b))
-        .collect();
-    if velocity.len() == pairs.len() {
-        out += &line("velocity error", velocity, 4);
+    // Against the ground truth: only where every seed's records have it.
+    type Truth = fn(&Pair) -> Option<[f64; 2]>;
+    let truth: [(&str, Truth); 2] = [
+        ("density correlation", |p| p.density),
+        ("velocity error", |p| p.velocity_error),
+    ];
+    for (name, of) in truth {
+        let differences: Option<Vec<f64>> =
+            pairs.iter().map(|p| of(p).map(|[b, v]| v - b)).collect();
+        if let Some(differences) = differences {
+            out += &line(name, differences, 4);
+        }
     }
     let cases: Vec<[f64; 2]> = pairs
         .iter()
