@@ -970,17 +970,13 @@ impl TrainConfig {
                 self.refine_view_agreement, self.refine_average_steps
             ));
         }
-        if !(0.0..=32.0).contains(&self.refine_loss_blur) {
-            return bad(format!(
-                "refine_loss_blur (pixels) must be in [0, 32], got {}",
-                self.refine_loss_blur
-            ));
-        }
-        if !(0.0..=32.0).contains(&self.joint_loss_blur) {
-            return bad(format!(
-                "joint_loss_blur (pixels) must be in [0, 32], got {}",
-                self.joint_loss_blur
-            ));
+        for (name, pixels) in [
+            ("refine_loss_blur", self.refine_loss_blur),
+            ("joint_loss_blur", self.joint_loss_blur),
+        ] {
+            if !(0.0..=32.0).contains(&pixels) {
+                return bad(format!("{name} (pixels) must be in [0, 32], got {pixels}"));
+            }
         }
         if self.joint_loss_blur_velocity_only && self.joint_loss_blur == 0.0 {
             return bad(

@@ -10,6 +10,8 @@ use burn::tensor::Tensor;
 use gausmoke_render::device_traffic::read_floats;
 use serde::{Deserialize, Serialize};
 
+use crate::metrics::psnr_of_mse;
+
 /// Where in a frame a trace point was taken.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -64,7 +66,7 @@ impl HeldOutTrace {
                 step,
                 psnr: errors
                     .iter()
-                    .map(|&mse| -10.0 * f64::from(mse).log10())
+                    .map(|&mse| psnr_of_mse(f64::from(mse)))
                     .sum::<f64>()
                     / views as f64,
             })

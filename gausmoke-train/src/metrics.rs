@@ -18,6 +18,11 @@ pub fn psnr(rendered: &[f32], reference: &[f32]) -> f64 {
         })
         .sum::<f64>()
         / rendered.len().max(1) as f64;
+    psnr_of_mse(mse)
+}
+
+/// PSNR in dB of a mean squared error of images in `[0, 1]`.
+pub fn psnr_of_mse(mse: f64) -> f64 {
     -10.0 * mse.log10()
 }
 

@@ -1497,21 +1497,31 @@ fn a_held_back_view_stops_the_refinement_at_its_best_state() {
         assert_eq!(kept, at_best);
         assert_ne!(kept, last);
     }
-    // One view left to fit, or one view in all, is refused with the setting named.
-    let mut averaged = config(steps, HeldView::EarlyStop);
-    averaged.refine_average_steps = 2;
-    let err = refusal(&data, dir.path(), averaged, "averaged");
-    assert!(
-        err.contains("refine_held_view") && err.contains("refine_average_steps"),
-        "{err}"
-    );
-    let mut every_view = config(steps, HeldView::EarlyStop);
-    every_view.refine_views_per_step = views;
-    let err = refusal(&data, dir.path(), every_view, "every_view");
-    assert!(
-        err.contains("refine_held_view") && err.contains("refine_views_per_step"),
-        "{err}"
-    );
+    // With the mean of the last steps, or more views a step than are left to fit, it is
+    // refused with both settings named.
+    let refused = [
+        (
+            "refine_average_steps",
+            TrainConfig {
+                refine_average_steps: 2,
+                ..config(steps, HeldView::EarlyStop)
+            },
+        ),
+        (
+            "refine_views_per_step",
+            TrainConfig {
+                refine_views_per_step: views,
+                ..config(steps, HeldView::EarlyStop)
+            },
+        ),
+    ];
+    for (setting, settings) in refused {
+        let err = refusal(&data, dir.path(), settings, setting);
+        assert!(
+            err.contains("refine_held_view") && err.contains(setting),
+            "{err}"
+        );
+    }
 }
 
 /// Two runs of one configuration stepped in turn in one process repeat each other: what one
