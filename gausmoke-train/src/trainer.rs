@@ -776,7 +776,7 @@ impl Trainer {
     }
 
     /// `render_loss`, each view's residual blurred first by the matching entry of `blurs`
-    /// when given (`refine_loss_blur`).
+    /// when given (`refine_loss_blur`, `joint_loss_blur`).
     fn render_loss_blurred(
         &self,
         gaussians: &GaussianTensors,
