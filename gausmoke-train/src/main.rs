@@ -70,6 +70,10 @@ enum Command {
         /// Simulate and render only the first N frames (default: the preset's count).
         #[arg(long)]
         frames: Option<usize>,
+        /// Render the views at WIDTHxHEIGHT instead of the preset's size; the simulation,
+        /// and so the ground truth, is the same at any size.
+        #[arg(long)]
+        size: Option<String>,
     },
     /// Render a procedural smoke plume to PNG (a check of the build and the renderer).
     Render(RenderArgs),
@@ -261,6 +265,7 @@ fn run_command(cli: Cli) -> Result<()> {
             out,
             seed,
             frames,
+            size,
         }) => {
             let mut config = match preset {
                 SynthPreset::Tiny => SynthConfig::tiny(),
@@ -277,6 +282,9 @@ fn run_command(cli: Cli) -> Result<()> {
             }
             if let Some(frames) = frames {
                 config.frames = frames;
+            }
+            if let Some(text) = size {
+                [config.width, config.height] = parse_size(&text)?;
             }
             let start = Instant::now();
             let bar = indicatif::ProgressBar::new(config.frames as u64);

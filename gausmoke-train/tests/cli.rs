@@ -1,4 +1,4 @@
-//! The binary's `render`, `synth`, `inspect` and data-less `train` commands: renders the built-in scene to PNG files of the requested size,
+//! The binary's `render`, `synth`, `inspect` and data-less `train` commands: renders the built-in scene to PNG files of the requested size, writes synthetic scenes at another size,
 //! reports a bad `--device` plainly.
 
 use std::process::Command;
@@ -105,6 +105,69 @@ fn synth_then_inspect_reports_the_scene_and_writes_a_contact_sheet() {
         .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("not empty"));
+}
+
+#[test]
+fn synth_renders_at_another_size_with_the_same_ground_truth() {
+    let dir = tempfile::tempdir().unwrap();
+    let synth = |name: &str, size: Option<&str>| {
+        let scene = dir.path().join(name);
+        let mut command = binary();
+        command
+            .args(["synth", "tiny"])
+            .arg(&scene)
+            .args(["--frames", "2"]);
+        if let Some(size) = size {
+            command.args(["--size", size]);
+        }
+        (scene, command.output().unwrap())
+    };
+    let (preset, out) = synth("preset", None);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let (resized, out) = synth("resized", Some("48x72"));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("at 48x72"));
+    let frame = std::fs::read_dir(resized.join("view00"))
+        .unwrap()
+        .map(|entry| entry.unwrap().path())
+        .find(|path| path.extension().is_some_and(|ext| ext == "png"))
+        .expect("a PNG frame of view00");
+    assert_eq!(
+        image::open(&frame).unwrap().to_rgb8().dimensions(),
+        (48, 72)
+    );
+    // Tensor by tensor: the files' metadata is a map whose order varies between processes.
+    for name in ["frame_000.safetensors", "frame_001.safetensors"] {
+        let (a, b) = (
+            std::fs::read(preset.join("gt").join(name)).unwrap(),
+            std::fs::read(resized.join("gt").join(name)).unwrap(),
+        );
+        let (a, b) = (
+            safetensors::SafeTensors::deserialize(&a).unwrap(),
+            safetensors::SafeTensors::deserialize(&b).unwrap(),
+        );
+        for tensor in ["density", "velocity"] {
+            let same = a.tensor(tensor).unwrap().data() == b.tensor(tensor).unwrap().data();
+            assert!(
+                same,
+                "{name} {tensor}: the simulation depends on the image size"
+            );
+        }
+    }
+
+    let (_, out) = synth("bad", Some("48by72"));
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("--size `48by72`"), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
 }
 
 #[test]
