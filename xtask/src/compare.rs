@@ -5,7 +5,9 @@
 //! video and per block of frames, the 3D density's correlation and the velocity's relative
 //! error against the ground truth where the records have them, and each sampled frame's
 //! margin over the frame fitted alone (the records' `independent` fits), with the count of
-//! cases at or above the margin issue 18 asks for.
+//! cases at or above the margin issue 18 asks for. A variant that changes the frame-0 fit
+//! (another Gaussian count or view size) changes that yardstick too: `--own-alone` scores it
+//! against its own.
 
 use std::path::{Path, PathBuf};
 
@@ -29,6 +31,11 @@ pub struct CompareArgs {
     /// with such fits.
     #[arg(long, value_delimiter = ',')]
     alone: Vec<String>,
+    /// Score the variant against the frames fitted alone in its own records, for a variant
+    /// whose frame-0 fit differs from the control's (another Gaussian count or view size), so
+    /// whose yardstick differs too; the control keeps its own, or `--alone`'s.
+    #[arg(long)]
+    own_alone: bool,
     /// Frames per block of the per-block differences.
     #[arg(long, default_value_t = 12)]
     block: usize,
@@ -58,7 +65,8 @@ pub fn run(args: CompareArgs) -> Result<()> {
 }
 
 /// Seed `seed`'s control and variant, scored against the frames fitted alone in the control's
-/// record or else in the first of `--alone` that has them.
+/// record or else in the first of `--alone` that has them; with `--own-alone`, the variant
+/// against its own record's.
 fn read_pair(docs: &Path, args: &CompareArgs, seed: u64) -> Result<Pair> {
     let base = read_record(docs, &args.base, seed)?;
     let variant = read_record(docs, &args.variant, seed)?;
@@ -71,7 +79,19 @@ fn read_pair(docs: &Path, args: &CompareArgs, seed: u64) -> Result<Pair> {
             alone = frames_alone(&read_record(docs, key, seed)?);
         }
     }
-    Pair::of(seed, &base, &variant, &alone, args.block)
+    let variant_alone = if args.own_alone {
+        let own = frames_alone(&variant);
+        if own.is_empty() {
+            bail!(
+                "--own-alone: {} has no frames fitted alone (train it with --independent)",
+                record_path(docs, &args.variant, seed).display()
+            );
+        }
+        own
+    } else {
+        alone.clone()
+    };
+    Pair::of(seed, &base, &variant, [&alone, &variant_alone], args.block)
 }
 
 fn record_path(docs: &Path, key: &str, seed: u64) -> PathBuf {
@@ -125,7 +145,7 @@ impl Pair {
         seed: u64,
         base: &Value,
         variant: &Value,
-        alone: &[(usize, f64)],
+        alone: [&[(usize, f64)]; 2],
         block: usize,
     ) -> Result<Self> {
         let both = |key: &str| Some([base[key].as_f64()?, variant[key].as_f64()?]);
@@ -147,10 +167,14 @@ impl Pair {
             .zip(v.chunks(block))
             .map(|(b, v)| mean(v) - mean(b))
             .collect();
-        let over_alone = alone
+        // The frames both yardsticks have.
+        let over_alone = alone[0]
             .iter()
             .filter(|&&(frame, _)| frame > 0 && frame < b.len())
-            .map(|&(frame, psnr)| (frame, [b[frame] - psnr, v[frame] - psnr]))
+            .filter_map(|&(frame, control)| {
+                let (_, variant) = alone[1].iter().find(|(f, _)| *f == frame)?;
+                Some((frame, [b[frame] - control, v[frame] - variant]))
+            })
             .collect();
         Ok(Self {
             seed,
@@ -286,7 +310,7 @@ mod tests {
         let base = record(&[50.0, 44.0, 41.0, 40.0], 0.9);
         let variant = record(&[50.0, 46.0, 40.0, 42.0], 0.95);
         let alone = frames_alone(&base);
-        let pair = Pair::of(3, &base, &variant, &alone, 2).unwrap();
+        let pair = Pair::of(3, &base, &variant, [&alone, &alone], 2).unwrap();
         assert_eq!(pair.blocks, [1.0, 0.5]);
         // Frame 0 is the frame-0 fit in both: it is not a case.
         assert_eq!(pair.over_alone, [(2, [1.0, 0.0])]);
@@ -299,7 +323,7 @@ mod tests {
     }
 
     #[test]
-    fn the_frames_alone_come_from_the_first_alone_key_that_has_them() {
+    fn the_frames_alone_come_from_the_first_alone_key_that_has_them_or_the_variants_own() {
         let docs = tempfile::tempdir().unwrap();
         std::fs::create_dir(docs.path().join("results")).unwrap();
         let write = |key: &str, value: Value| {
@@ -319,6 +343,7 @@ mod tests {
             variant: "variant".into(),
             seeds: vec![1],
             alone: alone.iter().map(|k| k.to_string()).collect(),
+            own_alone: false,
             block: 12,
             margin: 1.0,
             docs: None,
@@ -336,13 +361,29 @@ mod tests {
             2,
         );
         assert!(format!("{:#}", err.unwrap_err()).contains("base-s2.json"));
+
+        // A variant with a yardstick of its own (another Gaussian count) is scored against it;
+        // one without is refused, by its record's path.
+        let mut own = record(&[50.0, 46.0, 44.0], 0.95);
+        own["independent"] =
+            json!([{"frame": 1, "test_psnr": 44.5}, {"frame": 2, "test_psnr": 40.0}]);
+        write("own", own);
+        let with_own = |variant: &str| CompareArgs {
+            variant: variant.into(),
+            own_alone: true,
+            ..args(&["fits"])
+        };
+        let pair = read_pair(docs.path(), &with_own("own"), 1).unwrap();
+        assert_eq!(pair.over_alone, [(1, [1.0, 1.5])]);
+        let err = read_pair(docs.path(), &with_own("variant"), 1).unwrap_err();
+        assert!(err.to_string().contains("variant-s1.json"), "{err}");
     }
 
     #[test]
     fn runs_of_different_lengths_are_refused() {
         let base = record(&[50.0, 44.0, 41.0], 0.9);
         let variant = record(&[50.0, 44.0], 0.9);
-        let err = Pair::of(1, &base, &variant, &[], 12).unwrap_err();
+        let err = Pair::of(1, &base, &variant, [&[], &[]], 12).unwrap_err();
         assert!(err.to_string().contains("3 and 2 frames"), "{err}");
     }
 
