@@ -79,19 +79,15 @@ fn read_pair(docs: &Path, args: &CompareArgs, seed: u64) -> Result<Pair> {
             alone = frames_alone(&read_record(docs, key, seed)?);
         }
     }
-    let variant_alone = if args.own_alone {
-        let own = frames_alone(&variant);
-        if own.is_empty() {
-            bail!(
-                "--own-alone: {} has no frames fitted alone (train it with --independent)",
-                record_path(docs, &args.variant, seed).display()
-            );
-        }
-        own
-    } else {
-        alone.clone()
-    };
-    Pair::of(seed, &base, &variant, [&alone, &variant_alone], args.block)
+    let own = args.own_alone.then(|| frames_alone(&variant));
+    if own.as_ref().is_some_and(Vec::is_empty) {
+        bail!(
+            "--own-alone: {} has no frames fitted alone (train it with --independent)",
+            record_path(docs, &args.variant, seed).display()
+        );
+    }
+    let variant_alone = own.as_deref().unwrap_or(&alone);
+    Pair::of(seed, &base, &variant, [&alone, variant_alone], args.block)
 }
 
 fn record_path(docs: &Path, key: &str, seed: u64) -> PathBuf {
