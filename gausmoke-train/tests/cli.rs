@@ -163,11 +163,17 @@ fn synth_renders_at_another_size_with_the_same_ground_truth() {
         }
     }
 
-    let (_, out) = synth("bad", Some("48by72"));
-    assert!(!out.status.success());
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(stderr.contains("--size `48by72`"), "{stderr}");
-    assert!(!stderr.contains("panicked"), "{stderr}");
+    for (size, message) in [
+        ("48by72", "--size `48by72`"),
+        ("9000x100", "9000x100: at most 8192 pixels a side"),
+    ] {
+        let (scene, out) = synth(size, Some(size));
+        assert!(!out.status.success(), "{size}");
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(stderr.contains(message), "{stderr}");
+        assert!(!stderr.contains("panicked"), "{stderr}");
+        assert!(!scene.join("info.json").exists(), "{size}: nothing written");
+    }
 }
 
 #[test]

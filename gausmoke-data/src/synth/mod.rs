@@ -91,6 +91,9 @@ pub struct SynthConfig {
     pub layout: SynthLayout,
 }
 
+/// The largest image side [`SynthConfig::validate`] accepts.
+const MAX_SIDE: u32 = 8192;
+
 /// How a scene is written.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SynthLayout {
@@ -275,6 +278,16 @@ impl SynthConfig {
         }
         if self.width == 0 || self.height == 0 {
             return bad("width/height", "empty image".into());
+        }
+        // Each view's frame is rendered and written whole: past this it would not fit in memory.
+        if self.width > MAX_SIDE || self.height > MAX_SIDE {
+            return bad(
+                "width/height",
+                format!(
+                    "{}x{}: at most {MAX_SIDE} pixels a side",
+                    self.width, self.height
+                ),
+            );
         }
         let finite = [
             self.vorticity,
