@@ -2,7 +2,7 @@
 //! the trainable Gaussians ([`GaussianModel`]), the Eulerian grid, density splatting to it
 //! (a custom op with hand-written backward passes, with the density's analytic spatial
 //! gradient), continuous velocity interpolation with its closed-form divergence, advection of
-//! Gaussian centres, the exact Helmholtz projection `Pi` (a custom op whose backward is `Pi`
+//! Gaussian centres and the strain of their shapes ([`deform`]), the exact Helmholtz projection `Pi` (a custom op whose backward is `Pi`
 //! itself) and the paper's penalty form of it ([`penalty`]), the update network Phi (a small
 //! 3D U-Net), an explicit buoyancy force with a fitted coefficient ([`BuoyancyForce`]), the
 //! losses `L_div`, `L_adv` and `L_refine` (plain tensor functions), and the split of the
@@ -11,6 +11,7 @@
 pub mod advect;
 pub mod buoyancy;
 pub mod conv;
+pub mod deform;
 pub mod density;
 pub mod gaussians;
 pub mod grid;
@@ -23,6 +24,7 @@ pub mod unet;
 
 pub use advect::{Advected, Integrator, advect, transport_velocity};
 pub use buoyancy::BuoyancyForce;
+pub use deform::{deform_shape, deform_shapes, flow_deformation};
 pub use density::{
     DensityBackend, DensityField, SplatOptions, density_and_gradient_grid, density_field,
     density_gradient_grid, density_grid,

@@ -501,6 +501,17 @@ pub struct TrainConfig {
     pub time_frequencies: usize,
     pub interpolation: InterpolationKind,
     pub integrator: IntegratorKind,
+    /// Share of the flow's deformation each carried Gaussian's shape takes, from frame 1 on
+    /// (ours, `gausmoke_model::deform`; 0, the default, is the paper's Eq. 13, which moves
+    /// the centres and keeps the shapes): after the joint iterations each covariance becomes
+    /// `F Sigma F^T`, `F` the volume-preserving deformation of a step of `shape_transport * dt`
+    /// frames of the fitted velocity at the Gaussian's centre, so that smoke the flow strains
+    /// or turns arrives strained or turned. In [0, 1].
+    pub shape_transport: f32,
+    /// Longest over shortest standard deviation beyond which that transport strains no
+    /// Gaussian (one already longer is not strained further, nor shortened). 0, the default,
+    /// sets no bound; otherwise at least 1.
+    pub shape_transport_max_elongation: f32,
     /// Form of `Pi`: `exact` (default) or `penalty` (the paper's description).
     pub projection: ProjectionKind,
     /// Relative residual at which the exact projection's PCG solve stops (device backends
@@ -723,6 +734,8 @@ impl Default for TrainConfig {
             time_frequencies: 4,
             interpolation: InterpolationKind::Gaussian,
             integrator: IntegratorKind::Euler,
+            shape_transport: 0.0,
+            shape_transport_max_elongation: 0.0,
             projection: ProjectionKind::Exact,
             projection_tolerance: 1e-5,
             projection_max_iterations: 400,
@@ -1080,6 +1093,19 @@ impl TrainConfig {
             return bad(format!(
                 "split_size_factor must be a positive number, got {}",
                 self.split_size_factor
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.shape_transport) {
+            return bad(format!(
+                "shape_transport must be in [0, 1], got {}",
+                self.shape_transport
+            ));
+        }
+        let elongation = self.shape_transport_max_elongation;
+        if !(elongation == 0.0 || (1.0..=f32::MAX).contains(&elongation)) {
+            return bad(format!(
+                "shape_transport_max_elongation must be 0 (no bound) or at least 1, got {}",
+                self.shape_transport_max_elongation
             ));
         }
         if !(0.0..=1.0).contains(&self.carried_smoothing) {

@@ -35,10 +35,10 @@ use gausmoke_model::penalty::penalty_projection_with_report;
 use gausmoke_model::{
     BuoyancyForce, GaussianModel, GridScale, GridSpec, INITIAL_RAW_DENSITY, Integrator,
     Interpolation, NO_SIZE_BOUNDS, PenaltyOptions, ProjectionOptions, ProjectionReport, SolidCells,
-    SplatOptions, UNetConfig, VelocityUNet, advect, advection_loss, density_and_gradient_grid,
-    density_grid, density_tie_loss, divergence_loss_of, log_density, penalty_projection,
-    project_direct, project_velocity, refine_loss, settle_deferred_solves, transport_velocity,
-    uniform_color,
+    SplatOptions, UNetConfig, VelocityUNet, advect, advection_loss, deform_shapes,
+    density_and_gradient_grid, density_grid, density_tie_loss, divergence_loss_of, log_density,
+    penalty_projection, project_direct, project_velocity, refine_loss, sample_velocity,
+    settle_deferred_solves, transport_velocity, uniform_color,
 };
 use gausmoke_render::cpu::TILE_SIZE;
 use gausmoke_render::device_traffic::{
@@ -1061,6 +1061,48 @@ impl Trainer {
 
     /// Moves the Gaussians whose centre lies inside a solid obstacle onto its surface: smoke
     /// has no business there, and the velocity, zero inside, would never carry it out.
+    /// Strains and turns each Gaussian's shape by a step `dt` of `velocity` read at `from`,
+    /// its centre before the step (`shape_transport`; see [`gausmoke_model::deform`]); the
+    /// rows born this frame, which the carrier did not move, keep theirs.
+    fn carry_shapes(
+        &mut self,
+        velocity: &Tensor<4>,
+        from: &Tensor<2>,
+        dt: f32,
+        born: &[usize],
+        [lowest, highest]: [f32; 2],
+    ) {
+        let _phase = phase!("shape transport");
+        let sample = sample_velocity(&self.grid, velocity, from, self.interpolation());
+        let jacobians = read_floats(sample.jacobian);
+        // 0 sets no bound.
+        let max_elongation = match self.config.shape_transport_max_elongation {
+            bound if bound > 0.0 => bound,
+            _ => f32::INFINITY,
+        };
+        let mut host = self.state.gaussians.to_host();
+        let born: std::collections::HashSet<usize> = born.iter().copied().collect();
+        let rows = (0..host.raw_densities.len()).filter(|row| !born.contains(row));
+        let kept = deform_shapes(
+            &mut host.rotations,
+            &mut host.log_scales,
+            &jacobians,
+            dt,
+            max_elongation,
+            rows,
+        );
+        for value in &mut host.log_scales {
+            *value = value.clamp(lowest, highest);
+        }
+        if kept > 0 {
+            tracing::warn!(
+                kept,
+                "shape transport: steps too large for these Gaussians, their shapes kept"
+            );
+        }
+        self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
+    }
+
     fn keep_out_of_obstacles(&mut self) {
         if self.solids.is_none() {
             return;
@@ -1511,6 +1553,16 @@ impl Trainer {
         }
         // K' refinement iterations (lines 11-13): free centres tied to the advected ones.
         self.state.gaussians = self.state.gaussians.clone().with_means(advected);
+        if config.shape_transport > 0.0 {
+            let dt = config.dt * config.shape_transport * share;
+            self.carry_shapes(
+                &velocity,
+                &previous_means,
+                dt,
+                &born.indices,
+                log_scale_bounds,
+            );
+        }
         self.keep_out_of_obstacles();
         // Recycling sees the transported Gaussians against frame t: what they miss entered
         // the box (or was never fitted), and the refinement fits the recycled ones.

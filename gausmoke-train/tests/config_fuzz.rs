@@ -63,6 +63,8 @@ const KEYS: &[(&str, bool)] = &[
     ("respawn_near_smoke", true),
     ("split_fraction", true),
     ("split_size_factor", true),
+    ("shape_transport", true),
+    ("shape_transport_max_elongation", true),
     ("carried_smoothing", true),
     ("carried_smoothing_cells", true),
     ("min_size_factor", true),

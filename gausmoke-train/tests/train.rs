@@ -2501,6 +2501,90 @@ fn the_size_ceiling_holds_every_smoke_gaussian_after_frame_0() {
     assert_size_bound_holds_after_frame_0(SizeBound::Ceiling, 1.0);
 }
 
+/// `shape_transport` strains and turns the carried Gaussians' shapes, keeping each one's
+/// volume, and `shape_transport_max_elongation` bounds the strain; without it (and with the
+/// sizes' rate at 0) frame 1 leaves every size as frame 0 fitted it.
+#[test]
+fn the_flow_can_carry_the_gaussians_shapes() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let base = TrainConfig {
+        frames: Some(2),
+        refinement: false,
+        lr_log_scales: Some(0.0),
+        ..joint_terms_config()
+    };
+    let frame_1 = |config: TrainConfig, name: &str| -> (Vec<f32>, Vec<f32>) {
+        let mut run = after_frame_0(&data, dir.path(), config, name);
+        let read = |run: &Run| {
+            let log_scales = run.trainer.state.gaussians.log_scales.val().into_data();
+            log_scales.try_into_vec_as::<f32>().unwrap()
+        };
+        let before = read(&run);
+        run.trainer.advance_to(1).unwrap();
+        (before, read(&run))
+    };
+    let (before, kept) = frame_1(base.clone(), "kept");
+    assert_eq!(before, kept, "without shape transport the sizes moved");
+    let volumes =
+        |log_scales: &[f32]| -> Vec<f32> { log_scales.chunks(3).map(|s| s.iter().sum()).collect() };
+    let elongations = |log_scales: &[f32]| -> Vec<f32> {
+        let spread = |s: &[f32]| {
+            s.iter().fold(f32::MIN, |a, &b| a.max(b)) - s.iter().fold(f32::MAX, |a, &b| a.min(b))
+        };
+        log_scales.chunks(3).map(|s| spread(s).exp()).collect()
+    };
+    let carried = |max_elongation: f32, name: &str| {
+        let (start, after) = frame_1(
+            TrainConfig {
+                shape_transport: 1.0,
+                shape_transport_max_elongation: max_elongation,
+                ..base.clone()
+            },
+            name,
+        );
+        assert_eq!(start, before, "frame 0 depends on shape transport");
+        let strained = largest_difference(&after, &before);
+        assert!(
+            strained > 1e-4,
+            "{name}: the shapes did not change ({strained})"
+        );
+        let volume = largest_difference(&volumes(&after), &volumes(&before));
+        assert!(
+            volume < 1e-4,
+            "{name}: a volume changed by {volume} (strain {strained})"
+        );
+        after
+    };
+    let free = carried(0.0, "free");
+    let (longest_before, longest_free) = (elongations(&before), elongations(&free));
+    let cap = 1.0
+        + 0.5
+            * longest_free
+                .iter()
+                .zip(&longest_before)
+                .map(|(a, b)| a - b)
+                .fold(0.0, f32::max);
+    assert!(
+        longest_free
+            .iter()
+            .zip(&longest_before)
+            .any(|(a, b)| a > &cap && b < &cap),
+        "no shape was strained beyond {cap}: the bound cannot be tested"
+    );
+    let bounded = carried(cap, "bounded");
+    for (row, (after, start)) in elongations(&bounded)
+        .iter()
+        .zip(&longest_before)
+        .enumerate()
+    {
+        assert!(
+            *after <= cap.max(*start) * (1.0 + 1e-4),
+            "row {row}: {start} strained to {after}, beyond {cap}"
+        );
+    }
+}
+
 /// The colours after training `config` on `data` (flex), the run in `dir/name`, per row.
 fn colors_after(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Vec<[f32; 3]> {
     let run = trained(data, dir, config, name);

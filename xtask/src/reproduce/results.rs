@@ -102,6 +102,14 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
         };
         settings.push(("split_fraction", format!("split {fraction} a frame{above}")));
     }
+    if let Some(share) = weight("shape_transport") {
+        let of = if share == 1.0 {
+            String::new()
+        } else {
+            format!(" ({share} of the step)")
+        };
+        settings.push(("shape_transport", format!("shapes carried by the flow{of}")));
+    }
     if let Some(blend) = weight("carried_smoothing") {
         let cells = config["carried_smoothing_cells"].as_f64().unwrap_or(1.0) as f32;
         settings.push((
