@@ -2,8 +2,9 @@
 //! the trainable Gaussians ([`GaussianModel`]), the Eulerian grid, density splatting to it
 //! (a custom op with hand-written backward passes, with the density's analytic spatial
 //! gradient), continuous velocity interpolation with its closed-form divergence, advection of
-//! Gaussian centres and the strain of their shapes ([`deform`]), the exact Helmholtz projection `Pi` (a custom op whose backward is `Pi`
-//! itself) and the paper's penalty form of it ([`penalty`]), the update network Phi (a small
+//! Gaussian centres and the strain of their shapes ([`deform`]), the exact Helmholtz
+//! projection `Pi` (a custom op whose backward is `Pi` itself) and the paper's penalty form
+//! of it ([`penalty`]), the update network Phi (a small
 //! 3D U-Net), an explicit buoyancy force with a fitted coefficient ([`BuoyancyForce`]), the
 //! losses `L_div`, `L_adv` and `L_refine` (plain tensor functions), and the split of the
 //! refinement's move into its grid-scale and sub-grid parts ([`GridScale`]).
