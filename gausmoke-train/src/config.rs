@@ -512,6 +512,12 @@ pub struct TrainConfig {
     /// Gaussian (one already longer is not strained further, nor shortened). 0, the default,
     /// sets no bound; otherwise at least 1.
     pub shape_transport_max_elongation: f32,
+    /// Width (standard deviation, in velocity-grid cells) of a Gaussian smoothing of the
+    /// carried velocity before each frame's update, from frame 1 on (ours; 0, the default,
+    /// is the paper's method): a viscosity against structure finer than the views can fit,
+    /// which the fitted velocity's strain shows (`xtask/reference/strain_diagnosis.py`);
+    /// the update's projection follows it. In [0, 4].
+    pub velocity_smoothing_cells: f32,
     /// Form of `Pi`: `exact` (default) or `penalty` (the paper's description).
     pub projection: ProjectionKind,
     /// Relative residual at which the exact projection's PCG solve stops (device backends
@@ -735,6 +741,7 @@ impl Default for TrainConfig {
             interpolation: InterpolationKind::Gaussian,
             integrator: IntegratorKind::Euler,
             shape_transport: 0.0,
+            velocity_smoothing_cells: 0.0,
             shape_transport_max_elongation: 0.0,
             projection: ProjectionKind::Exact,
             projection_tolerance: 1e-5,
@@ -1106,6 +1113,12 @@ impl TrainConfig {
             return bad(format!(
                 "shape_transport_max_elongation must be 0 (no bound) or at least 1, got {}",
                 self.shape_transport_max_elongation
+            ));
+        }
+        if !(0.0..=4.0).contains(&self.velocity_smoothing_cells) {
+            return bad(format!(
+                "velocity_smoothing_cells must be in [0, 4], got {}",
+                self.velocity_smoothing_cells
             ));
         }
         if !(0.0..=1.0).contains(&self.carried_smoothing) {

@@ -1103,6 +1103,16 @@ impl Trainer {
         self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
     }
 
+    /// `velocity` smoothed by a Gaussian of `cells` grid cells along every axis
+    /// (`velocity_smoothing_cells`), weights renormalised at the walls.
+    fn smoothed_velocity(&self, velocity: Tensor<4>, cells: f32) -> Tensor<4> {
+        let _phase = phase!("velocity smoothing");
+        let resolution = self.grid.resolution();
+        let values = smoothed(&read_floats(velocity), resolution, 3, cells, [true; 3]);
+        let [nx, ny, nz] = resolution;
+        Tensor::from_data(TensorData::new(values, [nx, ny, nz, 3]), &self.device)
+    }
+
     fn keep_out_of_obstacles(&mut self) {
         if self.solids.is_none() {
             return;
@@ -1215,6 +1225,11 @@ impl Trainer {
             transport_velocity(&self.grid, &self.state.velocity.clone().detach(), config.dt)
         } else {
             self.state.velocity.clone().detach()
+        };
+        let previous_velocity = if config.velocity_smoothing_cells > 0.0 {
+            self.smoothed_velocity(previous_velocity, config.velocity_smoothing_cells)
+        } else {
+            previous_velocity
         };
         let interpolation = self.interpolation();
         let splat = SplatOptions::default();

@@ -64,6 +64,7 @@ const KEYS: &[(&str, bool)] = &[
     ("split_fraction", true),
     ("split_size_factor", true),
     ("shape_transport", true),
+    ("velocity_smoothing_cells", true),
     ("shape_transport_max_elongation", true),
     ("carried_smoothing", true),
     ("carried_smoothing_cells", true),

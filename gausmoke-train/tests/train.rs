@@ -2585,6 +2585,63 @@ fn the_flow_can_carry_the_gaussians_shapes() {
     }
 }
 
+/// `velocity_smoothing_cells` smooths the velocity each frame carries into the next: the
+/// trained field comes out smoother (its cell-to-cell differences smaller against its size)
+/// than without it, and frame 0 does not depend on it.
+#[test]
+fn the_carried_velocity_can_be_smoothed() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let base = joint_terms_config();
+    // Squared differences between neighbouring cells over the squared values, [8, 8, 8, 3].
+    let roughness = |v: &[f32]| -> f64 {
+        let n = 8;
+        let at = |x: usize, y: usize, z: usize, c: usize| v[((x * n + y) * n + z) * 3 + c] as f64;
+        let (mut differences, mut energy) = (0.0, 0.0);
+        for x in 0..n {
+            for y in 0..n {
+                for z in 0..n {
+                    for c in 0..3 {
+                        energy += at(x, y, z, c).powi(2);
+                        if x + 1 < n {
+                            differences += (at(x + 1, y, z, c) - at(x, y, z, c)).powi(2);
+                        }
+                        if y + 1 < n {
+                            differences += (at(x, y + 1, z, c) - at(x, y, z, c)).powi(2);
+                        }
+                        if z + 1 < n {
+                            differences += (at(x, y, z + 1, c) - at(x, y, z, c)).powi(2);
+                        }
+                    }
+                }
+            }
+        }
+        differences / energy
+    };
+    let free = velocity_after(&data, dir.path(), base.clone(), "free");
+    let smoothed_config = TrainConfig {
+        velocity_smoothing_cells: 1.0,
+        ..base.clone()
+    };
+    let smoothed = velocity_after(&data, dir.path(), smoothed_config.clone(), "smoothed");
+    assert!(
+        roughness(&smoothed) < 0.95 * roughness(&free),
+        "roughness {} with smoothing, {} without",
+        roughness(&smoothed),
+        roughness(&free)
+    );
+    let first = |config: TrainConfig, name: &str| {
+        let run = after_frame_0(&data, dir.path(), config, name);
+        let means = run.trainer.state.gaussians.means.val().into_data();
+        means.try_into_vec_as::<f32>().unwrap()
+    };
+    assert_eq!(
+        first(base, "free-0"),
+        first(smoothed_config, "smoothed-0"),
+        "frame 0 depends on the velocity's smoothing"
+    );
+}
+
 /// The colours after training `config` on `data` (flex), the run in `dir/name`, per row.
 fn colors_after(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Vec<[f32; 3]> {
     let run = trained(data, dir, config, name);

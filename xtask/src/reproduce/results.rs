@@ -110,6 +110,12 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
         };
         settings.push(("shape_transport", format!("shapes carried by the flow{of}")));
     }
+    if let Some(cells) = weight("velocity_smoothing_cells") {
+        settings.push((
+            "velocity_smoothing_cells",
+            format!("carried velocity smoothed over {cells} cells"),
+        ));
+    }
     if let Some(blend) = weight("carried_smoothing") {
         let cells = config["carried_smoothing_cells"].as_f64().unwrap_or(1.0) as f32;
         settings.push((
