@@ -1059,8 +1059,6 @@ impl Trainer {
         }
     }
 
-    /// Moves the Gaussians whose centre lies inside a solid obstacle onto its surface: smoke
-    /// has no business there, and the velocity, zero inside, would never carry it out.
     /// Strains and turns each Gaussian's shape by a step `dt` of `velocity` read at `from`,
     /// its centre before the step (`shape_transport`; see [`gausmoke_model::deform`]); the
     /// rows born this frame, which the carrier did not move, keep theirs.
@@ -1113,6 +1111,8 @@ impl Trainer {
         Tensor::from_data(TensorData::new(values, [nx, ny, nz, 3]), &self.device)
     }
 
+    /// Moves the Gaussians whose centre lies inside a solid obstacle onto its surface: smoke
+    /// has no business there, and the velocity, zero inside, would never carry it out.
     fn keep_out_of_obstacles(&mut self) {
         if self.solids.is_none() {
             return;
