@@ -1111,8 +1111,7 @@ impl TrainConfig {
         let elongation = self.shape_transport_max_elongation;
         if !(elongation == 0.0 || (1.0..=f32::MAX).contains(&elongation)) {
             return bad(format!(
-                "shape_transport_max_elongation must be 0 (no bound) or at least 1, got {}",
-                self.shape_transport_max_elongation
+                "shape_transport_max_elongation must be 0 (no bound) or at least 1, got {elongation}"
             ));
         }
         if !(0.0..=4.0).contains(&self.velocity_smoothing_cells) {

@@ -1078,18 +1078,22 @@ impl Trainer {
             bound if bound > 0.0 => bound,
             _ => f32::INFINITY,
         };
-        let mut host = self.state.gaussians.to_host();
-        let born: std::collections::HashSet<usize> = born.iter().copied().collect();
-        let rows = (0..host.raw_densities.len()).filter(|row| !born.contains(row));
+        // Only the shapes change: the other attributes stay on the device.
+        let current = self.state.gaussians.tensors();
+        let mut rotations = read_floats(current.rotations.clone());
+        let mut log_scales = read_floats(current.log_scales.clone());
+        let n = self.state.gaussians.len();
+        let born = marked_rows(n, born);
+        let rows = (0..n).filter(|&row| born[row] == 0.0);
         let kept = deform_shapes(
-            &mut host.rotations,
-            &mut host.log_scales,
+            &mut rotations,
+            &mut log_scales,
             &jacobians,
             dt,
             max_elongation,
             rows,
         );
-        for value in &mut host.log_scales {
+        for value in &mut log_scales {
             *value = value.clamp(lowest, highest);
         }
         if kept > 0 {
@@ -1098,7 +1102,15 @@ impl Trainer {
                 "shape transport: steps too large for these Gaussians, their shapes kept"
             );
         }
-        self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
+        let upload = |values: Vec<f32>, width: usize| {
+            Tensor::<2>::from_data(TensorData::new(values, [n, width]), &self.device)
+        };
+        let shapes = Gaussians {
+            rotations: upload(rotations, 4),
+            log_scales: upload(log_scales, 3),
+            ..current
+        };
+        self.state.gaussians = self.state.gaussians.clone().with_values(shapes);
     }
 
     /// `velocity` smoothed by a Gaussian of `cells` grid cells along every axis
