@@ -547,6 +547,11 @@ pub struct TrainConfig {
     /// alpha, an opacity times the projected 2D Gaussian ("w/o volumetric rendering"; see
     /// `gausmoke_render::AlphaModel::SplatOpacity`).
     pub volumetric: bool,
+    /// The renderer skips a Gaussian on a ray where its alpha is below this (3DGS's 1/255,
+    /// the default). A skipped Gaussian gets no gradient from that pixel, so one fitted
+    /// below it in every view is frozen there while still carried and splatted into the
+    /// density grid. Thin smoke's Gaussians sit close to 1/255. In (0, 1/255].
+    pub alpha_min: f32,
     /// Most Gaussians moved per frame, as a fraction of all, from the box's faces and from
     /// invisibility to where the training views show missing smoke (`respawn` module). 0 is
     /// the paper's method (a fixed set, only advected).
@@ -753,6 +758,7 @@ impl Default for TrainConfig {
             physics_losses: true,
             refinement: true,
             volumetric: true,
+            alpha_min: 1.0 / 255.0,
             respawn_fraction: 0.0,
             respawn_threshold: 0.05,
             respawn_near_smoke: 0.0,
@@ -1138,6 +1144,12 @@ impl TrainConfig {
                 self.min_size_factor
             ));
         }
+        if !(self.alpha_min > 0.0 && self.alpha_min <= 1.0 / 255.0) {
+            return bad(format!(
+                "alpha_min must be in (0, 1/255], got {}",
+                self.alpha_min
+            ));
+        }
         if !(0.0..=10.0).contains(&self.ground_truth_velocity_scale) {
             return bad(format!(
                 "ground_truth_velocity_scale must be in [0, 10], got {}",
@@ -1290,11 +1302,12 @@ impl TrainConfig {
         toml::to_string_pretty(self).expect("the configuration serialises to TOML")
     }
 
-    /// The rasterizer's options: the defaults, with the ablation's alpha model when
-    /// `volumetric` is off and the configured backward tile sums.
+    /// The rasterizer's options: the defaults, with the configured `alpha_min`, the
+    /// ablation's alpha model when `volumetric` is off and the configured backward tile sums.
     pub fn raster_options(&self) -> gausmoke_render::RasterOptions {
         gausmoke_render::RasterOptions {
             gradient_sums: self.gradient_sums.into(),
+            alpha_min: self.alpha_min,
             alpha_model: if self.volumetric {
                 gausmoke_render::AlphaModel::BeerLambert
             } else {
@@ -1565,6 +1578,31 @@ mod tests {
             .with_overrides(&["gradient_sums=warp".into()])
             .unwrap_err();
         assert!(err.to_string().contains("warp"), "{err}");
+    }
+
+    #[test]
+    fn alpha_min_reaches_the_rasterizer_and_old_configs_keep_3dgs_cull() {
+        assert_eq!(
+            TrainConfig::default().raster_options().alpha_min,
+            1.0 / 255.0
+        );
+        let config = TrainConfig::default()
+            .with_overrides(&["alpha_min=1e-5".into()])
+            .unwrap();
+        assert_eq!(config.raster_options().alpha_min, 1e-5);
+        assert!(config.validate().is_ok());
+        for bad in [0.0, 0.01, -1e-5, f32::NAN] {
+            let err = TrainConfig {
+                alpha_min: bad,
+                ..TrainConfig::default()
+            }
+            .validate()
+            .unwrap_err();
+            assert!(err.to_string().contains("alpha_min"), "{bad}: {err}");
+        }
+        // A run folder written before the setting existed reads back with the old cull.
+        let old: TrainConfig = toml::from_str("gaussians = 100").unwrap();
+        assert_eq!(old.alpha_min, 1.0 / 255.0);
     }
 
     #[test]

@@ -70,6 +70,7 @@ const KEYS: &[(&str, bool)] = &[
     ("carried_smoothing_cells", true),
     ("min_size_factor", true),
     ("max_size_factor", true),
+    ("alpha_min", true),
     ("relative_adam_epsilon", true),
     ("seed", true),
     ("output_every", true),

@@ -1112,6 +1112,53 @@ fn each_attribute_can_have_its_own_learning_rate_after_frame_0() {
     assert!(free > 0.0, "unset, the refinement did not move the centres");
 }
 
+/// `alpha_min`: a Gaussian too faint to reach 3DGS's cull (alpha 1/255) on any ray gets no
+/// gradient, so frame 0's fit leaves its density exactly as it was; with a lower cull the same
+/// Gaussians are fitted.
+#[test]
+fn gaussians_under_the_cull_are_frozen_and_a_lower_cull_fits_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    // softplus(-9) = 1.2e-4 per world unit: a peak optical depth far below -ln(1 - 1/255)
+    // for any Gaussian smaller than the box.
+    let faint = -9.0_f32;
+    let fitted_faint_rows = |alpha_min: f32, name: &str| -> Vec<f32> {
+        let config = TrainConfig {
+            alpha_min,
+            frames: Some(1),
+            ..joint_terms_config()
+        };
+        let mut run = quiet_run(&data, dir.path(), config, name);
+        let mut host = run.trainer.state.gaussians.to_host();
+        let rows: Vec<usize> = (0..host.raw_densities.len()).step_by(4).collect();
+        for &row in &rows {
+            host.raw_densities[row] = faint;
+        }
+        run.trainer.state.gaussians =
+            gausmoke_model::GaussianModel::from_host(&host, &run.trainer.device);
+        run.trainer.fit_first_frame().unwrap();
+        let after = run.trainer.state.gaussians.to_host().raw_densities;
+        rows.iter().map(|&row| after[row]).collect()
+    };
+    let culled = fitted_faint_rows(1.0 / 255.0, "culled");
+    assert!(
+        culled.iter().all(|&raw| raw == faint),
+        "a Gaussian under the cull moved: {:?}",
+        culled
+            .iter()
+            .filter(|&&raw| raw != faint)
+            .take(5)
+            .collect::<Vec<_>>()
+    );
+    let fitted = fitted_faint_rows(1e-9, "fitted");
+    let moved = fitted.iter().filter(|&&raw| raw != faint).count();
+    assert!(
+        moved * 2 > fitted.len(),
+        "with alpha_min 1e-9 only {moved} of {} faint Gaussians were fitted",
+        fitted.len()
+    );
+}
+
 /// `gaussian_optimizer_reset` starts the smoke Gaussians' Adam state afresh after frame 0 or
 /// at every frame: a fresh state's first step moves every parameter with a gradient by the
 /// learning rate exactly (its bias-corrected moments are the gradient and its square), one
