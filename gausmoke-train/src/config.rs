@@ -552,6 +552,11 @@ pub struct TrainConfig {
     /// below it in every view is frozen there while still carried and splatted into the
     /// density grid. Thin smoke's Gaussians sit close to 1/255. In (0, 1/255].
     pub alpha_min: f32,
+    /// The density grid (Phi's input, `L_adv`, the look-ahead, the exports and the
+    /// evaluation) counts only the Gaussians the renderer can see: those whose peak alpha
+    /// reaches `alpha_min` on some ray. Off (the default, the paper's method): every one,
+    /// including those frozen under the cull.
+    pub density_grid_rendered_only: bool,
     /// Most Gaussians moved per frame, as a fraction of all, from the box's faces and from
     /// invisibility to where the training views show missing smoke (`respawn` module). 0 is
     /// the paper's method (a fixed set, only advected).
@@ -759,6 +764,7 @@ impl Default for TrainConfig {
             refinement: true,
             volumetric: true,
             alpha_min: 1.0 / 255.0,
+            density_grid_rendered_only: false,
             respawn_fraction: 0.0,
             respawn_threshold: 0.05,
             respawn_near_smoke: 0.0,

@@ -701,7 +701,12 @@ impl Trainer {
         gaussians: &GaussianTensors,
         time: f32,
     ) -> Result<Tensor<4>, TrainError> {
-        let sigma = density_grid(gaussians, &self.grid, SplatOptions::default().cutoff).detach();
+        let sigma = density_grid(
+            &self.as_splatted(gaussians),
+            &self.grid,
+            SplatOptions::default().cutoff,
+        )
+        .detach();
         let delta = self
             .state
             .phi
@@ -1373,11 +1378,17 @@ impl Trainer {
             let previous = self.state.gaussians.tensors_at(previous_means.clone());
             // The density and (for L_adv) its gradient, in one pass over the Gaussians.
             let (sigma_previous, gradient_previous) = if config.physics_losses {
-                let (sigma, gradient) =
-                    density_and_gradient_grid(&previous, &self.grid, splat.cutoff);
+                let (sigma, gradient) = density_and_gradient_grid(
+                    &self.as_splatted(&previous),
+                    &self.grid,
+                    splat.cutoff,
+                );
                 (sigma, Some(gradient))
             } else {
-                (density_grid(&previous, &self.grid, splat.cutoff), None)
+                (
+                    density_grid(&self.as_splatted(&previous), &self.grid, splat.cutoff),
+                    None,
+                )
             };
             let delta = {
                 let _phase = phase!("U-Net forward");
@@ -1470,7 +1481,7 @@ impl Trainer {
             if let Some(gradient_previous) = gradient_previous {
                 let divergence = divergence_loss_of(&moved.start);
                 let (sigma_next, gradient_next) =
-                    density_and_gradient_grid(&next, &self.grid, splat.cutoff);
+                    density_and_gradient_grid(&self.as_splatted(&next), &self.grid, splat.cutoff);
                 let advection = advection_loss(
                     &sigma_previous,
                     &sigma_next,
@@ -2000,7 +2011,8 @@ impl Trainer {
         let refined = self.state.gaussians.tensors().detach();
         let [n, _] = refined.means.dims();
         let previous = self.state.gaussians.tensors_at(previous_means.clone());
-        let sigma_previous = density_grid(&previous, &self.grid, cutoff).detach();
+        let sigma_previous =
+            density_grid(&self.as_splatted(&previous), &self.grid, cutoff).detach();
         let jumped = marked_rows(n, moved);
         if !jumped.contains(&0.0) {
             return Ok(None);
@@ -2020,7 +2032,7 @@ impl Trainer {
         .detach();
         // The density target, and its mean square to make the miss a relative one.
         let target = (config.correction_target == CorrectionTarget::Density).then(|| {
-            let sigma = density_grid(&refined, &self.grid, cutoff).detach();
+            let sigma = density_grid(&self.as_splatted(&refined), &self.grid, cutoff).detach();
             let scale = sigma.clone().powi_scalar(2).mean().clamp_min(1e-12);
             (sigma, scale)
         });
@@ -2053,7 +2065,7 @@ impl Trainer {
                         means: moved.positions,
                         ..refined.clone()
                     };
-                    let sigma = density_grid(&carried, &self.grid, cutoff);
+                    let sigma = density_grid(&self.as_splatted(&carried), &self.grid, cutoff);
                     (sigma - sigma_target.clone()).powi_scalar(2).mean() / scale.clone()
                 }
                 None => {
@@ -2335,10 +2347,37 @@ impl Trainer {
         self.density_host_of(&self.state.gaussians.tensors())
     }
 
+    /// `gaussians` as the density grid counts them: with `density_grid_rendered_only`, the
+    /// ones the renderer skips on every ray (peak alpha under `alpha_min`, the bound of
+    /// `gausmoke_render`'s cull) at (nearly) zero density; otherwise all of them.
+    fn as_splatted(&self, gaussians: &GaussianTensors) -> GaussianTensors {
+        if !self.config.density_grid_rendered_only {
+            return gaussians.clone();
+        }
+        let needed_optical_depth = -(1.0 - self.config.alpha_min).ln();
+        let sigma =
+            burn::tensor::activation::softplus(gaussians.raw_densities.clone().detach(), 1.0);
+        let largest_scale = gaussians
+            .log_scales
+            .clone()
+            .detach()
+            .max_dim(1)
+            .exp()
+            .squeeze_dim::<1>(1);
+        let peak = sigma * largest_scale * (2.0 * std::f32::consts::PI).sqrt();
+        Gaussians {
+            raw_densities: gaussians
+                .raw_densities
+                .clone()
+                .mask_fill(peak.lower_elem(needed_optical_depth), OFF_DENSITY),
+            ..gaussians.clone()
+        }
+    }
+
     /// The density `gaussians` splat on the velocity grid, on the host.
     fn density_host_of(&self, gaussians: &GaussianTensors) -> Vec<f32> {
         read_floats(density_grid(
-            &gaussians.clone().detach(),
+            &self.as_splatted(&gaussians.clone().detach()),
             &self.grid,
             SplatOptions::default().cutoff,
         ))

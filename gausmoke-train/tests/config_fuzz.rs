@@ -71,6 +71,7 @@ const KEYS: &[(&str, bool)] = &[
     ("min_size_factor", true),
     ("max_size_factor", true),
     ("alpha_min", true),
+    ("density_grid_rendered_only", true),
     ("relative_adam_epsilon", true),
     ("seed", true),
     ("output_every", true),

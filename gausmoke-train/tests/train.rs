@@ -1159,6 +1159,45 @@ fn gaussians_under_the_cull_are_frozen_and_a_lower_cull_fits_them() {
     );
 }
 
+/// `density_grid_rendered_only`: the density grid leaves out the Gaussians the renderer culls
+/// on every ray and keeps the others as they were.
+#[test]
+fn the_density_grid_can_leave_out_what_the_renderer_culls() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let grid_with = |rendered_only: bool, faint_rows: bool, name: &str| -> Vec<f32> {
+        let config = TrainConfig {
+            density_grid_rendered_only: rendered_only,
+            frames: Some(1),
+            ..joint_terms_config()
+        };
+        let mut run = quiet_run(&data, dir.path(), config, name);
+        let mut host = run.trainer.state.gaussians.to_host();
+        for row in (0..host.raw_densities.len()).filter(|row| row % 2 == 0) {
+            // softplus(-9) = 1.2e-4 per world unit: far under the cull; the others far over it.
+            host.raw_densities[row] = if faint_rows { -9.0 } else { -30.0 };
+        }
+        for row in (0..host.raw_densities.len()).filter(|row| row % 2 == 1) {
+            host.raw_densities[row] = 2.0;
+        }
+        run.trainer.state.gaussians =
+            gausmoke_model::GaussianModel::from_host(&host, &run.trainer.device);
+        run.trainer.density_host()
+    };
+    let every = grid_with(false, true, "every");
+    let rendered = grid_with(true, true, "rendered");
+    let visible_alone = grid_with(false, false, "visible_alone");
+    assert!(
+        largest_difference(&every, &visible_alone) > 1e-6,
+        "the faint Gaussians add nothing to the grid: the test cannot tell"
+    );
+    let error = largest_difference(&rendered, &visible_alone);
+    assert!(
+        error < 1e-6,
+        "rendered only, the grid is {error} from the visible Gaussians' alone"
+    );
+}
+
 /// `gaussian_optimizer_reset` starts the smoke Gaussians' Adam state afresh after frame 0 or
 /// at every frame: a fresh state's first step moves every parameter with a gradient by the
 /// learning rate exactly (its bias-corrected moments are the gradient and its square), one
