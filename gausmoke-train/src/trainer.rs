@@ -701,12 +701,9 @@ impl Trainer {
         gaussians: &GaussianTensors,
         time: f32,
     ) -> Result<Tensor<4>, TrainError> {
-        let sigma = density_grid(
-            &self.as_splatted(gaussians),
-            &self.grid,
-            SplatOptions::default().cutoff,
-        )
-        .detach();
+        let sigma = self
+            .splat_density(gaussians, SplatOptions::default().cutoff)
+            .detach();
         let delta = self
             .state
             .phi
@@ -1378,17 +1375,10 @@ impl Trainer {
             let previous = self.state.gaussians.tensors_at(previous_means.clone());
             // The density and (for L_adv) its gradient, in one pass over the Gaussians.
             let (sigma_previous, gradient_previous) = if config.physics_losses {
-                let (sigma, gradient) = density_and_gradient_grid(
-                    &self.as_splatted(&previous),
-                    &self.grid,
-                    splat.cutoff,
-                );
+                let (sigma, gradient) = self.splat_density_and_gradient(&previous, splat.cutoff);
                 (sigma, Some(gradient))
             } else {
-                (
-                    density_grid(&self.as_splatted(&previous), &self.grid, splat.cutoff),
-                    None,
-                )
+                (self.splat_density(&previous, splat.cutoff), None)
             };
             let delta = {
                 let _phase = phase!("U-Net forward");
@@ -1481,7 +1471,7 @@ impl Trainer {
             if let Some(gradient_previous) = gradient_previous {
                 let divergence = divergence_loss_of(&moved.start);
                 let (sigma_next, gradient_next) =
-                    density_and_gradient_grid(&self.as_splatted(&next), &self.grid, splat.cutoff);
+                    self.splat_density_and_gradient(&next, splat.cutoff);
                 let advection = advection_loss(
                     &sigma_previous,
                     &sigma_next,
@@ -2011,8 +2001,7 @@ impl Trainer {
         let refined = self.state.gaussians.tensors().detach();
         let [n, _] = refined.means.dims();
         let previous = self.state.gaussians.tensors_at(previous_means.clone());
-        let sigma_previous =
-            density_grid(&self.as_splatted(&previous), &self.grid, cutoff).detach();
+        let sigma_previous = self.splat_density(&previous, cutoff).detach();
         let jumped = marked_rows(n, moved);
         if !jumped.contains(&0.0) {
             return Ok(None);
@@ -2032,7 +2021,7 @@ impl Trainer {
         .detach();
         // The density target, and its mean square to make the miss a relative one.
         let target = (config.correction_target == CorrectionTarget::Density).then(|| {
-            let sigma = density_grid(&self.as_splatted(&refined), &self.grid, cutoff).detach();
+            let sigma = self.splat_density(&refined, cutoff).detach();
             let scale = sigma.clone().powi_scalar(2).mean().clamp_min(1e-12);
             (sigma, scale)
         });
@@ -2065,7 +2054,7 @@ impl Trainer {
                         means: moved.positions,
                         ..refined.clone()
                     };
-                    let sigma = density_grid(&self.as_splatted(&carried), &self.grid, cutoff);
+                    let sigma = self.splat_density(&carried, cutoff);
                     (sigma - sigma_target.clone()).powi_scalar(2).mean() / scale.clone()
                 }
                 None => {
@@ -2374,13 +2363,24 @@ impl Trainer {
         }
     }
 
+    /// The density grid of `gaussians` (every density the trainer splats goes through here,
+    /// so that `density_grid_rendered_only` holds for all of them).
+    fn splat_density(&self, gaussians: &GaussianTensors, cutoff: f32) -> Tensor<3> {
+        density_grid(&self.as_splatted(gaussians), &self.grid, cutoff)
+    }
+
+    /// [`Self::splat_density`] with the density's gradient, in one pass.
+    fn splat_density_and_gradient(
+        &self,
+        gaussians: &GaussianTensors,
+        cutoff: f32,
+    ) -> (Tensor<3>, Tensor<4>) {
+        density_and_gradient_grid(&self.as_splatted(gaussians), &self.grid, cutoff)
+    }
+
     /// The density `gaussians` splat on the velocity grid, on the host.
     fn density_host_of(&self, gaussians: &GaussianTensors) -> Vec<f32> {
-        read_floats(density_grid(
-            &self.as_splatted(&gaussians.clone().detach()),
-            &self.grid,
-            SplatOptions::default().cutoff,
-        ))
+        read_floats(self.splat_density(&gaussians.clone().detach(), SplatOptions::default().cutoff))
     }
 
     /// Renders of the current Gaussians (the static ones with them) for `observations`, as

@@ -1112,6 +1112,25 @@ fn each_attribute_can_have_its_own_learning_rate_after_frame_0() {
     assert!(free > 0.0, "unset, the refinement did not move the centres");
 }
 
+/// A run of `config` as [`quiet_run`], not trained yet, with each smoke Gaussian's raw density
+/// replaced by `raw(row, initial raw density)`.
+fn with_raw_densities(
+    data: &Path,
+    dir: &Path,
+    config: TrainConfig,
+    name: &str,
+    raw: impl Fn(usize, f32) -> f32,
+) -> Run {
+    let mut run = quiet_run(data, dir, config, name);
+    let mut host = run.trainer.state.gaussians.to_host();
+    for (row, value) in host.raw_densities.iter_mut().enumerate() {
+        *value = raw(row, *value);
+    }
+    run.trainer.state.gaussians =
+        gausmoke_model::GaussianModel::from_host(&host, &run.trainer.device);
+    run
+}
+
 /// `alpha_min`: a Gaussian too faint to reach 3DGS's cull (alpha 1/255) on any ray gets no
 /// gradient, so frame 0's fit leaves its density exactly as it was; with a lower cull the same
 /// Gaussians are fitted.
@@ -1128,17 +1147,12 @@ fn gaussians_under_the_cull_are_frozen_and_a_lower_cull_fits_them() {
             frames: Some(1),
             ..joint_terms_config()
         };
-        let mut run = quiet_run(&data, dir.path(), config, name);
-        let mut host = run.trainer.state.gaussians.to_host();
-        let rows: Vec<usize> = (0..host.raw_densities.len()).step_by(4).collect();
-        for &row in &rows {
-            host.raw_densities[row] = faint;
-        }
-        run.trainer.state.gaussians =
-            gausmoke_model::GaussianModel::from_host(&host, &run.trainer.device);
+        let mut run = with_raw_densities(&data, dir.path(), config, name, |row, raw| {
+            if row % 4 == 0 { faint } else { raw }
+        });
         run.trainer.fit_first_frame().unwrap();
         let after = run.trainer.state.gaussians.to_host().raw_densities;
-        rows.iter().map(|&row| after[row]).collect()
+        after.into_iter().step_by(4).collect()
     };
     let culled = fitted_faint_rows(1.0 / 255.0, "culled");
     assert!(
@@ -1171,17 +1185,14 @@ fn the_density_grid_can_leave_out_what_the_renderer_culls() {
             frames: Some(1),
             ..joint_terms_config()
         };
-        let mut run = quiet_run(&data, dir.path(), config, name);
-        let mut host = run.trainer.state.gaussians.to_host();
-        for row in (0..host.raw_densities.len()).filter(|row| row % 2 == 0) {
-            // softplus(-9) = 1.2e-4 per world unit: far under the cull; the others far over it.
-            host.raw_densities[row] = if faint_rows { -9.0 } else { -30.0 };
-        }
-        for row in (0..host.raw_densities.len()).filter(|row| row % 2 == 1) {
-            host.raw_densities[row] = 2.0;
-        }
-        run.trainer.state.gaussians =
-            gausmoke_model::GaussianModel::from_host(&host, &run.trainer.device);
+        // softplus(-9) = 1.2e-4 per world unit: far under the cull; softplus(2) far over it.
+        let run = with_raw_densities(&data, dir.path(), config, name, |row, _| {
+            match (row % 2, faint_rows) {
+                (1, _) => 2.0,
+                (_, true) => -9.0,
+                (_, false) => -30.0,
+            }
+        });
         run.trainer.density_host()
     };
     let every = grid_with(false, true, "every");
