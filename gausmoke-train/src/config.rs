@@ -411,6 +411,12 @@ pub struct TrainConfig {
     /// `ln sigma` from where the refinement started. A change the training views ask for
     /// outweighs it; one they do not see (detail they cannot place in depth) is pulled back.
     pub lambda_refine_density: f32,
+    /// Weight of a look-ahead render term in the refinement (ours; 0 = the paper's method):
+    /// at each refinement step the refined Gaussians are also carried one frame on by the
+    /// frame's fitted velocity and rendered against the same training views of frame t+1, so
+    /// what the refinement places must also explain the next frame's pictures once carried.
+    /// Not applied at the last frame, nor with `refine_view_agreement`.
+    pub lambda_refine_lookahead: f32,
     /// Weight of a look-ahead render term in the joint iterations (ours; 0 = the paper's
     /// method): the Gaussians carried to frame t are carried on by the same velocity to
     /// frame t+1 (and on: `lookahead_frames`) and rendered against those frames' training
@@ -425,6 +431,11 @@ pub struct TrainConfig {
     /// weight `lambda_lookahead`), so that frame t's velocity is fitted to this many more
     /// frames' pictures; steps past the last frame are dropped. 1 by default.
     pub lookahead_frames: usize,
+    /// Let the look-ahead train the Gaussians too (ours; `false` = it trains the velocity
+    /// only): their shape, density and colour keep the gradient of the look-ahead's render,
+    /// so that one carried structure is fitted to the views of frame t and of the frames
+    /// after it. Needs `lambda_lookahead > 0`.
+    pub lookahead_appearance: bool,
     /// Weight of a kinetic-energy prior in the joint iterations (ours; 0 = the paper's
     /// method): the mean over the grid's cells of `|u^t|^2`, the velocity in cells per frame,
     /// so nothing but the pictures pushes the speed up (hypothesis 3 of issue 18: the
@@ -730,9 +741,11 @@ impl Default for TrainConfig {
             lambda_refine_grid: 0.0,
             lambda_refine_subgrid: 0.0,
             lambda_refine_density: 0.0,
+            lambda_refine_lookahead: 0.0,
             lambda_lookahead: 0.0,
             lookahead_velocity: LookaheadVelocity::Held,
             lookahead_frames: 1,
+            lookahead_appearance: false,
             lambda_kinetic: 0.0,
             transport_velocity: false,
             lambda_increment: 0.0,
@@ -970,6 +983,7 @@ impl TrainConfig {
             ("lambda_refine_grid", self.lambda_refine_grid),
             ("lambda_refine_subgrid", self.lambda_refine_subgrid),
             ("lambda_refine_density", self.lambda_refine_density),
+            ("lambda_refine_lookahead", self.lambda_refine_lookahead),
             ("lambda_lookahead", self.lambda_lookahead),
             ("lambda_kinetic", self.lambda_kinetic),
             ("lambda_increment", self.lambda_increment),
@@ -1230,6 +1244,21 @@ impl TrainConfig {
                 "lookahead_frames must be >= 1 (lambda_lookahead = 0 turns the look-ahead off)"
                     .into(),
             );
+        }
+        if self.lookahead_appearance && self.lambda_lookahead == 0.0 {
+            return bad(
+                "lookahead_appearance lets the look-ahead train the Gaussians, and the \
+                 look-ahead is off: set lambda_lookahead > 0 too"
+                    .into(),
+            );
+        }
+        if self.lambda_refine_lookahead > 0.0 && self.refine_view_agreement > 0.0 {
+            return bad(format!(
+                "lambda_refine_lookahead ({}) adds a render to each refinement step, which \
+                 refine_view_agreement ({}) replaces by one gradient per view: set one of them \
+                 to 0",
+                self.lambda_refine_lookahead, self.refine_view_agreement
+            ));
         }
         if let Some([w, h]) = self.image_size
             && (w == 0 || h == 0)
@@ -1584,6 +1613,37 @@ mod tests {
             .with_overrides(&["gradient_sums=warp".into()])
             .unwrap_err();
         assert!(err.to_string().contains("warp"), "{err}");
+    }
+
+    #[test]
+    fn the_look_aheads_on_the_gaussians_are_refused_where_they_cannot_act() {
+        let err = TrainConfig {
+            lookahead_appearance: true,
+            ..TrainConfig::default()
+        }
+        .validate()
+        .unwrap_err();
+        assert!(err.to_string().contains("lambda_lookahead"), "{err}");
+        let err = TrainConfig {
+            lambda_refine_lookahead: 1.0,
+            refine_view_agreement: 0.75,
+            ..TrainConfig::default()
+        }
+        .validate()
+        .unwrap_err();
+        assert!(err.to_string().contains("lambda_refine_lookahead"), "{err}");
+        let on = TrainConfig::default()
+            .with_overrides(&[
+                "lambda_lookahead=1".into(),
+                "lookahead_appearance=true".into(),
+                "lambda_refine_lookahead=0.5".into(),
+            ])
+            .unwrap();
+        assert!(on.validate().is_ok());
+        // A run folder written before the settings existed reads back with both off.
+        let old: TrainConfig = toml::from_str("lambda_lookahead = 1.0").unwrap();
+        assert!(!old.lookahead_appearance);
+        assert_eq!(old.lambda_refine_lookahead, 0.0);
     }
 
     #[test]

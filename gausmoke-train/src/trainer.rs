@@ -474,6 +474,9 @@ pub struct Trainer {
     past_first_frame: bool,
 }
 
+/// A frame's cameras and the images they saw, as the render losses take them.
+type ViewTargets = (Vec<Camera>, Vec<Tensor<3>>);
+
 fn image_tensor(observation: &Observation, device: &Device) -> Tensor<3> {
     let image = &observation.image;
     Tensor::from_data(
@@ -1260,7 +1263,7 @@ impl Trainer {
         } else {
             0
         };
-        let ahead: Vec<(Vec<Camera>, Vec<Tensor<3>>)> = (t + 1..=t + ahead_frames)
+        let ahead: Vec<ViewTargets> = (t + 1..=t + ahead_frames)
             .map(|frame| {
                 let views = &self.sequence.train[frame];
                 let cameras = views.iter().map(|o| o.camera).collect();
@@ -1426,10 +1429,17 @@ impl Trainer {
                 Some(appearance) => render.clone() + appearance,
                 None => render.clone(),
             };
-            // Frames further on; only the velocity learns here.
+            // Frames further on; only the velocity learns here, unless the Gaussians' other
+            // attributes keep their gradient too (`lookahead_appearance`).
             let mut carrier = projected.clone();
             let mut carried = next.clone();
-            let held = (!ahead.is_empty()).then(|| self.state.gaussians.tensors().detach());
+            let held = (!ahead.is_empty()).then(|| {
+                if config.lookahead_appearance {
+                    next.clone()
+                } else {
+                    self.state.gaussians.tensors().detach()
+                }
+            });
             for (step, ((views, ahead_targets), lists)) in
                 ahead.iter().zip(ahead_lists.iter_mut()).enumerate()
             {
@@ -1641,6 +1651,15 @@ impl Trainer {
         };
         let turn = steps_per_turn(fitted.len(), config.refine_views_per_step);
         let mut held_lists = ListCapacities::new(config.tile_list_headroom);
+        // Frame t+1's training views, for the refinement's look-ahead term; the same cameras
+        // as frame t's, view for view.
+        let refine_ahead = match self.refine_lookahead_views(t)? {
+            Some(views) if refine_iterations > 0 => Some(views),
+            _ => None,
+        };
+        let mut ahead_group_lists: Vec<ListCapacities> = (0..cameras.len())
+            .map(|_| ListCapacities::new(config.tile_list_headroom))
+            .collect();
         let start = Traffic::now();
         if let Some(checks) = held_checks.as_mut() {
             self.check_held_view(checks, 0, (&cameras, &targets), &mut held_lists)?;
@@ -1739,7 +1758,37 @@ impl Trainer {
                     group_blurs.as_deref(),
                 )?;
                 let (refine, ties) = tie_losses(&gaussians);
-                let loss = render.clone() + ties;
+                let mut loss = render.clone() + ties;
+                let mut checks = vec![check];
+                if let Some((ahead_cameras, ahead_targets)) = &refine_ahead {
+                    // The same views one frame on, the refined Gaussians carried there by the
+                    // frame's velocity.
+                    let carried = Gaussians {
+                        means: advect(
+                            &self.grid,
+                            &velocity,
+                            &gaussians.means,
+                            config.dt,
+                            self.integrator(),
+                            interpolation,
+                        )
+                        .positions,
+                        ..gaussians.clone()
+                    };
+                    let group_cameras: Vec<Camera> =
+                        group.iter().map(|&v| ahead_cameras[v]).collect();
+                    let group_targets: Vec<Tensor<3>> =
+                        group.iter().map(|&v| ahead_targets[v].clone()).collect();
+                    let (ahead_render, check) = self.render_loss_blurred(
+                        &self.scene(carried, true),
+                        &group_cameras,
+                        &group_targets,
+                        &mut ahead_group_lists[group[0]],
+                        None,
+                    )?;
+                    loss = loss + ahead_render * config.lambda_refine_lookahead;
+                    checks.push(check);
+                }
                 log.push(
                     (t, Phase::Refine, iteration),
                     StepLosses {
@@ -1750,7 +1799,7 @@ impl Trainer {
                         refine: Some(refine),
                     },
                     None,
-                    vec![check],
+                    checks,
                 );
                 let mut grads = {
                     let _phase = phase!("backward (all ops)");
@@ -1775,6 +1824,9 @@ impl Trainer {
             if log.due() || iteration + 1 == refine_iterations {
                 read_log(&mut log, &mut losses, &bar, None)?;
                 group_lists.iter_mut().for_each(ListCapacities::expire);
+                ahead_group_lists
+                    .iter_mut()
+                    .for_each(ListCapacities::expire);
             }
             bar.inc(1);
         }
@@ -2361,6 +2413,33 @@ impl Trainer {
                 .mask_fill(peak.lower_elem(needed_optical_depth), OFF_DENSITY),
             ..gaussians.clone()
         }
+    }
+
+    /// Frame t+1's training views in frame t's order (matched by name), for the refinement's
+    /// look-ahead; `None` when `lambda_refine_lookahead` is 0 or t is the last frame.
+    fn refine_lookahead_views(&self, t: usize) -> Result<Option<ViewTargets>, TrainError> {
+        if self.config.lambda_refine_lookahead == 0.0 || t + 1 >= self.sequence.frames() {
+            return Ok(None);
+        }
+        let next = &self.sequence.train[t + 1];
+        let mut cameras = Vec::with_capacity(next.len());
+        let mut targets = Vec::with_capacity(next.len());
+        for view in &self.sequence.train[t] {
+            let Some(observation) = next.iter().find(|o| o.view == view.view) else {
+                return Err(TrainError::Dataset {
+                    path: self.sequence.path.clone(),
+                    reason: format!(
+                        "training view {} is in frame {t} but not in frame {}, which \
+                         lambda_refine_lookahead renders it against",
+                        view.view,
+                        t + 1
+                    ),
+                });
+            };
+            cameras.push(observation.camera);
+            targets.push(image_tensor(observation, &self.device));
+        }
+        Ok(Some((cameras, targets)))
     }
 
     /// The density grid of `gaussians` (every density the trainer splats goes through here,

@@ -1019,6 +1019,87 @@ fn the_look_ahead_changes_the_velocity_and_both_carriers_train() {
     );
 }
 
+/// How well frame 1's state, carried on by frame 1's velocity and nothing else, explains
+/// frame 2's training views (mean L1 over them): frame 2 is advanced with no joint
+/// iteration and no refinement, which only carries the Gaussians.
+fn frame_1_carried_to_frame_2(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> f64 {
+    let mut run = after_frame_0(data, dir, config, name);
+    run.trainer.advance_to(1).unwrap();
+    run.trainer.config.advect_iterations = 0;
+    run.trainer.config.refinement = false;
+    run.trainer.advance_to(2).unwrap();
+    let views = run.trainer.sequence.train[2].clone();
+    let renders = run.trainer.render_host(&views).unwrap();
+    let errors: Vec<f64> = renders
+        .iter()
+        .zip(&views)
+        .map(|(render, view)| mean_abs_error(render, view.image.data()))
+        .collect();
+    errors.iter().sum::<f64>() / errors.len() as f64
+}
+
+/// `lookahead_appearance` (ours): the look-ahead's render also trains the Gaussians'
+/// shape, density and colour, so frame 1's state, carried on, explains frame 2's training
+/// views better than when the look-ahead trains the velocity alone. The held carrier makes
+/// the look-ahead's step the one frame 2 takes.
+#[test]
+fn the_look_ahead_can_train_the_gaussians_too() {
+    use gausmoke_train::config::LookaheadVelocity;
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let config = |appearance| TrainConfig {
+        advect_iterations: 10,
+        refinement: false,
+        lambda_lookahead: 10.0,
+        lookahead_velocity: LookaheadVelocity::Held,
+        lookahead_appearance: appearance,
+        ..joint_terms_config()
+    };
+    let velocity_only = frame_1_carried_to_frame_2(&data, dir.path(), config(false), "velocity");
+    let appearance = frame_1_carried_to_frame_2(&data, dir.path(), config(true), "appearance");
+    assert!(
+        appearance < velocity_only,
+        "frame 2 from frame 1 carried on: {appearance} with the Gaussians trained by the \
+         look-ahead, {velocity_only} without"
+    );
+}
+
+/// `lambda_refine_lookahead` (ours): the refinement also renders its Gaussians carried one
+/// frame on against the next frame's training views, so frame 1's state, carried on,
+/// explains frame 2's views better than after a refinement of frame 1 alone; at the last
+/// frame there is nothing ahead and the refinement is the same bit for bit.
+#[test]
+fn the_refinement_can_look_one_frame_ahead() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let config = |weight| TrainConfig {
+        refine_iterations: 10,
+        lambda_refine_lookahead: weight,
+        ..joint_terms_config()
+    };
+    let alone = frame_1_carried_to_frame_2(&data, dir.path(), config(0.0), "alone");
+    let ahead = frame_1_carried_to_frame_2(&data, dir.path(), config(10.0), "ahead");
+    assert!(
+        ahead < alone,
+        "frame 2 from frame 1 carried on: {ahead} with the refinement's look-ahead, {alone} \
+         without"
+    );
+    let last_frame = |weight, name| {
+        let config = TrainConfig {
+            frames: Some(2),
+            ..config(weight)
+        };
+        let mut run = after_frame_0(&data, dir.path(), config, name);
+        run.trainer.advance_to(1).unwrap();
+        run.trainer.state.gaussians.to_host().into_array()
+    };
+    assert_eq!(
+        last_frame(10.0, "last ahead"),
+        last_frame(0.0, "last alone"),
+        "nothing lies ahead of the last frame"
+    );
+}
+
 /// `lr_means`, `lr_log_scales`, `lr_colors` and `lr_raw_densities` (ours) step those
 /// attributes after frame 0 apart from the others: at 0 the attribute stays as it was (the
 /// centres where the velocity carried them) while the others still move; unset, each moves
