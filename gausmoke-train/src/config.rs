@@ -412,10 +412,12 @@ pub struct TrainConfig {
     /// outweighs it; one they do not see (detail they cannot place in depth) is pulled back.
     pub lambda_refine_density: f32,
     /// Weight of a look-ahead render term in the refinement (ours; 0 = the paper's method):
-    /// at each refinement step the refined Gaussians are also carried one frame on by the
-    /// frame's fitted velocity and rendered against the same training views of frame t+1, so
-    /// what the refinement places must also explain the next frame's pictures once carried.
-    /// Not applied at the last frame, nor with `refine_view_agreement`.
+    /// at each refinement step the refined Gaussians are also carried one frame on and
+    /// rendered against the same training views of frame t+1, so what the refinement places
+    /// must also explain the next frame's pictures once carried. The carrier is the one
+    /// `lookahead_velocity` names: the frame's fitted velocity held, or Phi's prediction for
+    /// frame t+1 from the refinement's starting state. Not applied at the last frame, nor
+    /// with `refine_view_agreement`.
     pub lambda_refine_lookahead: f32,
     /// Weight of a look-ahead render term in the joint iterations (ours; 0 = the paper's
     /// method): the Gaussians carried to frame t are carried on by the same velocity to

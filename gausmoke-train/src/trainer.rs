@@ -1653,8 +1653,21 @@ impl Trainer {
         let mut held_lists = ListCapacities::new(config.tile_list_headroom);
         // Frame t+1's training views, for the refinement's look-ahead term; the same cameras
         // as frame t's, view for view.
+        // With the carrier the joint look-ahead uses: the frame's velocity held, or Phi's
+        // prediction for frame t+1 from the refinement's starting state.
         let refine_ahead = match self.refine_lookahead_views(t)? {
-            Some(views) if refine_iterations > 0 => Some(views),
+            Some(views) if refine_iterations > 0 => {
+                let carrier = match config.lookahead_velocity {
+                    LookaheadVelocity::Held => velocity.clone(),
+                    LookaheadVelocity::Predicted => {
+                        let time = (t + 1) as f32 / last_frame;
+                        let state = self.state.gaussians.tensors().detach();
+                        self.predicted_velocity(velocity.clone(), &state, time)?
+                            .detach()
+                    }
+                };
+                Some((views, carrier))
+            }
             _ => None,
         };
         let mut ahead_group_lists: Vec<ListCapacities> = (0..cameras.len())
@@ -1760,13 +1773,12 @@ impl Trainer {
                 let (refine, ties) = tie_losses(&gaussians);
                 let mut loss = render.clone() + ties;
                 let mut checks = vec![check];
-                if let Some((ahead_cameras, ahead_targets)) = &refine_ahead {
-                    // The same views one frame on, the refined Gaussians carried there by the
-                    // frame's velocity.
+                if let Some(((ahead_cameras, ahead_targets), carrier)) = &refine_ahead {
+                    // The same views one frame on, the refined Gaussians carried there.
                     let carried = Gaussians {
                         means: advect(
                             &self.grid,
-                            &velocity,
+                            carrier,
                             &gaussians.means,
                             config.dt,
                             self.integrator(),

@@ -1066,10 +1066,12 @@ fn the_look_ahead_can_train_the_gaussians_too() {
 
 /// `lambda_refine_lookahead` (ours): the refinement also renders its Gaussians carried one
 /// frame on against the next frame's training views, so frame 1's state, carried on,
-/// explains frame 2's views better than after a refinement of frame 1 alone; at the last
+/// explains frame 2's views better than after a refinement of frame 1 alone (the carrier
+/// held, frame 2's own); the look-ahead's predicted carrier reaches it too; at the last
 /// frame there is nothing ahead and the refinement is the same bit for bit.
 #[test]
 fn the_refinement_can_look_one_frame_ahead() {
+    use gausmoke_train::config::LookaheadVelocity;
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
     let config = |weight| TrainConfig {
@@ -1083,6 +1085,23 @@ fn the_refinement_can_look_one_frame_ahead() {
         ahead < alone,
         "frame 2 from frame 1 carried on: {ahead} with the refinement's look-ahead, {alone} \
          without"
+    );
+    // Along Phi's prediction for frame 2 the carried Gaussians land elsewhere, and the
+    // refinement answers to that.
+    let refined = |carrier, name| {
+        let config = TrainConfig {
+            lookahead_velocity: carrier,
+            ..config(10.0)
+        };
+        let mut run = after_frame_0(&data, dir.path(), config, name);
+        run.trainer.advance_to(1).unwrap();
+        run.trainer.state.gaussians.to_host().means
+    };
+    let held = refined(LookaheadVelocity::Held, "held");
+    let predicted = refined(LookaheadVelocity::Predicted, "predicted");
+    assert!(
+        largest_difference(&held, &predicted) > 0.0,
+        "the predicted carrier changed nothing"
     );
     let last_frame = |weight, name| {
         let config = TrainConfig {
