@@ -414,11 +414,13 @@ pub struct TrainConfig {
     /// Weight of a look-ahead render term in the refinement (ours; 0 = the paper's method):
     /// at each refinement step the refined Gaussians are also carried one frame on and
     /// rendered against the same training views of frame t+1, so what the refinement places
-    /// must also explain the next frame's pictures once carried. The carrier is the one
-    /// `lookahead_velocity` names: the frame's fitted velocity held, or Phi's prediction for
-    /// frame t+1 from the refinement's starting state. Not applied at the last frame, nor
-    /// with `refine_view_agreement`.
+    /// must also explain the next frame's pictures once carried. Not applied at the last
+    /// frame, nor with `refine_view_agreement`.
     pub lambda_refine_lookahead: f32,
+    /// The carrier of that term: `"held"`, the frame's fitted velocity, or `"predicted"`,
+    /// Phi's prediction for frame t+1 from the refinement's starting state; unset, the one
+    /// `lookahead_velocity` names.
+    pub refine_lookahead_velocity: Option<LookaheadVelocity>,
     /// Weight of a look-ahead render term in the joint iterations (ours; 0 = the paper's
     /// method): the Gaussians carried to frame t are carried on by the same velocity to
     /// frame t+1 (and on: `lookahead_frames`) and rendered against those frames' training
@@ -744,6 +746,7 @@ impl Default for TrainConfig {
             lambda_refine_subgrid: 0.0,
             lambda_refine_density: 0.0,
             lambda_refine_lookahead: 0.0,
+            refine_lookahead_velocity: None,
             lambda_lookahead: 0.0,
             lookahead_velocity: LookaheadVelocity::Held,
             lookahead_frames: 1,
@@ -1642,10 +1645,23 @@ mod tests {
             ])
             .unwrap();
         assert!(on.validate().is_ok());
+        assert_eq!(on.refine_lookahead_velocity, None);
+        let held = on
+            .with_overrides(&["refine_lookahead_velocity=held".into()])
+            .unwrap();
+        assert_eq!(
+            held.refine_lookahead_velocity,
+            Some(LookaheadVelocity::Held)
+        );
+        let err = TrainConfig::default()
+            .with_overrides(&["refine_lookahead_velocity=ahead".into()])
+            .unwrap_err();
+        assert!(err.to_string().contains("ahead"), "{err}");
         // A run folder written before the settings existed reads back with both off.
         let old: TrainConfig = toml::from_str("lambda_lookahead = 1.0").unwrap();
         assert!(!old.lookahead_appearance);
         assert_eq!(old.lambda_refine_lookahead, 0.0);
+        assert_eq!(old.refine_lookahead_velocity, None);
     }
 
     #[test]

@@ -1653,11 +1653,14 @@ impl Trainer {
         let mut held_lists = ListCapacities::new(config.tile_list_headroom);
         // Frame t+1's training views, for the refinement's look-ahead term; the same cameras
         // as frame t's, view for view.
-        // With the carrier the joint look-ahead uses: the frame's velocity held, or Phi's
-        // prediction for frame t+1 from the refinement's starting state.
+        // Carried on by the frame's velocity held, or by Phi's prediction for frame t+1 from
+        // the refinement's starting state.
         let refine_ahead = match self.refine_lookahead_views(t)? {
             Some(views) if refine_iterations > 0 => {
-                let carrier = match config.lookahead_velocity {
+                let carrier = config
+                    .refine_lookahead_velocity
+                    .unwrap_or(config.lookahead_velocity);
+                let carrier = match carrier {
                     LookaheadVelocity::Held => velocity.clone(),
                     LookaheadVelocity::Predicted => {
                         let time = (t + 1) as f32 / last_frame;

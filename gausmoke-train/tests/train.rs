@@ -1067,7 +1067,7 @@ fn the_look_ahead_can_train_the_gaussians_too() {
 /// `lambda_refine_lookahead` (ours): the refinement also renders its Gaussians carried one
 /// frame on against the next frame's training views, so frame 1's state, carried on,
 /// explains frame 2's views better than after a refinement of frame 1 alone (the carrier
-/// held, frame 2's own); the look-ahead's predicted carrier reaches it too; at the last
+/// held, frame 2's own); Phi's predicted carrier reaches it too; at the last
 /// frame there is nothing ahead and the refinement is the same bit for bit.
 #[test]
 fn the_refinement_can_look_one_frame_ahead() {
@@ -1090,7 +1090,7 @@ fn the_refinement_can_look_one_frame_ahead() {
     // refinement answers to that.
     let refined = |carrier, name| {
         let config = TrainConfig {
-            lookahead_velocity: carrier,
+            refine_lookahead_velocity: Some(carrier),
             ..config(10.0)
         };
         let mut run = after_frame_0(&data, dir.path(), config, name);
