@@ -1257,6 +1257,13 @@ impl TrainConfig {
                     .into(),
             );
         }
+        if self.refine_lookahead_velocity.is_some() && self.lambda_refine_lookahead == 0.0 {
+            return bad(
+                "refine_lookahead_velocity names the carrier of the refinement's look-ahead, \
+                 which is off: set lambda_refine_lookahead > 0 too"
+                    .into(),
+            );
+        }
         if self.lambda_refine_lookahead > 0.0 && self.refine_view_agreement > 0.0 {
             return bad(format!(
                 "lambda_refine_lookahead ({}) adds a render to each refinement step, which \
@@ -1657,6 +1664,13 @@ mod tests {
             .with_overrides(&["refine_lookahead_velocity=ahead".into()])
             .unwrap_err();
         assert!(err.to_string().contains("ahead"), "{err}");
+        let err = TrainConfig {
+            refine_lookahead_velocity: Some(LookaheadVelocity::Predicted),
+            ..TrainConfig::default()
+        }
+        .validate()
+        .unwrap_err();
+        assert!(err.to_string().contains("lambda_refine_lookahead"), "{err}");
         // A run folder written before the settings existed reads back with both off.
         let old: TrainConfig = toml::from_str("lambda_lookahead = 1.0").unwrap();
         assert!(!old.lookahead_appearance);

@@ -1651,10 +1651,9 @@ impl Trainer {
         };
         let turn = steps_per_turn(fitted.len(), config.refine_views_per_step);
         let mut held_lists = ListCapacities::new(config.tile_list_headroom);
-        // Frame t+1's training views, for the refinement's look-ahead term; the same cameras
-        // as frame t's, view for view.
-        // Carried on by the frame's velocity held, or by Phi's prediction for frame t+1 from
-        // the refinement's starting state.
+        // The refinement's look-ahead: frame t+1's training views, view for view as frame
+        // t's, and the carrier to them (the frame's velocity held, or Phi's prediction for
+        // frame t+1 from the refinement's starting state).
         let refine_ahead = match self.refine_lookahead_views(t)? {
             Some(views) if refine_iterations > 0 => {
                 let carrier = config

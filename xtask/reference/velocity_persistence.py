@@ -22,7 +22,7 @@ world units per frame) and the run's `frames/frame_TTT.safetensors` (velocity [x
 speeds are reported in cells per frame.
 """
 
-import sys
+import argparse
 
 import numpy as np
 from scipy.ndimage import map_coordinates, maximum_filter, minimum_filter
@@ -109,13 +109,11 @@ def main(data, frames, run):
 
 
 if __name__ == "__main__":
-    args = sys.argv[1:]
-    run = None
-    if "--run" in args:
-        at = args.index("--run")
-        run = args[at + 1]
-        del args[at : at + 2]
-    if not args:
-        sys.exit(__doc__)
-    frames = [int(f) for f in args[1:]] or [6, 12, 18, 24, 36, 48, 54, 71]
-    main(args[0], frames, run)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("data", metavar="DATA_DIR")
+    parser.add_argument("frames", metavar="FRAMES", type=int, nargs="*")
+    parser.add_argument("--run", metavar="RUN_DIR")
+    args = parser.parse_args()
+    main(args.data, args.frames or [6, 12, 18, 24, 36, 48, 54, 71], args.run)
