@@ -477,6 +477,14 @@ pub struct Trainer {
 /// A frame's cameras and the images they saw, as the render losses take them.
 type ViewTargets = (Vec<Camera>, Vec<Tensor<3>>);
 
+/// The views of `group` (indices into `views`), in its order.
+fn views_of(group: &[usize], (cameras, targets): (&[Camera], &[Tensor<3>])) -> ViewTargets {
+    group
+        .iter()
+        .map(|&v| (cameras[v], targets[v].clone()))
+        .unzip()
+}
+
 fn image_tensor(observation: &Observation, device: &Device) -> Tensor<3> {
     let image = &observation.image;
     Tensor::from_data(
@@ -1214,12 +1222,7 @@ impl Trainer {
         if config.carried_smoothing > 0.0 {
             self.smooth_carried(t);
         }
-        let observations = &self.sequence.train[t];
-        let cameras: Vec<Camera> = observations.iter().map(|o| o.camera).collect();
-        let targets: Vec<Tensor<3>> = observations
-            .iter()
-            .map(|o| image_tensor(o, &self.device))
-            .collect();
+        let (cameras, targets) = self.training_views(t);
         let factor = config.lr_factor(t);
         let lr_velocity = config.lr_velocity * factor;
         let lr_gaussians = config.lr_gaussians * factor;
@@ -1264,15 +1267,7 @@ impl Trainer {
             0
         };
         let ahead: Vec<ViewTargets> = (t + 1..=t + ahead_frames)
-            .map(|frame| {
-                let views = &self.sequence.train[frame];
-                let cameras = views.iter().map(|o| o.camera).collect();
-                let targets = views
-                    .iter()
-                    .map(|o| image_tensor(o, &self.device))
-                    .collect();
-                (cameras, targets)
-            })
+            .map(|frame| self.training_views(frame))
             .collect();
 
         // What the source must hold (`emission_fraction`): frame t-1's density.
@@ -1651,26 +1646,32 @@ impl Trainer {
         };
         let turn = steps_per_turn(fitted.len(), config.refine_views_per_step);
         let mut held_lists = ListCapacities::new(config.tile_list_headroom);
-        // The refinement's look-ahead: frame t+1's training views, view for view as frame
-        // t's, and the carrier to them (the frame's velocity held, or Phi's prediction for
-        // frame t+1 from the refinement's starting state).
-        let refine_ahead = match self.refine_lookahead_views(t)? {
-            Some(views) if refine_iterations > 0 => {
-                let carrier = config
-                    .refine_lookahead_velocity
-                    .unwrap_or(config.lookahead_velocity);
-                let carrier = match carrier {
-                    LookaheadVelocity::Held => velocity.clone(),
-                    LookaheadVelocity::Predicted => {
-                        let time = (t + 1) as f32 / last_frame;
-                        let state = self.state.gaussians.tensors().detach();
-                        self.predicted_velocity(velocity.clone(), &state, time)?
-                            .detach()
-                    }
-                };
-                Some((views, carrier))
-            }
-            _ => None,
+        // The refinement's look-ahead: frame t+1's training views (the joint look-ahead's
+        // when it has them) and the carrier to them (the frame's velocity held, or Phi's
+        // prediction for frame t+1 from the refinement's starting state).
+        let refine_ahead = if config.lambda_refine_lookahead > 0.0
+            && refine_iterations > 0
+            && t + 1 < self.sequence.frames()
+        {
+            let views = match ahead.first() {
+                Some(next) => next.clone(),
+                None => self.training_views(t + 1),
+            };
+            let carrier = match config
+                .refine_lookahead_velocity
+                .unwrap_or(config.lookahead_velocity)
+            {
+                LookaheadVelocity::Held => velocity.clone(),
+                LookaheadVelocity::Predicted => {
+                    let time = (t + 1) as f32 / last_frame;
+                    let state = self.state.gaussians.tensors().detach();
+                    self.predicted_velocity(velocity.clone(), &state, time)?
+                        .detach()
+                }
+            };
+            Some((views, carrier))
+        } else {
+            None
         };
         let mut ahead_group_lists: Vec<ListCapacities> = (0..cameras.len())
             .map(|_| ListCapacities::new(config.tile_list_headroom))
@@ -1759,9 +1760,7 @@ impl Trainer {
                         .into_iter()
                         .map(|i| fitted[i])
                         .collect();
-                let group_cameras: Vec<Camera> = group.iter().map(|&v| cameras[v]).collect();
-                let group_targets: Vec<Tensor<3>> =
-                    group.iter().map(|&v| targets[v].clone()).collect();
+                let (group_cameras, group_targets) = views_of(&group, (&cameras, &targets));
                 let group_blurs: Option<Vec<ResidualBlur>> = blurs
                     .as_ref()
                     .map(|b| group.iter().map(|&v| b[v].clone()).collect());
@@ -1789,14 +1788,12 @@ impl Trainer {
                         .positions,
                         ..gaussians.clone()
                     };
-                    let group_cameras: Vec<Camera> =
-                        group.iter().map(|&v| ahead_cameras[v]).collect();
-                    let group_targets: Vec<Tensor<3>> =
-                        group.iter().map(|&v| ahead_targets[v].clone()).collect();
+                    let (ahead_cameras, ahead_targets) =
+                        views_of(&group, (ahead_cameras, ahead_targets));
                     let (ahead_render, check) = self.render_loss_blurred(
                         &self.scene(carried, true),
-                        &group_cameras,
-                        &group_targets,
+                        &ahead_cameras,
+                        &ahead_targets,
                         &mut ahead_group_lists[group[0]],
                         None,
                     )?;
@@ -2429,31 +2426,14 @@ impl Trainer {
         }
     }
 
-    /// Frame t+1's training views in frame t's order (matched by name), for the refinement's
-    /// look-ahead; `None` when `lambda_refine_lookahead` is 0 or t is the last frame.
-    fn refine_lookahead_views(&self, t: usize) -> Result<Option<ViewTargets>, TrainError> {
-        if self.config.lambda_refine_lookahead == 0.0 || t + 1 >= self.sequence.frames() {
-            return Ok(None);
-        }
-        let next = &self.sequence.train[t + 1];
-        let mut cameras = Vec::with_capacity(next.len());
-        let mut targets = Vec::with_capacity(next.len());
-        for view in &self.sequence.train[t] {
-            let Some(observation) = next.iter().find(|o| o.view == view.view) else {
-                return Err(TrainError::Dataset {
-                    path: self.sequence.path.clone(),
-                    reason: format!(
-                        "training view {} is in frame {t} but not in frame {}, which \
-                         lambda_refine_lookahead renders it against",
-                        view.view,
-                        t + 1
-                    ),
-                });
-            };
-            cameras.push(observation.camera);
-            targets.push(image_tensor(observation, &self.device));
-        }
-        Ok(Some((cameras, targets)))
+    /// Frame `frame`'s training views on the device: every frame's in the same view order
+    /// (the sequence gathers each view's frames in one order and refuses a view that
+    /// misses a frame).
+    fn training_views(&self, frame: usize) -> ViewTargets {
+        self.sequence.train[frame]
+            .iter()
+            .map(|o| (o.camera, image_tensor(o, &self.device)))
+            .unzip()
     }
 
     /// The density grid of `gaussians` (every density the trainer splats goes through here,
