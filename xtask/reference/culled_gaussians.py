@@ -21,6 +21,7 @@ import sys
 
 import numpy as np
 
+from gaussian_sizes import rotation_matrices
 from safetensors_f32 import read_safetensors as read
 from scene_truth import read_truth
 
@@ -36,20 +37,6 @@ def run_settings(run):
     return alpha_min, np.array(info["box_lo"]), np.array(info["box_hi"])
 
 
-def rotations(quaternions):
-    """Rotation matrices of `(w, x, y, z)` quaternions, `[N, 3, 3]`."""
-    q = quaternions / np.linalg.norm(quaternions, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        1,
-    )
-
-
 def splat(gaussians, rows, lo, hi, n):
     """Sum of the chosen Gaussians' densities at the centres of an n^3 grid over [lo, hi],
     `[x, y, z]`, each evaluated within three of its largest standard deviations."""
@@ -57,7 +44,7 @@ def splat(gaussians, rows, lo, hi, n):
     scales = np.exp(gaussians["log_scales"][rows]).astype(np.float64)
     sigma = np.logaddexp(0.0, gaussians["raw_densities"][rows].astype(np.float64))
     means = gaussians["means"][rows].astype(np.float64)
-    r = rotations(gaussians["rotations"][rows].astype(np.float64))
+    r = rotation_matrices(gaussians["rotations"][rows].astype(np.float64))
     precision = np.einsum("nij,nj,nkj->nik", r, 1.0 / scales**2, r)
     out = np.zeros((n, n, n))
     for mean, scale, density, inverse in zip(means, scales, sigma, precision):
