@@ -1,6 +1,8 @@
 """Gaussians that draw a synthetic scene's true density, as a frame file (issue 18).
 
-  python gaussians_from_truth.py DATA FRAME COUNT OUT.safetensors [--std CELLS]   (numpy)
+  python gaussians_from_truth.py DATA FRAME COUNT OUT.safetensors [--std CELLS] [--blur CELLS]
+      [--min-stride N] [--jitter CELLS] [--warp CELLS [--warp-length CELLS]] [--shift-y CELLS]
+      [--noise FRACTION] [--seed S]                                  (numpy; scipy for --blur, --warp)
 
 Writes `OUT` in the layout of a run's `frames/frame_TTT.safetensors`, holding COUNT smoke
 Gaussians, for `gausmoke-train train --set init_gaussians=OUT` (with `first_frame` = FRAME,
@@ -17,6 +19,15 @@ it. When the smoke has more cells than COUNT, the lattice is coarsened to blocks
 3^3, ... cells (their mean density, the Gaussians as much larger) until it fits. The
 Gaussians left over are spread through the box at a negligible density, for the fit to use.
 Colours are white, as the scene's smoke emits.
+
+The options spoil that start in one way each, to measure how exact a carried state must be
+to picture the held-out view better than a frame fitted alone: `--blur` blurs the true
+density by a Gaussian of that many cells first; `--min-stride` coarsens the lattice at least
+that far; `--jitter` moves each smoke Gaussian by its own random offset (that standard
+deviation per axis, in cells); `--warp` moves them along a smooth random field (a Gaussian
+filter of `--warp-length` cells over white noise, scaled to that rms length in cells), as a
+smooth velocity error would; `--shift-y` moves them all up (down if negative); `--noise`
+multiplies each one's extinction by exp(FRACTION times a standard normal).
 """
 
 import argparse
@@ -34,6 +45,22 @@ def inverse_softplus(y):
     return np.where(y > 20.0, y, np.log(np.expm1(np.minimum(y, 20.0))))
 
 
+def smooth_displacement(points, lo, cell, n, args, rng):
+    """A smooth random displacement (cells) at `points`: white noise on the n^3 grid filtered
+    by a Gaussian of `args.warp_length` cells (periodic), scaled to rms `args.warp`, read at
+    the cell holding each point."""
+    from scipy.ndimage import gaussian_filter
+
+    field = np.stack(
+        [gaussian_filter(rng.standard_normal((n, n, n)), args.warp_length, mode="wrap")
+         for _ in range(3)],
+        axis=-1,
+    )
+    field *= args.warp / np.sqrt((field**2).sum(axis=-1).mean())
+    cells = np.clip(((points - lo) / cell).astype(int), 0, n - 1)
+    return field[cells[:, 0], cells[:, 1], cells[:, 2]]
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("data")
@@ -42,6 +69,13 @@ def main():
     parser.add_argument("out")
     parser.add_argument("--std", type=float, default=0.6, help="standard deviation, in cells")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--blur", type=float, default=0.0, help="cells")
+    parser.add_argument("--min-stride", type=int, default=1)
+    parser.add_argument("--jitter", type=float, default=0.0, help="cells, per axis")
+    parser.add_argument("--warp", type=float, default=0.0, help="rms cells")
+    parser.add_argument("--warp-length", type=float, default=3.0, help="cells")
+    parser.add_argument("--shift-y", type=float, default=0.0, help="cells")
+    parser.add_argument("--noise", type=float, default=0.0, help="log-normal sigma")
     args = parser.parse_args()
 
     info = json.load(open(os.path.join(args.data, "info.json")))
@@ -52,12 +86,16 @@ def main():
     world = (corners * np.array(info["voxel_scale"])) @ matrix[:3, :3].T + matrix[:3, 3]
     lo, extent = world.min(axis=0), world.max(axis=0) - world.min(axis=0)
     density = read_truth(args.data, args.frame)[0].astype(np.float64)  # [x, y, z]
+    if args.blur > 0:
+        from scipy.ndimage import gaussian_filter
+
+        density = gaussian_filter(density, args.blur)
     n = density.shape[0]
     cell = extent / n
     if not np.allclose(cell, cell[0]):
         raise SystemExit(f"{args.data}: the box's cells are not cubes ({cell})")
     # Coarsen the lattice by whole strides until the smoke's blocks fit in COUNT Gaussians.
-    stride = 1
+    stride = args.min_stride
     while True:
         m = n // stride
         blocks = density[: m * stride, : m * stride, : m * stride]
@@ -69,15 +107,23 @@ def main():
     chosen = np.argwhere(smoke)  # (x, y, z) of the blocks
     if len(chosen) > args.count:
         raise SystemExit(f"{len(chosen)} smoke blocks even at stride {stride}: raise COUNT")
+    rng = np.random.default_rng(args.seed)
     rho = blocks[tuple(chosen.T)]
+    # Each perturbation draws from the generator only when asked for, so that the plain start
+    # (and its spare Gaussians) stays what it was.
+    if args.noise > 0:
+        rho = rho * np.exp(args.noise * rng.standard_normal(len(rho)))
     side = stride * cell[0]
     means = lo + (chosen + 0.5) * side
+    if args.jitter > 0:
+        means = means + args.jitter * cell[0] * rng.standard_normal(means.shape)
+    means[:, 1] += args.shift_y * cell[0]
+    if args.warp > 0:
+        means = means + cell[0] * smooth_displacement(means, lo, cell[0], n, args, rng)
     std = args.std * side
     # A Gaussian of peak extinction s and standard deviation std holds s (2 pi)^(3/2) std^3 of
     # extinction; the block holds scale * rho * side^3.
     peak = scale * rho * side**3 / ((2.0 * np.pi) ** 1.5 * std**3)
-
-    rng = np.random.default_rng(args.seed)
     rest = args.count - len(chosen)
     spare = lo + rng.random((rest, 3)) * extent
     means = np.concatenate([means, spare])
