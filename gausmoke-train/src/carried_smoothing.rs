@@ -17,6 +17,11 @@
 //! both read trilinearly at its centre. The factor is kept within `[1/2, 2]`, where the
 //! density is too thin to divide by it is 1, and rows on a box face (left for recycling) are
 //! left alone. Host-side and deterministic, so a resumed run matches an uninterrupted one.
+//!
+//! A second way to forget, `carried_growth`: each carried Gaussian's variance along each of
+//! its axes grows by a set number of cells squared before the frame's fit, as smoke carried
+//! by a solver that resamples it on its grid loses a little of its finest detail every
+//! frame, while Gaussians carried as particles keep all of theirs.
 
 use gausmoke_core::glam::Vec3;
 use gausmoke_render::HostGaussians;
@@ -105,9 +110,58 @@ pub fn smooth_carried_densities(
     report
 }
 
+/// Adds `variance` (world units squared) to each Gaussian's variance along each of its axes,
+/// keeping every log-scale at or under `max_log_scale`.
+pub fn grow_carried_sizes(gaussians: &mut HostGaussians, variance: f32, max_log_scale: f32) {
+    if variance <= 0.0 {
+        return;
+    }
+    for log_scale in &mut gaussians.log_scales {
+        let grown = 0.5 * ((2.0 * *log_scale).exp() + variance).ln();
+        *log_scale = grown.min(max_log_scale).max(*log_scale);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn growth_adds_the_variance_to_every_axis_up_to_the_cap() {
+        let sizes = [0.1f32, 0.2, 0.3, 0.1, 1.0, 2.0];
+        let mut host = HostGaussians {
+            means: vec![0.0; 6],
+            rotations: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+            log_scales: sizes.iter().map(|s| s.ln()).collect(),
+            raw_densities: vec![0.0; 2],
+            colors: vec![1.0; 6],
+        };
+        grow_carried_sizes(&mut host, 0.01, f32::INFINITY);
+        for (log_scale, was) in host.log_scales.iter().zip(sizes) {
+            let got = log_scale.exp();
+            assert!(
+                (got * got - (was * was + 0.01)).abs() < 1e-5,
+                "{got} from {was}"
+            );
+        }
+        // Capped at the bound, and a size already over it is left as it was, not shrunk.
+        let cap = 1.5f32.ln();
+        grow_carried_sizes(&mut host, 2.0, cap);
+        assert!(
+            host.log_scales[..4].iter().all(|l| *l < cap),
+            "{:?}",
+            host.log_scales
+        );
+        assert!(
+            (host.log_scales[4] - cap).abs() < 1e-6,
+            "{}",
+            host.log_scales[4]
+        );
+        assert!((host.log_scales[5].exp() - (4.0f32 + 0.01).sqrt()).abs() < 1e-5);
+        let before = host.clone();
+        grow_carried_sizes(&mut host, 0.0, cap);
+        assert_eq!(host, before);
+    }
 
     fn lattice(n: usize) -> SpawnLattice {
         SpawnLattice {

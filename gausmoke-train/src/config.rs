@@ -622,6 +622,12 @@ pub struct TrainConfig {
     /// Width (standard deviation, in velocity-grid cells, along x and z) of that smoothing.
     /// In (0, 8].
     pub carried_smoothing_cells: f32,
+    /// Variance, in velocity-grid cells squared, that each carried Gaussian gains along each
+    /// of its axes before each frame's fit from frame 1 on (ours, `carried_smoothing` module;
+    /// 0, the default, is the paper's method): Gaussians carried as particles keep detail
+    /// that a grid-resampled flow of smoke loses a little of every frame. Capped by
+    /// `max_size_factor`. In [0, 4].
+    pub carried_growth: f32,
     /// From frame 1 on, no smoke Gaussian's standard deviation falls below this multiple of
     /// the initialisation's (`0.5 (V / N)^(1/3)`, as for `split_size_factor`) after an
     /// optimiser step; frame 0's fit, and so the independent per-frame baseline, has no
@@ -794,6 +800,7 @@ impl Default for TrainConfig {
             split_into_faces_only: false,
             carried_smoothing: 0.0,
             carried_smoothing_cells: 1.0,
+            carried_growth: 0.0,
             min_size_factor: 0.0,
             max_size_factor: 0.0,
             uniform_color: false,
@@ -1155,6 +1162,12 @@ impl TrainConfig {
             return bad(format!(
                 "carried_smoothing must be in [0, 1], got {}",
                 self.carried_smoothing
+            ));
+        }
+        if !(0.0..=4.0).contains(&self.carried_growth) {
+            return bad(format!(
+                "carried_growth must be in [0, 4] cells squared, got {}",
+                self.carried_growth
             ));
         }
         if !(self.carried_smoothing_cells > 0.0 && self.carried_smoothing_cells <= 8.0) {

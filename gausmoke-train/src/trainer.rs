@@ -55,7 +55,7 @@ use crate::arrays::{read_arrays, take_array};
 use crate::attribute_grads::{
     attribute_grads, attribute_params, grads_over_their_rms, per_attribute_params,
 };
-use crate::carried_smoothing::smooth_carried_densities;
+use crate::carried_smoothing::{grow_carried_sizes, smooth_carried_densities};
 use crate::config::{
     BlurAxes, CarrierShare, CorrectionTarget, EmissionTiming, HeldView, IntegratorKind,
     InterpolationKind, LookaheadVelocity, Obstacles, OptimizerReset, ProjectionKind, TrainConfig,
@@ -1222,6 +1222,9 @@ impl Trainer {
         if config.carried_smoothing > 0.0 {
             self.smooth_carried(t);
         }
+        if config.carried_growth > 0.0 {
+            self.grow_carried();
+        }
         let (cameras, targets) = self.training_views(t);
         let factor = config.lr_factor(t);
         let lr_velocity = config.lr_velocity * factor;
@@ -2339,6 +2342,22 @@ impl Trainer {
             mean_change = report.mean_change,
             "carried smoothing"
         );
+    }
+
+    /// Widens the carried Gaussians before a frame's fit (`carried_growth`; see
+    /// [`crate::carried_smoothing`]); the variance is in cells of the velocity grid, the mean
+    /// of its three sides where the cells are not cubes.
+    fn grow_carried(&mut self) {
+        let _phase = phase!("carried growth");
+        let mut host = self.state.gaussians.to_host();
+        let cell = self.grid.cell_size().element_sum() / 3.0;
+        let [_, max_log_scale] = self.log_scale_bounds();
+        grow_carried_sizes(
+            &mut host,
+            self.config.carried_growth * cell * cell,
+            max_log_scale,
+        );
+        self.state.gaussians = self.state.gaussians.clone().with_host_values(&host);
     }
 
     /// The box and lattice recycled and split Gaussians are placed in: the velocity grid's.

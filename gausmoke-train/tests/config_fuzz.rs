@@ -70,6 +70,7 @@ const KEYS: &[(&str, bool)] = &[
     ("shape_transport_max_elongation", true),
     ("carried_smoothing", true),
     ("carried_smoothing_cells", true),
+    ("carried_growth", true),
     ("min_size_factor", true),
     ("max_size_factor", true),
     ("alpha_min", true),

@@ -1119,6 +1119,41 @@ fn the_refinement_can_look_one_frame_ahead() {
     );
 }
 
+/// `carried_growth` (ours) widens every carried Gaussian by the set variance, in cells of the
+/// velocity grid, before each frame's fit: with the sizes' own rate at 0 after frame 0, frame
+/// 1's sizes are frame 0's grown by exactly that, and without growth they are frame 0's.
+#[test]
+fn carried_gaussians_can_be_widened_before_each_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let frame_1 = |growth, name| {
+        let config = TrainConfig {
+            lr_log_scales: Some(0.0),
+            carried_growth: growth,
+            ..joint_terms_config()
+        };
+        let mut run = after_frame_0(&data, dir.path(), config, name);
+        let before = run.trainer.state.gaussians.to_host().log_scales;
+        run.trainer.advance_to(1).unwrap();
+        let cell = run.trainer.grid.cell_size().element_sum() / 3.0;
+        (
+            before,
+            run.trainer.state.gaussians.to_host().log_scales,
+            cell,
+        )
+    };
+    let (before, kept, _) = frame_1(0.0, "kept");
+    assert_eq!(before, kept, "sizes at rate 0 changed without growth");
+    let (before, grown, cell) = frame_1(0.5, "grown");
+    for (was, got) in before.iter().zip(&grown) {
+        let expected = 0.5 * ((2.0 * was).exp() + 0.5 * cell * cell).ln();
+        assert!(
+            (got - expected).abs() < 1e-5,
+            "{got} from {was}, expected {expected}"
+        );
+    }
+}
+
 /// `lr_means`, `lr_log_scales`, `lr_colors` and `lr_raw_densities` (ours) step those
 /// attributes after frame 0 apart from the others: at 0 the attribute stays as it was (the
 /// centres where the velocity carried them) while the others still move; unset, each moves
