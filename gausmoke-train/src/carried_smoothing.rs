@@ -111,7 +111,7 @@ pub fn smooth_carried_densities(
 }
 
 /// Adds `variance` (world units squared) to each Gaussian's variance along each of its axes,
-/// keeping every log-scale at or under `max_log_scale`.
+/// growing no log-scale past `max_log_scale` (one already past it is left as it is).
 pub fn grow_carried_sizes(gaussians: &mut HostGaussians, variance: f32, max_log_scale: f32) {
     if variance <= 0.0 {
         return;

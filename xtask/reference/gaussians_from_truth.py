@@ -37,7 +37,7 @@ import os
 import numpy as np
 
 from safetensors_f32 import write_safetensors
-from scene_truth import read_truth
+from scene_truth import read_truth, scene_box
 
 
 def inverse_softplus(y):
@@ -80,11 +80,7 @@ def main():
 
     info = json.load(open(os.path.join(args.data, "info.json")))
     scale = info["synth"]["density_scale"]
-    # The box is the voxel cube [0, voxel_scale] carried into the world by voxel_matrix.
-    matrix = np.array(info["voxel_matrix"], dtype=np.float64)
-    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], np.float64)
-    world = (corners * np.array(info["voxel_scale"])) @ matrix[:3, :3].T + matrix[:3, 3]
-    lo, extent = world.min(axis=0), world.max(axis=0) - world.min(axis=0)
+    lo, extent = scene_box(args.data)
     density = read_truth(args.data, args.frame)[0].astype(np.float64)  # [x, y, z]
     if args.blur > 0:
         from scipy.ndimage import gaussian_filter

@@ -6,6 +6,8 @@ The scene's `gt/frame_TTT.safetensors` holds density [z, y, x] and velocity [z, 
 both in world units per frame on the same box.
 """
 
+import json
+import os
 import sys
 
 import numpy as np
@@ -29,3 +31,13 @@ def read_run_and_truth(run, data, t):
     if ours.shape != velocity.shape:
         sys.exit(f"frame {t}: run grid {ours.shape[:3]} vs truth {velocity.shape[:3]}")
     return ours, density, velocity
+
+
+def scene_box(data):
+    """The scene's box from its `info.json`: the voxel cube [0, voxel_scale] carried into the
+    world by voxel_matrix, as its lowest corner and its extent (numpy arrays)."""
+    info = json.load(open(os.path.join(data, "info.json")))
+    matrix = np.array(info["voxel_matrix"], dtype=np.float64)
+    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], np.float64)
+    world = (corners * np.array(info["voxel_scale"])) @ matrix[:3, :3].T + matrix[:3, 3]
+    return world.min(axis=0), world.max(axis=0) - world.min(axis=0)

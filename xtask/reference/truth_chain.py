@@ -3,8 +3,7 @@
 
   python truth_chain.py TRAIN CONFIG DATA T0 T1 OUT [--velocity truth|RUN] [--scale S]
       [--integrator euler|midpoint|implicit] [--steps N] [--source truth|none] [--grow V]
-      [--seed S]
-                                                              (numpy; scipy through its imports)
+      [--seed S]                                                                  (numpy)
 
 A chain outside the trainer, so that its carrier and its fit can each be chosen freely. It
 starts from the truth's density at frame T0, drawn by `gaussians_from_truth.py` with
@@ -37,7 +36,7 @@ import sys
 import numpy as np
 
 from safetensors_f32 import read_safetensors, write_safetensors
-from scene_truth import read_truth
+from scene_truth import read_truth, scene_box
 from truth_transport import carried
 
 GAUSSIAN_KEYS = ("means", "rotations", "log_scales", "raw_densities", "colors")
@@ -108,23 +107,23 @@ def main():
     print(f"frame {args.t0}: {scores['test_psnr']:.2f} dB, density correlation "
           f"{scores['density_correlation']:.3f} (the truth, fitted)", flush=True)
     carried_path = os.path.join(args.out, "carried.safetensors")
+    lo, extent = scene_box(args.data)
     for t in range(args.t0 + 1, args.t1 + 1):
         if args.velocity == "truth":
             velocity = read_truth(args.data, t)[1]
         else:
             frame = os.path.join(args.velocity, "frames", f"frame_{t:03}.safetensors")
             velocity = read_safetensors(frame)["velocity"].astype(np.float64)
-        n = velocity.shape[0]
-        # The box is [-0.5, 0.5] x [0, 1] x [-0.5, 0.5] (the synthetic scenes'); centres of
-        # cells at whole cell units, as truth_transport.py's particles.
-        lo, cell = np.array([-0.5, 0.0, -0.5]), 1.0 / n
+        # In cell units with the centres of cells at whole numbers, as truth_transport.py's
+        # particles; the velocity is in world units per frame.
+        cell = extent / velocity.shape[0]
         smoke = state["raw_densities"] > SPARE_RAW_DENSITY + 1.0
         points = (state["means"][smoke].astype(np.float64) - lo) / cell - 0.5
-        moved = carried(points, velocity * n, args.scale, args.integrator)
-        state["means"][smoke] = np.clip(lo + (moved + 0.5) * cell, lo, lo + 1.0)
+        moved = carried(points, velocity / cell, args.scale, args.integrator)
+        state["means"][smoke] = np.clip(lo + (moved + 0.5) * cell, lo, lo + extent)
         if args.grow > 0:
             variance = np.exp(2.0 * state["log_scales"][smoke].astype(np.float64))
-            state["log_scales"][smoke] = 0.5 * np.log(variance + args.grow * cell**2)
+            state["log_scales"][smoke] = 0.5 * np.log(variance + args.grow * cell.mean() ** 2)
         if args.source == "truth":
             source = truth_gaussians(args, t, os.path.join(args.out, "source.safetensors"), count)
             new = np.flatnonzero((source["raw_densities"] > SPARE_RAW_DENSITY + 1.0)
