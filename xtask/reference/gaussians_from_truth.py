@@ -2,7 +2,7 @@
 
   python gaussians_from_truth.py DATA FRAME COUNT OUT.safetensors [--std CELLS] [--blur CELLS]
       [--min-stride N] [--jitter CELLS] [--warp CELLS [--warp-length CELLS]] [--shift-y CELLS]
-      [--noise FRACTION] [--seed S]                                  (numpy; scipy for --blur, --warp)
+      [--noise FRACTION] [--dense-first] [--seed S]                  (numpy; scipy for --blur, --warp)
 
 Writes `OUT` in the layout of a run's `frames/frame_TTT.safetensors`, holding COUNT smoke
 Gaussians, for `gausmoke-train train --set init_gaussians=OUT` (with `first_frame` = FRAME,
@@ -28,6 +28,10 @@ deviation per axis, in cells); `--warp` moves them along a smooth random field (
 filter of `--warp-length` cells over white noise, scaled to that rms length in cells), as a
 smooth velocity error would; `--shift-y` moves them all up (down if negative); `--noise`
 multiplies each one's extinction by exp(FRACTION times a standard normal).
+
+`--dense-first` draws the smoke more finely than a uniform coarsening where it has more
+cells than COUNT: one Gaussian per smoke cell in the 2^3-cell blocks whose densest cell is
+densest, as many of those blocks as COUNT allows, and one per block elsewhere.
 """
 
 import argparse
@@ -61,6 +65,66 @@ def smooth_displacement(points, lo, cell, n, args, rng):
     return field[cells[:, 0], cells[:, 1], cells[:, 2]]
 
 
+def uniform_lattice(density, count, min_stride):
+    """The smoke's cells, coarsened by whole strides (at least `min_stride`) until its blocks
+    fit in `count`: each block's centre (in cells), mean density and side (in cells), and the
+    stride."""
+    n = density.shape[0]
+    stride = min_stride
+    while True:
+        m = n // stride
+        blocks = density[: m * stride, : m * stride, : m * stride]
+        blocks = blocks.reshape(m, stride, m, stride, m, stride).mean(axis=(1, 3, 5))
+        smoke = blocks > 0.01 * blocks.max()
+        if smoke.sum() <= count or m <= 2:
+            break
+        stride += 1
+    chosen = np.argwhere(smoke)  # (x, y, z) of the blocks
+    if len(chosen) > count:
+        raise SystemExit(f"{len(chosen)} smoke blocks even at stride {stride}: raise COUNT")
+    sides = np.full(len(chosen), float(stride))
+    return (chosen + 0.5) * stride, blocks[tuple(chosen.T)], sides, stride
+
+
+def dense_first(density, count):
+    """The smoke drawn at one Gaussian per smoke cell in the 2^3-cell blocks whose densest
+    cell is densest, as many of them as `count` allows, and one Gaussian per smoke block
+    elsewhere: centres (in cells), densities and sides (in cells), full-resolution cells
+    first."""
+    n = density.shape[0]
+    m = n // 2
+    cells = density[: 2 * m, : 2 * m, : 2 * m]
+    smoke = cells > 0.01 * cells.max()
+    by_block = lambda a: a.reshape(m, 2, m, 2, m, 2).transpose(0, 2, 4, 1, 3, 5).reshape(
+        m, m, m, 8)
+    values, inside = by_block(cells), by_block(smoke)
+    block_mean = values.mean(axis=-1)
+    smoky = block_mean > 0.01 * block_mean.max()
+    # Each block drawn cell by cell costs its smoke cells in place of its one Gaussian.
+    full = np.zeros(m**3, bool)
+    total = smoky.sum()
+    for block in np.argsort(-values.max(axis=-1).ravel()):
+        extra = inside.reshape(-1, 8)[block].sum() - smoky.ravel()[block]
+        if total + extra > count:
+            break
+        full[block] = True
+        total += extra
+    full = full.reshape(m, m, m)
+    centres, rho, sides = [], [], []
+    for i, j, k in np.argwhere(full):
+        for x, y, z in np.ndindex(2, 2, 2):
+            cell = (2 * i + x, 2 * j + y, 2 * k + z)
+            if smoke[cell]:
+                centres.append(np.array(cell) + 0.5)
+                rho.append(cells[cell])
+                sides.append(1.0)
+    for i, j, k in np.argwhere(smoky & ~full):
+        centres.append((np.array([i, j, k]) + 0.5) * 2.0)
+        rho.append(block_mean[i, j, k])
+        sides.append(2.0)
+    return np.array(centres), np.array(rho), np.array(sides)
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("data")
@@ -71,6 +135,7 @@ def main():
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--blur", type=float, default=0.0, help="cells")
     parser.add_argument("--min-stride", type=int, default=1)
+    parser.add_argument("--dense-first", action="store_true")
     parser.add_argument("--jitter", type=float, default=0.0, help="cells, per axis")
     parser.add_argument("--warp", type=float, default=0.0, help="rms cells")
     parser.add_argument("--warp-length", type=float, default=3.0, help="cells")
@@ -90,27 +155,19 @@ def main():
     cell = extent / n
     if not np.allclose(cell, cell[0]):
         raise SystemExit(f"{args.data}: the box's cells are not cubes ({cell})")
-    # Coarsen the lattice by whole strides until the smoke's blocks fit in COUNT Gaussians.
-    stride = args.min_stride
-    while True:
-        m = n // stride
-        blocks = density[: m * stride, : m * stride, : m * stride]
-        blocks = blocks.reshape(m, stride, m, stride, m, stride).mean(axis=(1, 3, 5))
-        smoke = blocks > 0.01 * blocks.max()
-        if smoke.sum() <= args.count or m <= 2:
-            break
-        stride += 1
-    chosen = np.argwhere(smoke)  # (x, y, z) of the blocks
-    if len(chosen) > args.count:
-        raise SystemExit(f"{len(chosen)} smoke blocks even at stride {stride}: raise COUNT")
+    if args.dense_first:
+        centres, rho, sides = dense_first(density, args.count)
+        drawn = f"{len(rho)} Gaussians, one a cell in the densest 2^3 blocks, one a block elsewhere"
+    else:
+        centres, rho, sides, stride = uniform_lattice(density, args.count, args.min_stride)
+        drawn = f"{len(rho)} Gaussians on the smoke's blocks of {stride}^3 cells"
     rng = np.random.default_rng(args.seed)
-    rho = blocks[tuple(chosen.T)]
     # Each perturbation draws from the generator only when asked for, so that the plain start
     # (and its spare Gaussians) stays what it was.
     if args.noise > 0:
         rho = rho * np.exp(args.noise * rng.standard_normal(len(rho)))
-    side = stride * cell[0]
-    means = lo + (chosen + 0.5) * side
+    side = sides * cell[0]
+    means = lo + centres * cell[0]
     if args.jitter > 0:
         means = means + args.jitter * cell[0] * rng.standard_normal(means.shape)
     means[:, 1] += args.shift_y * cell[0]
@@ -120,14 +177,14 @@ def main():
     # A Gaussian of peak extinction s and standard deviation std holds s (2 pi)^(3/2) std^3 of
     # extinction; the block holds scale * rho * side^3.
     peak = scale * rho * side**3 / ((2.0 * np.pi) ** 1.5 * std**3)
-    rest = args.count - len(chosen)
+    rest = args.count - len(rho)
     spare = lo + rng.random((rest, 3)) * extent
     means = np.concatenate([means, spare])
     raw = np.concatenate([inverse_softplus(peak), np.full(rest, -9.0)])
     # The size a spread through the box starts with (GaussianModel::init_in_box).
     spare_std = 0.5 * (np.prod(extent) / args.count) ** (1.0 / 3.0)
     log_scales = np.concatenate(
-        [np.full((len(chosen), 3), np.log(std)), np.full((rest, 3), np.log(spare_std))]
+        [np.repeat(np.log(std)[:, None], 3, axis=1), np.full((rest, 3), np.log(spare_std))]
     )
     rotations = np.tile([1.0, 0.0, 0.0, 0.0], (args.count, 1))
     colors = np.ones((args.count, 3))
@@ -142,8 +199,7 @@ def main():
         },
         {},
     )
-    print(f"{len(chosen)} Gaussians on the smoke's blocks of {stride}^3 cells, {rest} spare; "
-          f"std {std:.4f}")
+    print(f"{drawn}, {rest} spare; std {std.min():.4f} to {std.max():.4f}")
 
 
 if __name__ == "__main__":
