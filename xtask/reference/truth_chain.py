@@ -42,7 +42,7 @@ from truth_transport import carried
 GAUSSIAN_KEYS = ("means", "rotations", "log_scales", "raw_densities", "colors")
 # gaussians_from_truth.py leaves its spare Gaussians at this raw density (negligible).
 SPARE_RAW_DENSITY = -9.0
-# Below this height (a fraction of the box) the source renews the smoke every frame.
+# Below this height (a fraction of the box's) the source renews the smoke every frame.
 SOURCE_TOP = 0.2
 
 
@@ -126,10 +126,11 @@ def main():
             state["log_scales"][smoke] = 0.5 * np.log(variance + args.grow * cell.mean() ** 2)
         if args.source == "truth":
             source = truth_gaussians(args, t, os.path.join(args.out, "source.safetensors"), count)
+            top = lo[1] + SOURCE_TOP * extent[1]
             new = np.flatnonzero((source["raw_densities"] > SPARE_RAW_DENSITY + 1.0)
-                                 & (source["means"][:, 1] < SOURCE_TOP))
+                                 & (source["means"][:, 1] < top))
             old = (state["raw_densities"] > SPARE_RAW_DENSITY + 1.0) & (
-                state["means"][:, 1] < SOURCE_TOP)
+                state["means"][:, 1] < top)
             state["raw_densities"][old] = SPARE_RAW_DENSITY
             free = np.flatnonzero(state["raw_densities"] <= SPARE_RAW_DENSITY + 1.0)[: len(new)]
             for key in GAUSSIAN_KEYS:
