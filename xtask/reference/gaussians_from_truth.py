@@ -125,41 +125,19 @@ def dense_first(density, count):
     return np.array(centres), np.array(rho), np.array(sides)
 
 
-def main():
-    parser = argparse.ArgumentParser()
-    parser.add_argument("data")
-    parser.add_argument("frame", type=int)
-    parser.add_argument("count", type=int)
-    parser.add_argument("out")
-    parser.add_argument("--std", type=float, default=0.6, help="standard deviation, in cells")
-    parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--blur", type=float, default=0.0, help="cells")
-    parser.add_argument("--min-stride", type=int, default=1)
-    parser.add_argument("--dense-first", action="store_true")
-    parser.add_argument("--jitter", type=float, default=0.0, help="cells, per axis")
-    parser.add_argument("--warp", type=float, default=0.0, help="rms cells")
-    parser.add_argument("--warp-length", type=float, default=3.0, help="cells")
-    parser.add_argument("--shift-y", type=float, default=0.0, help="cells")
-    parser.add_argument("--noise", type=float, default=0.0, help="log-normal sigma")
-    args = parser.parse_args()
-
-    info = json.load(open(os.path.join(args.data, "info.json")))
-    scale = info["synth"]["density_scale"]
-    lo, extent = scene_box(args.data)
-    density = read_truth(args.data, args.frame)[0].astype(np.float64)  # [x, y, z]
-    if args.blur > 0:
-        from scipy.ndimage import gaussian_filter
-
-        density = gaussian_filter(density, args.blur)
+def draw(density, count, scale, lo, extent, args):
+    """`count` Gaussians drawing `density` ([x, y, z], the scene's units; times `scale` it is
+    the extinction) in the box at `lo` of size `extent`, as the module describes, with `args`'
+    drawing and spoiling options: the frame file's arrays, and what was drawn."""
     n = density.shape[0]
     cell = extent / n
     if not np.allclose(cell, cell[0]):
-        raise SystemExit(f"{args.data}: the box's cells are not cubes ({cell})")
+        raise SystemExit(f"the box's cells are not cubes ({cell})")
     if args.dense_first:
-        centres, rho, sides = dense_first(density, args.count)
+        centres, rho, sides = dense_first(density, count)
         drawn = f"{len(rho)} Gaussians, one a cell in the densest 2^3 blocks, one a block elsewhere"
     else:
-        centres, rho, sides, stride = uniform_lattice(density, args.count, args.min_stride)
+        centres, rho, sides, stride = uniform_lattice(density, count, args.min_stride)
         drawn = f"{len(rho)} Gaussians on the smoke's blocks of {stride}^3 cells"
     rng = np.random.default_rng(args.seed)
     # Each perturbation draws from the generator only when asked for, so that the plain start
@@ -177,29 +155,59 @@ def main():
     # A Gaussian of peak extinction s and standard deviation std holds s (2 pi)^(3/2) std^3 of
     # extinction; the block holds scale * rho * side^3.
     peak = scale * rho * side**3 / ((2.0 * np.pi) ** 1.5 * std**3)
-    rest = args.count - len(rho)
+    rest = count - len(rho)
     spare = lo + rng.random((rest, 3)) * extent
     means = np.concatenate([means, spare])
     raw = np.concatenate([inverse_softplus(peak), np.full(rest, -9.0)])
     # The size a spread through the box starts with (GaussianModel::init_in_box).
-    spare_std = 0.5 * (np.prod(extent) / args.count) ** (1.0 / 3.0)
+    spare_std = 0.5 * (np.prod(extent) / count) ** (1.0 / 3.0)
     log_scales = np.concatenate(
         [np.repeat(np.log(std)[:, None], 3, axis=1), np.full((rest, 3), np.log(spare_std))]
     )
-    rotations = np.tile([1.0, 0.0, 0.0, 0.0], (args.count, 1))
-    colors = np.ones((args.count, 3))
-    write_safetensors(
-        args.out,
-        {
-            "means": means.astype(np.float32),
-            "rotations": rotations.astype(np.float32),
-            "log_scales": log_scales.astype(np.float32),
-            "raw_densities": raw.astype(np.float32),
-            "colors": colors.astype(np.float32),
-        },
-        {},
-    )
-    print(f"{drawn}, {rest} spare; std {std.min():.4f} to {std.max():.4f}")
+    arrays = {
+        "means": means.astype(np.float32),
+        "rotations": np.tile([1.0, 0.0, 0.0, 0.0], (count, 1)).astype(np.float32),
+        "log_scales": log_scales.astype(np.float32),
+        "raw_densities": raw.astype(np.float32),
+        "colors": np.ones((count, 3), np.float32),
+    }
+    return arrays, f"{drawn}, {rest} spare; std {std.min():.4f} to {std.max():.4f}"
+
+
+def options(parser):
+    """The drawing and spoiling options (their defaults draw the truth as it is)."""
+    parser.add_argument("--std", type=float, default=0.6, help="standard deviation, in cells")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--blur", type=float, default=0.0, help="cells")
+    parser.add_argument("--min-stride", type=int, default=1)
+    parser.add_argument("--dense-first", action="store_true")
+    parser.add_argument("--jitter", type=float, default=0.0, help="cells, per axis")
+    parser.add_argument("--warp", type=float, default=0.0, help="rms cells")
+    parser.add_argument("--warp-length", type=float, default=3.0, help="cells")
+    parser.add_argument("--shift-y", type=float, default=0.0, help="cells")
+    parser.add_argument("--noise", type=float, default=0.0, help="log-normal sigma")
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("data")
+    parser.add_argument("frame", type=int)
+    parser.add_argument("count", type=int)
+    parser.add_argument("out")
+    options(parser)
+    args = parser.parse_args()
+
+    info = json.load(open(os.path.join(args.data, "info.json")))
+    scale = info["synth"]["density_scale"]
+    lo, extent = scene_box(args.data)
+    density = read_truth(args.data, args.frame)[0].astype(np.float64)  # [x, y, z]
+    if args.blur > 0:
+        from scipy.ndimage import gaussian_filter
+
+        density = gaussian_filter(density, args.blur)
+    arrays, drawn = draw(density, args.count, scale, lo, extent, args)
+    write_safetensors(args.out, arrays, {})
+    print(drawn)
 
 
 if __name__ == "__main__":

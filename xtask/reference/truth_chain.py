@@ -1,27 +1,39 @@
 """How long a sequential chain keeps the scene's own density once it is carried and refitted
 (issue 18).
 
-  python truth_chain.py TRAIN CONFIG DATA T0 T1 OUT [--velocity truth|RUN] [--scale S]
-      [--integrator euler|midpoint|implicit] [--steps N] [--source truth|none] [--grow V]
-      [--seed S]                                                                  (numpy)
+  python truth_chain.py TRAIN CONFIG DATA T0 T1 OUT [--carrier particles|grid]
+      [--velocity truth|RUN] [--scale S] [--integrator euler|midpoint|implicit]
+      [--substeps K] [--steps N] [--refit every|last] [--source truth|none] [--grow V]
+      [--dense-first] [--seed S]                                                  (numpy)
 
 A chain outside the trainer, so that its carrier and its fit can each be chosen freely. It
-starts from the truth's density at frame T0, drawn by `gaussians_from_truth.py` with
-`gaussians` from CONFIG, and fits it for N steps to frame T0's training views. Then, for
-each frame t up to T1:
+starts from the truth's density at frame T0, drawn as `gaussians_from_truth.py` draws it
+(`--dense-first` as there) with `gaussians` from CONFIG, and fits it for N steps to frame
+T0's training views. Then, for each frame t up to T1:
 
-1. It carries the smoke Gaussians' centres one frame by S times a velocity (`truth_transport.py`'s
-   particle step): the truth's velocity of frame t, or a run's (`RUN/frames/frame_TTT.safetensors`,
-   saved at every frame). With `--grow V`, each smoke Gaussian's variance grows by V cells^2,
-   a stand-in for the numerical diffusion of a solver that resamples its density on a grid.
-2. With `--source truth` (the default), it renews the source. The smoke Gaussians below 0.2 of
-   the box's height are dropped, and the truth's own there are put into free rows. The chain
-   then measures what carrying loses, not what a missing emission loses.
-3. It fits frame t for N steps with `TRAIN train --config CONFIG --set first_frame=t --set
+1. It carries the state one frame by S times a velocity (S is 0.65 for particles and 1 on
+   the grid unless `--scale` says otherwise): the truth's velocity of frame t, or
+   a run's (`RUN/frames/frame_TTT.safetensors`, saved at every frame).
+   - `--carrier particles` (the default) moves the smoke Gaussians' centres
+     (`truth_transport.py`'s particle step, by `--integrator`). With `--grow V`, each smoke
+     Gaussian's variance also grows by V cells^2, a stand-in for the numerical diffusion of
+     a solver that resamples its density on a grid.
+   - `--carrier grid` carries the fitted state's density, splatted on the grid (its frame
+     file's `density`), by K semi-Lagrangian steps (`--substeps`, 2 by default): each
+     cell takes the trilinear sample where the velocity traced it back from. This is the
+     synthetic scene's own kind of step. It then draws the carried density afresh.
+2. With `--source truth` (the default), it renews the source below 0.2 of the box's height
+   from the truth: the particles' smoke Gaussians there are replaced by the truth's own, in
+   free rows, and the grid's rows there by the truth's density. The chain then measures what
+   carrying loses, not what a missing emission loses.
+3. With `--refit every` (the default) it fits frame t for N steps with `TRAIN train --config CONFIG --set first_frame=t --set
    frames=1 --set init_iterations=N --set init_gaussians=...`: a frame-0 fit from the carried
    state. CONFIG is a frame fitted alone's, e.g. `RUN-independent/frame_018/config.toml` from
    `reproduce --independent`.
 4. It scores the held-out view with `TRAIN eval`.
+
+With `--refit last`, nothing is fitted before T1: the truth as drawn at T0 is carried to T1
+(its density itself on the grid), and only frame T1 is fitted and scored.
 
 Prints one line per frame: the frame, the held-out PSNR and the density correlation. Each
 frame's fit is kept in OUT/fit-TTT. TRAIN is the `gausmoke-train` binary.
@@ -35,9 +47,10 @@ import sys
 
 import numpy as np
 
+from gaussians_from_truth import draw, options
 from safetensors_f32 import read_safetensors, write_safetensors
 from scene_truth import read_truth, scene_box
-from truth_transport import carried
+from truth_transport import carried, trilinear
 
 GAUSSIAN_KEYS = ("means", "rotations", "log_scales", "raw_densities", "colors")
 # gaussians_from_truth.py leaves its spare Gaussians at this raw density (negligible).
@@ -55,15 +68,15 @@ def config_value(config, key):
     sys.exit(f"{config}: no `{key}`")
 
 
-def truth_gaussians(args, frame, out, count):
-    here = os.path.dirname(os.path.abspath(__file__))
-    subprocess.run(
-        [sys.executable, os.path.join(here, "gaussians_from_truth.py"), args.data, str(frame),
-         str(count), out],
-        check=True, capture_output=True,
-    )
-    state = read_safetensors(out)
-    return {k: np.array(state[k]) for k in GAUSSIAN_KEYS}
+def drawn(args, density, count):
+    """`count` Gaussians drawing `density` (the scene's units), as gaussians_from_truth.py
+    draws the truth."""
+    drawing = argparse.ArgumentParser()
+    options(drawing)
+    drawing = drawing.parse_args(["--dense-first"] if args.dense_first else [])
+    scale = json.load(open(os.path.join(args.data, "info.json")))["synth"]["density_scale"]
+    lo, extent = scene_box(args.data)
+    return draw(density.astype(np.float64), count, scale, lo, extent, drawing)[0]
 
 
 def fit(args, frame, start):
@@ -77,7 +90,19 @@ def fit(args, frame, start):
     subprocess.run([args.train, "eval", "--run", out], check=True, capture_output=True)
     scores = json.load(open(os.path.join(out, "eval.json")))["frames"][0]
     state = read_safetensors(os.path.join(out, "frames", "frame_000.safetensors"))
-    return {k: np.array(state[k]) for k in GAUSSIAN_KEYS}, scores
+    return {k: np.array(state[k]) for k in (*GAUSSIAN_KEYS, "density")}, scores
+
+
+def carried_on_grid(density, velocity, substeps):
+    """`density` ([x, y, z]) carried one frame by `velocity` (cells per frame, [x, y, z, 3]) in
+    `substeps` semi-Lagrangian steps with trilinear samples."""
+    n = density.shape[0]
+    cells = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    cells = cells.astype(np.float64)
+    step = velocity / substeps
+    for _ in range(substeps):
+        density = trilinear(density, cells - trilinear(step, cells)).reshape(density.shape)
+    return density
 
 
 def main():
@@ -89,7 +114,7 @@ def main():
     parser.add_argument("t1", type=int)
     parser.add_argument("out")
     parser.add_argument("--velocity", default="truth", help="truth, or a run's folder")
-    parser.add_argument("--scale", type=float, default=0.65)
+    parser.add_argument("--scale", type=float, help="0.65 for particles, 1 on the grid")
     parser.add_argument("--integrator", default="euler",
                         choices=["euler", "midpoint", "implicit"])
     parser.add_argument("--steps", type=int, default=25)
@@ -97,15 +122,33 @@ def main():
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--grow", type=float, default=0.0,
                         help="variance (cells^2) added to each smoke Gaussian per frame carried")
+    parser.add_argument("--carrier", default="particles", choices=["particles", "grid"])
+    parser.add_argument("--substeps", type=int, default=2)
+    parser.add_argument("--dense-first", action="store_true")
+    parser.add_argument("--refit", default="every", choices=["every", "last"])
     args = parser.parse_args()
+    if args.carrier == "grid" and (args.grow > 0 or args.integrator != "euler"):
+        sys.exit("--grow and --integrator move particles; the grid carrier has neither")
+    if args.scale is None:
+        # One explicit Euler step carries the scene's smoke best at about 0.65 of its velocity
+        # (truth_transport.py --scales); the scene's own kind of step at all of it.
+        args.scale = 0.65 if args.carrier == "particles" else 1.0
+    if os.path.isdir(args.out) and os.listdir(args.out):
+        sys.exit(f"{args.out} is not empty: choose another OUT")
     os.makedirs(args.out, exist_ok=True)
     count = config_value(args.config, "gaussians")
+    scale = json.load(open(os.path.join(args.data, "info.json")))["synth"]["density_scale"]
 
     start = os.path.join(args.out, "start.safetensors")
-    truth_gaussians(args, args.t0, start, count)
-    state, scores = fit(args, args.t0, start)
-    print(f"frame {args.t0}: {scores['test_psnr']:.2f} dB, density correlation "
-          f"{scores['density_correlation']:.3f} (the truth, fitted)", flush=True)
+    truth = read_truth(args.data, args.t0)[0]
+    write_safetensors(start, drawn(args, truth, count), {})
+    if args.refit == "every":
+        state, scores = fit(args, args.t0, start)
+        print(f"frame {args.t0}: {scores['test_psnr']:.2f} dB, density correlation "
+              f"{scores['density_correlation']:.3f} (the truth, fitted)", flush=True)
+    else:
+        state = {k: np.array(v) for k, v in read_safetensors(start).items()}
+        state["density"] = scale * truth.astype(np.float64)
     carried_path = os.path.join(args.out, "carried.safetensors")
     lo, extent = scene_box(args.data)
     for t in range(args.t0 + 1, args.t1 + 1):
@@ -117,6 +160,22 @@ def main():
         # In cell units with the centres of cells at whole numbers, as truth_transport.py's
         # particles; the velocity is in world units per frame.
         cell = extent / velocity.shape[0]
+        if args.carrier == "grid":
+            density = state["density"].astype(np.float64) / scale
+            if density.shape != velocity.shape[:3]:
+                sys.exit(f"the fit's density grid {density.shape} is not the velocity's")
+            density = carried_on_grid(density, args.scale * velocity / cell, args.substeps)
+            if args.source == "truth":
+                rows = int(SOURCE_TOP * density.shape[1])
+                density[:, :rows, :] = read_truth(args.data, t)[0][:, :rows, :]
+            write_safetensors(carried_path, drawn(args, density, count), {})
+            if args.refit == "every" or t == args.t1:
+                state, scores = fit(args, t, carried_path)
+                print(f"frame {t}: {scores['test_psnr']:.2f} dB, density correlation "
+                      f"{scores['density_correlation']:.3f}", flush=True)
+            else:
+                state = {"density": scale * density}
+            continue
         smoke = state["raw_densities"] > SPARE_RAW_DENSITY + 1.0
         points = (state["means"][smoke].astype(np.float64) - lo) / cell - 0.5
         moved = carried(points, velocity / cell, args.scale, args.integrator)
@@ -125,7 +184,7 @@ def main():
             variance = np.exp(2.0 * state["log_scales"][smoke].astype(np.float64))
             state["log_scales"][smoke] = 0.5 * np.log(variance + args.grow * cell.mean() ** 2)
         if args.source == "truth":
-            source = truth_gaussians(args, t, os.path.join(args.out, "source.safetensors"), count)
+            source = drawn(args, read_truth(args.data, t)[0], count)
             top = lo[1] + SOURCE_TOP * extent[1]
             new = np.flatnonzero((source["raw_densities"] > SPARE_RAW_DENSITY + 1.0)
                                  & (source["means"][:, 1] < top))
@@ -135,10 +194,11 @@ def main():
             free = np.flatnonzero(state["raw_densities"] <= SPARE_RAW_DENSITY + 1.0)[: len(new)]
             for key in GAUSSIAN_KEYS:
                 state[key][free] = source[key][new[: len(free)]]
-        write_safetensors(carried_path, state, {})
-        state, scores = fit(args, t, carried_path)
-        print(f"frame {t}: {scores['test_psnr']:.2f} dB, density correlation "
-              f"{scores['density_correlation']:.3f}", flush=True)
+        write_safetensors(carried_path, {k: state[k] for k in GAUSSIAN_KEYS}, {})
+        if args.refit == "every" or t == args.t1:
+            state, scores = fit(args, t, carried_path)
+            print(f"frame {t}: {scores['test_psnr']:.2f} dB, density correlation "
+                  f"{scores['density_correlation']:.3f}", flush=True)
 
 
 if __name__ == "__main__":
