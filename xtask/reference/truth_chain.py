@@ -4,7 +4,7 @@
   python truth_chain.py TRAIN CONFIG DATA T0 T1 OUT [--carrier particles|grid]
       [--velocity truth|RUN] [--scale S] [--integrator euler|midpoint|implicit]
       [--substeps K] [--steps N] [--refit every|last] [--source truth|none] [--grow V]
-      [--dense-first] [--seed S]                                                  (numpy)
+      [--dense-first] [--velocity-blur CELLS] [--seed S]    (numpy; scipy for --velocity-blur)
 
 A chain outside the trainer, so that its carrier and its fit can each be chosen freely. It
 starts from the truth's density at frame T0, drawn as `gaussians_from_truth.py` draws it
@@ -13,7 +13,9 @@ T0's training views. Then, for each frame t up to T1:
 
 1. It carries the state one frame by S times a velocity (S is 0.65 for particles and 1 on
    the grid unless `--scale` says otherwise): the truth's velocity of frame t, or
-   a run's (`RUN/frames/frame_TTT.safetensors`, saved at every frame).
+   a run's (`RUN/frames/frame_TTT.safetensors`, saved at every frame). `--velocity-blur`
+   blurs each of its components by a Gaussian of that many cells first, for a velocity
+   with the truth's direction but a field's smoothness.
    - `--carrier particles` (the default) moves the smoke Gaussians' centres
      (`truth_transport.py`'s particle step, by `--integrator`). With `--grow V`, each smoke
      Gaussian's variance also grows by V cells^2, a stand-in for the numerical diffusion of
@@ -126,6 +128,7 @@ def main():
     parser.add_argument("--substeps", type=int, default=2)
     parser.add_argument("--dense-first", action="store_true")
     parser.add_argument("--refit", default="every", choices=["every", "last"])
+    parser.add_argument("--velocity-blur", type=float, default=0.0, help="cells")
     args = parser.parse_args()
     if args.carrier == "grid" and (args.grow > 0 or args.integrator != "euler"):
         sys.exit("--grow and --integrator move particles; the grid carrier has neither")
@@ -157,6 +160,11 @@ def main():
         else:
             frame = os.path.join(args.velocity, "frames", f"frame_{t:03}.safetensors")
             velocity = read_safetensors(frame)["velocity"].astype(np.float64)
+        if args.velocity_blur > 0:
+            from scipy.ndimage import gaussian_filter
+
+            velocity = np.stack([gaussian_filter(velocity[..., a], args.velocity_blur)
+                                 for a in range(3)], axis=-1)
         # In cell units with the centres of cells at whole numbers, as truth_transport.py's
         # particles; the velocity is in world units per frame.
         cell = extent / velocity.shape[0]
