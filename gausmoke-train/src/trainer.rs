@@ -33,7 +33,7 @@ use gausmoke_core::{Camera, phase};
 use gausmoke_data::Obstacle;
 use gausmoke_model::penalty::penalty_projection_with_report;
 use gausmoke_model::{
-    BuoyancyForce, GaussianModel, GridScale, GridSpec, INITIAL_RAW_DENSITY, Integrator,
+    Advected, BuoyancyForce, GaussianModel, GridScale, GridSpec, INITIAL_RAW_DENSITY, Integrator,
     Interpolation, NO_SIZE_BOUNDS, PenaltyOptions, ProjectionOptions, ProjectionReport, SolidCells,
     SplatOptions, UNetConfig, VelocityUNet, advect, advection_loss, deform_shapes,
     density_and_gradient_grid, density_grid, density_tie_loss, divergence_loss_of, log_density,
@@ -598,6 +598,19 @@ impl Trainer {
             InterpolationKind::Gaussian => Interpolation::default(),
             InterpolationKind::Trilinear => Interpolation::Trilinear,
         }
+    }
+
+    /// `means` carried one step of `dt` by `velocity`, with the configured integrator and
+    /// interpolation: how the trainer moves Gaussians from frame to frame.
+    fn carry(&self, velocity: &Tensor<4>, means: &Tensor<2>) -> Advected {
+        advect(
+            &self.grid,
+            velocity,
+            means,
+            self.config.dt,
+            self.integrator(),
+            self.interpolation(),
+        )
     }
 
     fn integrator(&self) -> Integrator {
@@ -1254,7 +1267,6 @@ impl Trainer {
         } else {
             previous_velocity
         };
-        let interpolation = self.interpolation();
         let splat = SplatOptions::default();
         let refine_iterations = if config.refinement {
             config.refine_iterations
@@ -1320,14 +1332,7 @@ impl Trainer {
                         .detach()
                     }
                 };
-                let carried = advect(
-                    &self.grid,
-                    &carrier,
-                    &previous_means,
-                    config.dt,
-                    self.integrator(),
-                    interpolation,
-                );
+                let carried = self.carry(&carrier, &previous_means);
                 let carried = hold_born(carried.positions).detach();
                 let shares: &[f32] = match config.carrier_share {
                     CarrierShare::Predicted => &PREDICTED_SHARES,
@@ -1398,14 +1403,7 @@ impl Trainer {
                 Some(truth) => truth.clone(),
                 None => self.project(update.clone()),
             };
-            let moved = advect(
-                &self.grid,
-                &projected,
-                &previous_means,
-                config.dt,
-                self.integrator(),
-                interpolation,
-            );
+            let moved = self.carry(&projected, &previous_means);
             let positions = hold_born(moved.positions.clone());
             let next = self.state.gaussians.tensors_at(positions.clone());
             if let Some(trace) = held_out_trace.as_mut() {
@@ -1445,15 +1443,7 @@ impl Trainer {
                     let time = (t + 1 + step) as f32 / last_frame;
                     carrier = self.predicted_velocity(carrier, &carried, time)?;
                 }
-                let means = advect(
-                    &self.grid,
-                    &carrier,
-                    &carried.means,
-                    config.dt,
-                    self.integrator(),
-                    interpolation,
-                )
-                .positions;
+                let means = self.carry(&carrier, &carried.means).positions;
                 carried = Gaussians {
                     means,
                     ..held.clone().expect("made when there are frames ahead")
@@ -1549,14 +1539,7 @@ impl Trainer {
             if let Some(truth) = &true_velocity {
                 velocity = truth.clone();
             }
-            let moved = advect(
-                &self.grid,
-                &velocity,
-                &previous_means,
-                config.dt,
-                self.integrator(),
-                interpolation,
-            );
+            let moved = self.carry(&velocity, &previous_means);
             advected = hold_born(moved.positions).detach();
         }
 
@@ -1780,15 +1763,7 @@ impl Trainer {
                 if let Some(((ahead_cameras, ahead_targets), carrier)) = &refine_ahead {
                     // The same views one frame on, the refined Gaussians carried there.
                     let carried = Gaussians {
-                        means: advect(
-                            &self.grid,
-                            carrier,
-                            &gaussians.means,
-                            config.dt,
-                            self.integrator(),
-                            interpolation,
-                        )
-                        .positions,
+                        means: self.carry(carrier, &gaussians.means).positions,
                         ..gaussians.clone()
                     };
                     let (ahead_cameras, ahead_targets) =
@@ -2106,14 +2081,7 @@ impl Trainer {
                 sigma_previous.clone(),
             );
             let projected = self.project(update.clone());
-            let moved = advect(
-                &self.grid,
-                &projected,
-                previous_means,
-                config.dt,
-                self.integrator(),
-                self.interpolation(),
-            );
+            let moved = self.carry(&projected, previous_means);
             let mut loss = match &target {
                 Some((sigma_target, scale)) => {
                     let carried = Gaussians {
@@ -2245,14 +2213,7 @@ impl Trainer {
         density_before: &[f32],
     ) -> EmissionReport {
         let previous = self.state.gaussians.tensors().detach();
-        let carried = advect(
-            &self.grid,
-            &carrier.clone().detach(),
-            &previous.means,
-            self.config.dt,
-            self.integrator(),
-            self.interpolation(),
-        );
+        let carried = self.carry(&carrier.clone().detach(), &previous.means);
         let density_after = self.density_host_of(&Gaussians {
             means: carried.positions,
             ..previous
