@@ -2,7 +2,7 @@
 
   python gaussians_from_truth.py DATA FRAME COUNT OUT.safetensors [--std CELLS] [--blur CELLS]
       [--min-stride N] [--jitter CELLS] [--warp CELLS [--warp-length CELLS]] [--shift-y CELLS]
-      [--noise FRACTION] [--dense-first] [--seed S]                  (numpy; scipy for --blur, --warp)
+      [--noise FRACTION] [--dense-first] [--seed S]          (numpy; scipy for --blur, --warp)
 
 Writes `OUT` in the layout of a run's `frames/frame_TTT.safetensors`, holding COUNT smoke
 Gaussians, for `gausmoke-train train --set init_gaussians=OUT` (with `first_frame` = FRAME,

@@ -28,10 +28,10 @@ T0's training views. Then, for each frame t up to T1:
    from the truth: the particles' smoke Gaussians there are replaced by the truth's own, in
    free rows, and the grid's rows there by the truth's density. The chain then measures what
    carrying loses, not what a missing emission loses.
-3. With `--refit every` (the default) it fits frame t for N steps with `TRAIN train --config CONFIG --set first_frame=t --set
-   frames=1 --set init_iterations=N --set init_gaussians=...`: a frame-0 fit from the carried
-   state. CONFIG is a frame fitted alone's, e.g. `RUN-independent/frame_018/config.toml` from
-   `reproduce --independent`.
+3. With `--refit every` (the default) it fits frame t for N steps with `TRAIN train --config
+   CONFIG --set first_frame=t --set frames=1 --set init_iterations=N --set
+   init_gaussians=...`: a frame-0 fit from the carried state. CONFIG is a frame fitted
+   alone's, e.g. `RUN-independent/frame_018/config.toml` from `reproduce --independent`.
 4. It scores the held-out view with `TRAIN eval`.
 
 With `--refit last`, nothing is fitted before T1: the truth as drawn at T0 is carried to T1
@@ -70,15 +70,13 @@ def config_value(config, key):
     sys.exit(f"{config}: no `{key}`")
 
 
-def drawn(args, density, count):
-    """`count` Gaussians drawing `density` (the scene's units), as gaussians_from_truth.py
-    draws the truth."""
-    drawing = argparse.ArgumentParser()
-    options(drawing)
-    drawing = drawing.parse_args(["--dense-first"] if args.dense_first else [])
-    scale = json.load(open(os.path.join(args.data, "info.json")))["synth"]["density_scale"]
-    lo, extent = scene_box(args.data)
-    return draw(density.astype(np.float64), count, scale, lo, extent, drawing)[0]
+def drawer(args, count, scale, lo, extent):
+    """The frame-file arrays of `count` Gaussians drawing a density (the scene's units), as
+    gaussians_from_truth.py draws the truth, as a function of the density."""
+    parser = argparse.ArgumentParser()
+    options(parser)
+    drawing = parser.parse_args(["--dense-first"] if args.dense_first else [])
+    return lambda density: draw(density.astype(np.float64), count, scale, lo, extent, drawing)[0]
 
 
 def fit(args, frame, start):
@@ -93,6 +91,11 @@ def fit(args, frame, start):
     scores = json.load(open(os.path.join(out, "eval.json")))["frames"][0]
     state = read_safetensors(os.path.join(out, "frames", "frame_000.safetensors"))
     return {k: np.array(state[k]) for k in (*GAUSSIAN_KEYS, "density")}, scores
+
+
+def report(frame, scores, note=""):
+    print(f"frame {frame}: {scores['test_psnr']:.2f} dB, density correlation "
+          f"{scores['density_correlation']:.3f}{note}", flush=True)
 
 
 def carried_on_grid(density, velocity, substeps):
@@ -141,19 +144,19 @@ def main():
     os.makedirs(args.out, exist_ok=True)
     count = config_value(args.config, "gaussians")
     scale = json.load(open(os.path.join(args.data, "info.json")))["synth"]["density_scale"]
+    lo, extent = scene_box(args.data)
+    drawn = drawer(args, count, scale, lo, extent)
 
     start = os.path.join(args.out, "start.safetensors")
     truth = read_truth(args.data, args.t0)[0]
-    write_safetensors(start, drawn(args, truth, count), {})
+    write_safetensors(start, drawn(truth), {})
     if args.refit == "every":
         state, scores = fit(args, args.t0, start)
-        print(f"frame {args.t0}: {scores['test_psnr']:.2f} dB, density correlation "
-              f"{scores['density_correlation']:.3f} (the truth, fitted)", flush=True)
+        report(args.t0, scores, " (the truth, fitted)")
     else:
         state = {k: np.array(v) for k, v in read_safetensors(start).items()}
         state["density"] = scale * truth.astype(np.float64)
     carried_path = os.path.join(args.out, "carried.safetensors")
-    lo, extent = scene_box(args.data)
     for t in range(args.t0 + 1, args.t1 + 1):
         if args.velocity == "truth":
             velocity = read_truth(args.data, t)[1]
@@ -176,37 +179,34 @@ def main():
             if args.source == "truth":
                 rows = int(SOURCE_TOP * density.shape[1])
                 density[:, :rows, :] = read_truth(args.data, t)[0][:, :rows, :]
-            write_safetensors(carried_path, drawn(args, density, count), {})
-            if args.refit == "every" or t == args.t1:
-                state, scores = fit(args, t, carried_path)
-                print(f"frame {t}: {scores['test_psnr']:.2f} dB, density correlation "
-                      f"{scores['density_correlation']:.3f}", flush=True)
-            else:
-                state = {"density": scale * density}
-            continue
-        smoke = state["raw_densities"] > SPARE_RAW_DENSITY + 1.0
-        points = (state["means"][smoke].astype(np.float64) - lo) / cell - 0.5
-        moved = carried(points, velocity / cell, args.scale, args.integrator)
-        state["means"][smoke] = np.clip(lo + (moved + 0.5) * cell, lo, lo + extent)
-        if args.grow > 0:
-            variance = np.exp(2.0 * state["log_scales"][smoke].astype(np.float64))
-            state["log_scales"][smoke] = 0.5 * np.log(variance + args.grow * cell.mean() ** 2)
-        if args.source == "truth":
-            source = drawn(args, read_truth(args.data, t)[0], count)
-            top = lo[1] + SOURCE_TOP * extent[1]
-            new = np.flatnonzero((source["raw_densities"] > SPARE_RAW_DENSITY + 1.0)
-                                 & (source["means"][:, 1] < top))
-            old = (state["raw_densities"] > SPARE_RAW_DENSITY + 1.0) & (
-                state["means"][:, 1] < top)
-            state["raw_densities"][old] = SPARE_RAW_DENSITY
-            free = np.flatnonzero(state["raw_densities"] <= SPARE_RAW_DENSITY + 1.0)[: len(new)]
-            for key in GAUSSIAN_KEYS:
-                state[key][free] = source[key][new[: len(free)]]
-        write_safetensors(carried_path, {k: state[k] for k in GAUSSIAN_KEYS}, {})
+            arrays = drawn(density)
+        else:
+            smoke = state["raw_densities"] > SPARE_RAW_DENSITY + 1.0
+            points = (state["means"][smoke].astype(np.float64) - lo) / cell - 0.5
+            moved = carried(points, velocity / cell, args.scale, args.integrator)
+            state["means"][smoke] = np.clip(lo + (moved + 0.5) * cell, lo, lo + extent)
+            if args.grow > 0:
+                variance = np.exp(2.0 * state["log_scales"][smoke].astype(np.float64))
+                state["log_scales"][smoke] = 0.5 * np.log(variance + args.grow * cell.mean()**2)
+            if args.source == "truth":
+                source = drawn(read_truth(args.data, t)[0])
+                top = lo[1] + SOURCE_TOP * extent[1]
+                live = SPARE_RAW_DENSITY + 1.0
+                new = np.flatnonzero((source["raw_densities"] > live)
+                                     & (source["means"][:, 1] < top))
+                old = (state["raw_densities"] > live) & (state["means"][:, 1] < top)
+                state["raw_densities"][old] = SPARE_RAW_DENSITY
+                free = np.flatnonzero(state["raw_densities"] <= live)[: len(new)]
+                for key in GAUSSIAN_KEYS:
+                    state[key][free] = source[key][new[: len(free)]]
+            arrays = {k: state[k] for k in GAUSSIAN_KEYS}
+        write_safetensors(carried_path, arrays, {})
         if args.refit == "every" or t == args.t1:
             state, scores = fit(args, t, carried_path)
-            print(f"frame {t}: {scores['test_psnr']:.2f} dB, density correlation "
-                  f"{scores['density_correlation']:.3f}", flush=True)
+            report(t, scores)
+        elif args.carrier == "grid":
+            # Carried on unfitted: the next frame starts from this density.
+            state = {"density": scale * density}
 
 
 if __name__ == "__main__":
