@@ -1,8 +1,9 @@
 """How true a velocity the scene's own 3D density can give (issue 18).
 
   python velocity_from_density.py DATA_DIR [FRAMES...] [--smooth A,A,...] [--div B]
-      [--chain T0 T1 --inertia G] [--consistent] [--from-truth] [--cg N] [--passes N]
-                                                                (needs numpy and scipy)
+      [--chain T0 T1 --inertia G [--buoyancy C] [--inflow S]] [--consistent]
+      [--from-truth] [--cg N] [--passes N]
+      (needs numpy and scipy)
 
 Our velocity is fitted to pictures of the smoke; the pictures see only how the density
 moves. This asks what the best such fit could reach with far more than pictures give: the
@@ -27,7 +28,12 @@ Independent mode (the default) fits each listed frame from u = 0 for each smooth
 `--chain T0 T1` instead tracks the velocity through the frames: frame t starts from, and
 with weight G is tied to, the previous frame's estimate carried along itself
 (`velocity_persistence.py`'s semi-Lagrangian step), as our trainer carries its velocity.
-The first frame of the chain starts from zero.
+The first frame of the chain starts from zero. With `--buoyancy C` the carried estimate
+also gains C times frame t-1's density (undivided) upwards before it is used, a model of
+the generator's own buoyancy (0.2 a frame for the long plume): a force model as a prior.
+`--inflow S` sets the carried estimate's upward component to S cells a frame in the
+generator's source disc (radius 0.12 of the box, below 0.1 of its height), as the generator
+drives its inflow (1 for the long plume).
 
 Two checks of the measure itself. `--consistent` replaces frame t's density (above the source)
 by frame t-1's carried by the true u^t in this script's own step, so that the truth fits the
@@ -155,6 +161,8 @@ def main():
     parser.add_argument("--div", type=float, default=10.0, help="B")
     parser.add_argument("--chain", type=int, nargs=2, metavar=("T0", "T1"))
     parser.add_argument("--inertia", type=float, default=0.1, help="G, with --chain")
+    parser.add_argument("--buoyancy", type=float, default=0.0, help="C, with --chain")
+    parser.add_argument("--inflow", type=float, help="S, with --chain")
     parser.add_argument("--cg", type=int, default=400, help="conjugate-gradient iterations")
     parser.add_argument("--passes", type=int, default=0, help="extra unsmoothed passes")
     parser.add_argument("--consistent", action="store_true",
@@ -181,6 +189,10 @@ def main():
     operators = difference_operators(n)
     data_rows = np.ones((n, n, n))
     data_rows[:, : int(np.ceil(0.1 * n)) + 1, :] = 0.0
+    x, y, z = np.indices((n, n, n)) + 0.5
+    source_disc = ((x - 0.5 * n) ** 2 + (z - 0.5 * n) ** 2 <= (0.12 * n) ** 2) & (
+        (y >= 1.5) & (y < max(np.ceil(0.1 * n), 2) + 0.5)
+    )
     print(
         "frame  A       G     error  cosine  speed  seen error  misfit ours / truth's"
     )
@@ -194,6 +206,10 @@ def main():
                 scale = after.max()
                 zero = np.zeros_like(truth)
                 prior = zero if estimate is None else transported(estimate)
+                if estimate is not None:
+                    prior[..., 1] += args.buoyancy * before
+                    if args.inflow is not None:
+                        prior[..., 1][source_disc] = args.inflow
                 inertia = 0.0 if estimate is None else args.inertia
                 estimate = fit(before / scale, after / scale, smooth, args.div, inertia,
                                prior, prior, operators, data_rows, solver)
