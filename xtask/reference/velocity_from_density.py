@@ -2,7 +2,7 @@
 
   python velocity_from_density.py DATA_DIR [FRAMES...] [--smooth A,A,...] [--div B]
       [--chain T0 T1 --inertia G [--buoyancy C] [--inflow S]] [--consistent]
-      [--from-truth] [--cg N] [--passes N]
+      [--from-truth] [--cg N] [--passes N] [--density RUN_DIR]
       (needs numpy and scipy)
 
 Our velocity is fitted to pictures of the smoke; the pictures see only how the density
@@ -42,6 +42,11 @@ starts each independent fit from the true u^t, to see where the objective takes 
 and `--passes` run the solver longer (more conjugate-gradient iterations per pass, more
 unsmoothed passes): the solution depends on them, since many fields fit the motion equally.
 
+`--density RUN_DIR` fits the run's own density grids (`RUN_DIR/frames/frame_TTT.safetensors`,
+the Gaussians splatted on the velocity's grid, each divided by its maximum) in place of the
+truth's, and also prints the run's own velocity's scores: whether the run's velocity falls
+short of what its own density's motion gives, or its density is what holds it back.
+
 Per frame and setting, inside the true smoke (density above 1% of frame t's maximum, as the
 runs' `velocity_relative_error` measures): the relative error of the estimate against the
 true u^t, its mean cosine with it, its RMS speed over the truth's, the same relative error
@@ -58,6 +63,7 @@ import scipy.sparse as sparse
 import scipy.sparse.linalg as sparse_linalg
 from scipy.ndimage import gaussian_filter, map_coordinates
 
+from safetensors_f32 import read_safetensors as read
 from scene_truth import read_truth
 from velocity_persistence import transported
 
@@ -134,16 +140,17 @@ def fit(before, after, smooth, div, inertia, prior, start, operators, data_rows,
     return u
 
 
-def scores(u, truth, before, after, data_rows):
+def scores(u, truth, before, after, true_after, data_rows):
     """Relative error, cosine, speed ratio, error of the flow along the gradient, and the
-    data residual relative to the frames' difference, inside the smoke."""
-    smoke = after > 0.01 * after.max()
+    data residual relative to the frames' difference, inside the true smoke (`true_after`,
+    frame t's true density, which also gives the gradient)."""
+    smoke = true_after > 0.01 * true_after.max()
     error = np.sqrt(((u[smoke] - truth[smoke]) ** 2).sum() / (truth[smoke] ** 2).sum())
     dot = (u[smoke] * truth[smoke]).sum(1)
     norms = np.linalg.norm(u[smoke], axis=1) * np.linalg.norm(truth[smoke], axis=1)
     cosine = np.mean(dot / np.maximum(norms, 1e-12))
     speed = np.sqrt((u[smoke] ** 2).sum() / (truth[smoke] ** 2).sum())
-    gradient = np.stack(np.gradient(after), -1)[smoke]
+    gradient = np.stack(np.gradient(true_after / true_after.max()), -1)[smoke]
     seen_truth = (truth[smoke] * gradient).sum(1)
     seen = np.sqrt((((u[smoke] * gradient).sum(1) - seen_truth) ** 2).sum() / (seen_truth**2).sum())
     change = np.sqrt((((after - before) * data_rows) ** 2).sum())
@@ -163,6 +170,7 @@ def main():
     parser.add_argument("--inertia", type=float, default=0.1, help="G, with --chain")
     parser.add_argument("--buoyancy", type=float, default=0.0, help="C, with --chain")
     parser.add_argument("--inflow", type=float, help="S, with --chain")
+    parser.add_argument("--density", metavar="RUN_DIR", help="fit a run's densities")
     parser.add_argument("--cg", type=int, default=400, help="conjugate-gradient iterations")
     parser.add_argument("--passes", type=int, default=0, help="extra unsmoothed passes")
     parser.add_argument("--consistent", action="store_true",
@@ -176,7 +184,20 @@ def main():
     def frame(t):
         density, velocity = read_truth(args.data, t)
         n = density.shape[0]
+        if args.density:
+            ours = read(f"{args.density}/frames/frame_{t:03}.safetensors")["density"]
+            density = ours.astype(np.float64) / ours.max() * density.max()
         return density, velocity * n  # the box is one world unit wide
+
+    def smoke_of(t):
+        return read_truth(args.data, t)[0]
+
+    def print_run_velocity(t, before, after):
+        if args.density:
+            ours = read(f"{args.density}/frames/frame_{t:03}.safetensors")["velocity"]
+            truth = frame(t)[1]
+            s = scores(ours.astype(np.float64) * n, truth, before, after, smoke_of(t), data_rows)
+            print(f"{t:5}  the run's own velocity " + report(s), flush=True)
 
     def pair(t):
         before, _ = frame(t - 1)
@@ -213,8 +234,10 @@ def main():
                 inertia = 0.0 if estimate is None else args.inertia
                 estimate = fit(before / scale, after / scale, smooth, args.div, inertia,
                                prior, prior, operators, data_rows, solver)
-                s = scores(estimate, truth, before / scale, after / scale, data_rows)
+                s = scores(estimate, truth, before / scale, after / scale, smoke_of(t),
+                           data_rows)
                 print(f"{t:5}  {smooth:<6} {inertia:<5} " + report(s), flush=True)
+                print_run_velocity(t, before / scale, after / scale)
         return
     for t in args.frames or [6, 12, 18, 24, 36, 48, 54, 71]:
         before, after, truth = pair(t)
@@ -224,8 +247,9 @@ def main():
             start = truth if args.from_truth else zero
             estimate = fit(before / scale, after / scale, smooth, args.div, 0.0, zero, start,
                            operators, data_rows, solver)
-            s = scores(estimate, truth, before / scale, after / scale, data_rows)
+            s = scores(estimate, truth, before / scale, after / scale, smoke_of(t), data_rows)
             print(f"{t:5}  {smooth:<6} {'-':<5} " + report(s), flush=True)
+        print_run_velocity(t, before / scale, after / scale)
 
 
 def report(s):
