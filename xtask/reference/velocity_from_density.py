@@ -24,6 +24,8 @@ gradients. The densities are divided by frame t's maximum. Rows at and below the
 top (0.1 of the box's height, plus one) are left out of the data term: the generator's
 inflow sets them, not transport.
 
+The defaults (A = 0.001, B = 1000, G = 0.01) erred least on the long plume among those
+tried (docs/RESULTS.md, the bullet on how true a velocity the density's motion can give).
 Independent mode (the default) fits each listed frame from u = 0 for each smoothness A.
 `--chain T0 T1` instead tracks the velocity through the frames: frame t starts from, and
 with weight G is tied to, the previous frame's estimate carried along itself
@@ -164,10 +166,10 @@ def main():
     )
     parser.add_argument("data", metavar="DATA_DIR")
     parser.add_argument("frames", metavar="FRAMES", type=int, nargs="*")
-    parser.add_argument("--smooth", default="0.01,0.1,1", help="comma list of A")
-    parser.add_argument("--div", type=float, default=10.0, help="B")
+    parser.add_argument("--smooth", default="0.001", help="comma list of A")
+    parser.add_argument("--div", type=float, default=1000.0, help="B")
     parser.add_argument("--chain", type=int, nargs=2, metavar=("T0", "T1"))
-    parser.add_argument("--inertia", type=float, default=0.1, help="G, with --chain")
+    parser.add_argument("--inertia", type=float, default=0.01, help="G, with --chain")
     parser.add_argument("--buoyancy", type=float, default=0.0, help="C, with --chain")
     parser.add_argument("--inflow", type=float, help="S, with --chain")
     parser.add_argument("--density", metavar="RUN_DIR", help="fit a run's densities")
