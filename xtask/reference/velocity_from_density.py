@@ -67,7 +67,7 @@ from scipy.ndimage import gaussian_filter, map_coordinates
 
 from safetensors_f32 import read_safetensors as read
 from scene_truth import read_truth
-from velocity_persistence import transported
+from velocity_persistence import departure_points, sample, transported
 
 SMOOTHING_PASSES = (2.0, 2.0, 1.0, 1.0, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0)
 
@@ -99,14 +99,10 @@ def carried(density, u):
     """One semi-Lagrangian step of `density` by `u` [n, n, n, 3] (cells per frame), and the
     gradient of `density` at the departure points; nothing comes back in above the top."""
     n = density.shape[0]
-    departure = np.indices(density.shape).astype(np.float64) - np.moveaxis(u, -1, 0)
-    above = departure[1] > n - 0.5
-    for axis in range(3):
-        departure[axis] = np.clip(departure[axis], 0, n - 1)
+    departure = departure_points(u)
+    above = np.arange(n)[None, :, None] - u[..., 1] > n - 0.5
     value = map_coordinates(density, departure, order=1)
-    slope = np.stack(
-        [map_coordinates(g, departure, order=1) for g in np.gradient(density)], axis=-1
-    )
+    slope = sample(np.stack(np.gradient(density), axis=-1), departure)
     value[above] = 0.0
     slope[above] = 0.0
     return value, slope
@@ -191,22 +187,21 @@ def main():
             density = ours.astype(np.float64) / ours.max() * density.max()
         return density, velocity * n  # the box is one world unit wide
 
-    def smoke_of(t):
-        return read_truth(args.data, t)[0]
-
-    def print_run_velocity(t, before, after):
+    def print_run_velocity(t, truth, before, after, true_after):
         if args.density:
             ours = read(f"{args.density}/frames/frame_{t:03}.safetensors")["velocity"]
-            truth = frame(t)[1]
-            s = scores(ours.astype(np.float64) * n, truth, before, after, smoke_of(t), data_rows)
+            s = scores(ours.astype(np.float64) * n, truth, before, after, true_after, data_rows)
             print(f"{t:5}  the run's own velocity " + report(s), flush=True)
 
     def pair(t):
+        """Frames t-1 and t's densities as fitted, the true u^t, and frame t's true density
+        (the smoke's mask)."""
         before, _ = frame(t - 1)
         after, truth = frame(t)
+        true_after = read_truth(args.data, t)[0] if args.density else after
         if args.consistent:
             after = carried(before, truth)[0] * data_rows + after * (1 - data_rows)
-        return before, after, truth
+        return before, after, truth, true_after
 
     n = frame(0)[0].shape[0]
     operators = difference_operators(n)
@@ -225,7 +220,7 @@ def main():
         for smooth in smooth_values:
             estimate = None
             for t in range(t0, t1 + 1):
-                before, after, truth = pair(t)
+                before, after, truth, true_after = pair(t)
                 scale = after.max()
                 zero = np.zeros_like(truth)
                 prior = zero if estimate is None else transported(estimate)
@@ -236,22 +231,22 @@ def main():
                 inertia = 0.0 if estimate is None else args.inertia
                 estimate = fit(before / scale, after / scale, smooth, args.div, inertia,
                                prior, prior, operators, data_rows, solver)
-                s = scores(estimate, truth, before / scale, after / scale, smoke_of(t),
+                s = scores(estimate, truth, before / scale, after / scale, true_after,
                            data_rows)
                 print(f"{t:5}  {smooth:<6} {inertia:<5} " + report(s), flush=True)
-                print_run_velocity(t, before / scale, after / scale)
+                print_run_velocity(t, truth, before / scale, after / scale, true_after)
         return
     for t in args.frames or [6, 12, 18, 24, 36, 48, 54, 71]:
-        before, after, truth = pair(t)
+        before, after, truth, true_after = pair(t)
         scale = after.max()
         for smooth in smooth_values:
             zero = np.zeros_like(truth)
             start = truth if args.from_truth else zero
             estimate = fit(before / scale, after / scale, smooth, args.div, 0.0, zero, start,
                            operators, data_rows, solver)
-            s = scores(estimate, truth, before / scale, after / scale, smoke_of(t), data_rows)
+            s = scores(estimate, truth, before / scale, after / scale, true_after, data_rows)
             print(f"{t:5}  {smooth:<6} {'-':<5} " + report(s), flush=True)
-        print_run_velocity(t, before / scale, after / scale)
+        print_run_velocity(t, truth, before / scale, after / scale, true_after)
 
 
 def report(s):
