@@ -272,6 +272,9 @@ pub const RESUMABLE_KEYS: &[&str] = &[
     "solver_tests",
 ];
 
+/// Largest weight of the density-motion fit's priors accepted (see [`TrainConfig::validate`]).
+pub const MOST_DENSITY_MOTION_WEIGHT: f32 = 1e6;
+
 /// Largest `time_frequencies` accepted (see [`TrainConfig::validate`]).
 pub const MAX_TIME_FREQUENCIES: usize = 16;
 
@@ -508,6 +511,21 @@ pub struct TrainConfig {
     /// training views endorse the transport at every frame, and none of these helps
     /// (docs/RESULTS.md).
     pub carrier_share: CarrierShare,
+    /// After each frame's refinement, refit the frame's velocity on the grid so that one
+    /// semi-Lagrangian step of it carries the density of frame t-1's Gaussians onto that of
+    /// the refined ones (ours, the `density_motion` module; `false` = the paper's method, where
+    /// the velocity is what the joint iterations fitted through the Gaussians' centres). The
+    /// fit starts from, and is tied to, the previous frame's velocity carried along itself;
+    /// cells in the inflow box (`respawn_region`) are left out of its data term. The result
+    /// is projected by `Pi`. Phi is not changed.
+    pub velocity_from_density_motion: bool,
+    /// Weight of that fit's smoothness prior (`|grad u|^2`, u in cells per step, densities
+    /// divided by their largest value).
+    pub density_motion_smoothness: f32,
+    /// Weight of that fit's divergence prior (`|div u|^2`).
+    pub density_motion_divergence: f32,
+    /// Weight of that fit's tie to the previous frame's velocity carried along itself.
+    pub density_motion_inertia: f32,
     /// Time step of the velocity update and advection, in frames.
     pub dt: f32,
     /// Channels of the U-Net's first level.
@@ -769,6 +787,10 @@ impl Default for TrainConfig {
             refine_velocity_share: 0.0,
             refine_velocity_blur: 0.0,
             carrier_share: CarrierShare::Whole,
+            velocity_from_density_motion: false,
+            density_motion_smoothness: 0.001,
+            density_motion_divergence: 1000.0,
+            density_motion_inertia: 0.01,
             dt: 1.0,
             unet_channels: 16,
             time_frequencies: 4,
@@ -1101,6 +1123,34 @@ impl TrainConfig {
                  from the refinement's move: set one of them to 0"
                     .into(),
             );
+        }
+        for (key, weight) in [
+            ("density_motion_smoothness", self.density_motion_smoothness),
+            ("density_motion_divergence", self.density_motion_divergence),
+            ("density_motion_inertia", self.density_motion_inertia),
+        ] {
+            if !(0.0..=MOST_DENSITY_MOTION_WEIGHT).contains(&weight) {
+                return bad(format!(
+                    "{key} must be in [0, {MOST_DENSITY_MOTION_WEIGHT:e}], got {weight}"
+                ));
+            }
+        }
+        if self.velocity_from_density_motion {
+            let other = if self.refine_velocity_share > 0.0 {
+                Some("refine_velocity_share > 0")
+            } else if self.correction_iterations > 0 {
+                Some("correction_iterations > 0")
+            } else if self.velocity_from_ground_truth {
+                Some("velocity_from_ground_truth")
+            } else {
+                None
+            };
+            if let Some(other) = other {
+                return bad(format!(
+                    "velocity_from_density_motion and {other} both set the frame's velocity \
+                     after the refinement: keep one of them"
+                ));
+            }
         }
         if self.correction_target != CorrectionTarget::Centres && self.correction_iterations == 0 {
             return bad(

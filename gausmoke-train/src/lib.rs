@@ -22,6 +22,7 @@ pub mod carried_smoothing;
 pub mod chart;
 pub mod checkpoint;
 pub mod config;
+mod density_motion;
 pub mod emission;
 pub mod eval;
 pub mod export;

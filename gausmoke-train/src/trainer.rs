@@ -60,6 +60,7 @@ use crate::config::{
     BlurAxes, CarrierShare, CorrectionTarget, EmissionTiming, HeldView, IntegratorKind,
     InterpolationKind, LookaheadVelocity, Obstacles, OptimizerReset, ProjectionKind, TrainConfig,
 };
+use crate::density_motion::{MotionGrid, MotionPriors, fit_density_motion};
 use crate::emission::{EmissionOptions, EmissionReport, emit};
 use crate::held_out_trace::{HeldOutTrace, Stage, TracePoint};
 use crate::held_view::{
@@ -1287,6 +1288,10 @@ impl Trainer {
 
         // What the source must hold (`emission_fraction`): frame t-1's density.
         let density_before = (config.emission_fraction > 0.0).then(|| self.density_host());
+        // What the density-motion fit carries onto frame t's (`velocity_from_density_motion`).
+        let motion_before = config
+            .velocity_from_density_motion
+            .then(|| self.density_host());
         let true_velocity = if config.velocity_from_ground_truth {
             Some(self.true_velocity(t)?)
         } else {
@@ -1871,6 +1876,10 @@ impl Trainer {
         {
             (velocity, unprojected) = corrected;
         }
+        if let Some(before) = &motion_before {
+            (velocity, unprojected) =
+                self.velocity_from_density_motion(t, before, &previous_velocity);
+        }
         self.state.velocity = velocity;
         Ok(FrameOutcome {
             frame: t,
@@ -2019,6 +2028,73 @@ impl Trainer {
         let unprojected =
             velocity + field.clone() * (self.config.refine_velocity_share / self.config.dt);
         (self.project(unprojected.clone()), unprojected)
+    }
+
+    /// The velocity whose semi-Lagrangian step carries `before` (frame t-1's density on the
+    /// grid) onto the density of the Gaussians as they are now, starting from and tied to
+    /// `carried` (the previous velocity carried along itself; `velocity_from_density_motion`,
+    /// see [`crate::density_motion`]): the projected and the unprojected fit.
+    fn velocity_from_density_motion(
+        &self,
+        t: usize,
+        before: &[f32],
+        carried: &Tensor<4>,
+    ) -> (Tensor<4>, Tensor<4>) {
+        let _phase = phase!("velocity from density motion");
+        let after = self.density_host();
+        let dt = self.config.dt as f64;
+        let cell = self.grid.cell_size().to_array().map(f64::from);
+        let carried_moves: Vec<f64> = read_floats(carried.clone())
+            .iter()
+            .enumerate()
+            .map(|(i, &u)| u as f64 * dt / cell[i % 3])
+            .collect();
+        let inflow = self
+            .config
+            .respawn_region
+            .map(|fractions| self.spawn_lattice().region_from_fractions(fractions));
+        let in_data = self.grid.cells_where(|p| {
+            inflow.is_none_or(|[lo, hi]| !(p.cmpge(lo).all() && p.cmple(hi).all()))
+        });
+        let priors = MotionPriors {
+            smoothness: self.config.density_motion_smoothness as f64,
+            divergence: self.config.density_motion_divergence as f64,
+            // Frame 1 starts from the still velocity of frame 0, which is no estimate.
+            inertia: if t <= 1 {
+                0.0
+            } else {
+                self.config.density_motion_inertia as f64
+            },
+        };
+        let grid = MotionGrid {
+            resolution: self.grid.resolution(),
+            open: self.projection().open_faces,
+        };
+        let fit = fit_density_motion(
+            &grid,
+            before,
+            &after,
+            &in_data,
+            &carried_moves,
+            priors,
+            DENSITY_MOTION_CG_ITERATIONS,
+        );
+        tracing::debug!(
+            frame = t,
+            misfit_carried = fit.misfit_carried,
+            misfit_fitted = fit.misfit_fitted,
+            "velocity from density motion"
+        );
+        let velocity: Vec<f32> = fit
+            .moves
+            .iter()
+            .enumerate()
+            .map(|(i, &m)| (m * cell[i % 3] / dt) as f32)
+            .collect();
+        let [nx, ny, nz] = self.grid.resolution();
+        let unprojected =
+            Tensor::from_data(TensorData::new(velocity, [nx, ny, nz, 3]), &self.device);
+        (self.project(unprojected.clone()).detach(), unprojected)
     }
 
     /// Fits Phi so that the frame's velocity carries the previous centres to where the
@@ -2624,6 +2700,10 @@ fn static_gaussians_at_start(
         None => GaussianModel::init_in_box(count, sequence.lo, sequence.hi, seed, device),
     }
 }
+
+/// Conjugate-gradient iterations per Gauss-Newton pass of the density-motion fit, as in
+/// `xtask/reference/velocity_from_density.py`, whose figures they repeat.
+const DENSITY_MOTION_CG_ITERATIONS: usize = 400;
 
 /// The state Algorithm 1 starts from: Gaussians spread in the box, zero velocity, Phi's
 /// initial weights.

@@ -1,0 +1,599 @@
+//! The velocity that carries one density grid onto the next (`velocity_from_density_motion`,
+//! ours): after a frame's refinement, the frame's velocity is refitted on the grid so that one
+//! semi-Lagrangian step of it carries the density the Gaussians of frame t-1 splat onto the
+//! density of the refined Gaussians of frame t, regularised as a velocity of ours is:
+//!
+//! ```text
+//! sum over data cells (rho_{t-1}(x - d(x)) - rho_t(x))^2
+//!     + A |grad d|^2   (forward differences, each component, no term across a wall)
+//!     + B |div d|^2    (central differences, one-sided at the walls)
+//!     + G |d - d_carried|^2
+//! ```
+//!
+//! `d` is the move per step in cells, `d_carried` the previous frame's velocity carried along
+//! itself (where the fit also starts). The densities are divided by frame t's largest value.
+//! Solved by Gauss-Newton with warping: ten passes, each linearising the step's residual about
+//! the current `d` and solving for the update by conjugate gradients, with the densities
+//! smoothed by 2, 1, 0.5 cells and then not at all, two passes each and four at the end, so the
+//! linearisation holds for moves of a cell or more.
+//!
+//! It is `xtask/reference/velocity_from_density.py`'s tracked fit in the trainer: on the long
+//! plume that fit, run on a preset run's own density grids, was 0.07-0.13 truer than the run's
+//! velocity at frames 18 and 36 (docs/RESULTS.md). The pictures only ever see how the density
+//! moves; this asks the velocity to explain that motion on the grid, where the joint
+//! iterations fit it through a few Gaussians' centres.
+
+use gausmoke_model::OpenFaces;
+
+use crate::host_grid::smoothed;
+
+/// Width (cells) of the Gaussian smoothing of both densities at each Gauss-Newton pass.
+const SMOOTHING_PASSES: [f32; 10] = [2.0, 2.0, 1.0, 1.0, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0];
+
+/// Conjugate gradients stop once the residual is this fraction of the right-hand side's norm.
+const CG_TOLERANCE: f64 = 1e-6;
+
+/// The weights of the fit's priors (`A`, `B`, `G` above), for densities divided by their
+/// largest value and moves in cells per step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct MotionPriors {
+    pub smoothness: f64,
+    pub divergence: f64,
+    pub inertia: f64,
+}
+
+/// The grid the densities live on and where the smoke may leave it: a departure point past an
+/// open face samples clear air (zero density); past a wall it is clamped to the outermost
+/// cell centres.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct MotionGrid {
+    pub resolution: [usize; 3],
+    pub open: OpenFaces,
+}
+
+/// What the fit found.
+#[derive(Debug, Clone)]
+pub(crate) struct MotionFit {
+    /// The move per step, cells, `[nx, ny, nz, 3]`, z fastest.
+    pub moves: Vec<f64>,
+    /// The data residual of the carried move (where the fit started) and of the fit, each
+    /// relative to that of no move at all (`|rho_t - rho_{t-1}|` over the data cells).
+    pub misfit_carried: f64,
+    pub misfit_fitted: f64,
+}
+
+impl MotionGrid {
+    fn cells(&self) -> usize {
+        self.resolution.iter().product()
+    }
+
+    fn index(&self, [i, j, k]: [usize; 3]) -> usize {
+        let [_, ny, nz] = self.resolution;
+        (i * ny + j) * nz + k
+    }
+
+    fn coordinates(&self, cell: usize) -> [usize; 3] {
+        let [_, ny, nz] = self.resolution;
+        [cell / (ny * nz), (cell / nz) % ny, cell % nz]
+    }
+
+    /// Central differences inside, one-sided at the walls, per axis, `[cells, 3]`.
+    fn gradient(&self, field: &[f64]) -> Vec<f64> {
+        let mut out = vec![0.0; 3 * field.len()];
+        for cell in 0..field.len() {
+            let at = self.coordinates(cell);
+            for axis in 0..3 {
+                let n = self.resolution[axis];
+                let (low, high) = (at[axis].saturating_sub(1), (at[axis] + 1).min(n - 1));
+                if low == high {
+                    continue;
+                }
+                let mut lower = at;
+                lower[axis] = low;
+                let mut upper = at;
+                upper[axis] = high;
+                out[3 * cell + axis] =
+                    (field[self.index(upper)] - field[self.index(lower)]) / (high - low) as f64;
+            }
+        }
+        out
+    }
+
+    /// Trilinear sample of `values` (`channels` per cell) at `point`, in cell-index
+    /// coordinates inside `[0, n - 1]` per axis, into `out`.
+    fn sample(&self, values: &[f64], channels: usize, point: [f64; 3], out: &mut [f64]) {
+        let mut base = [0usize; 3];
+        let mut fraction = [0.0f64; 3];
+        for axis in 0..3 {
+            let n = self.resolution[axis];
+            base[axis] = (point[axis].floor() as usize).min(n.saturating_sub(2));
+            fraction[axis] = point[axis] - base[axis] as f64;
+        }
+        out.iter_mut().for_each(|o| *o = 0.0);
+        for corner in 0..8 {
+            let offset = [(corner >> 2) & 1, (corner >> 1) & 1, corner & 1];
+            let mut weight = 1.0;
+            let mut at = [0usize; 3];
+            for axis in 0..3 {
+                at[axis] = (base[axis] + offset[axis]).min(self.resolution[axis] - 1);
+                weight *= if offset[axis] == 1 {
+                    fraction[axis]
+                } else {
+                    1.0 - fraction[axis]
+                };
+            }
+            let cell = self.index(at);
+            for (c, o) in out.iter_mut().enumerate() {
+                *o += weight * values[channels * cell + c];
+            }
+        }
+    }
+
+    /// One semi-Lagrangian step of `density` by `moves`: each cell's value at its departure
+    /// point, and the density's gradient there (`d value / d move = -gradient`).
+    fn carried(&self, density: &[f64], moves: &[f64]) -> (Vec<f64>, Vec<f64>) {
+        let slope_field = self.gradient(density);
+        let mut value = vec![0.0; density.len()];
+        let mut slope = vec![0.0; 3 * density.len()];
+        let mut one = [0.0];
+        for cell in 0..density.len() {
+            let at = self.coordinates(cell);
+            let mut departure = [0.0; 3];
+            let mut from_outside = false;
+            for axis in 0..3 {
+                let n = self.resolution[axis] as f64;
+                let x = at[axis] as f64 - moves[3 * cell + axis];
+                from_outside |=
+                    (self.open.low[axis] && x < -0.5) || (self.open.high[axis] && x > n - 0.5);
+                departure[axis] = x.clamp(0.0, n - 1.0);
+            }
+            if from_outside {
+                continue;
+            }
+            self.sample(density, 1, departure, &mut one);
+            value[cell] = one[0];
+            self.sample(
+                &slope_field,
+                3,
+                departure,
+                &mut slope[3 * cell..3 * cell + 3],
+            );
+        }
+        (value, slope)
+    }
+
+    /// `out = (A L + B D^T D + G) moves`: `L` the forward differences' normal matrix (a
+    /// Laplacian with no flux through the walls), `D` the central-difference divergence.
+    fn regularise(&self, priors: &MotionPriors, moves: &[f64], out: &mut [f64]) {
+        let cells = self.cells();
+        out.iter_mut()
+            .zip(moves)
+            .for_each(|(o, m)| *o = priors.inertia * m);
+        let mut divergence = vec![0.0; cells];
+        for cell in 0..cells {
+            let at = self.coordinates(cell);
+            for axis in 0..3 {
+                let n = self.resolution[axis];
+                if at[axis] + 1 < n {
+                    let mut next = at;
+                    next[axis] += 1;
+                    let other = self.index(next);
+                    for c in 0..3 {
+                        let difference =
+                            priors.smoothness * (moves[3 * cell + c] - moves[3 * other + c]);
+                        out[3 * cell + c] += difference;
+                        out[3 * other + c] -= difference;
+                    }
+                }
+                let (low, high) = central(at[axis], n);
+                if low != high {
+                    let (mut lower, mut upper) = (at, at);
+                    lower[axis] = low;
+                    upper[axis] = high;
+                    divergence[cell] += (moves[3 * self.index(upper) + axis]
+                        - moves[3 * self.index(lower) + axis])
+                        / (high - low) as f64;
+                }
+            }
+        }
+        for (cell, &d) in divergence.iter().enumerate() {
+            let at = self.coordinates(cell);
+            for axis in 0..3 {
+                let (low, high) = central(at[axis], self.resolution[axis]);
+                if low != high {
+                    let share = priors.divergence * d / (high - low) as f64;
+                    let (mut lower, mut upper) = (at, at);
+                    lower[axis] = low;
+                    upper[axis] = high;
+                    out[3 * self.index(upper) + axis] += share;
+                    out[3 * self.index(lower) + axis] -= share;
+                }
+            }
+        }
+    }
+}
+
+/// The neighbours a central difference at `i` of `n` reads.
+fn central(i: usize, n: usize) -> (usize, usize) {
+    (i.saturating_sub(1), (i + 1).min(n - 1))
+}
+
+/// The move per step (cells) that carries `before` onto `after` (`[nx, ny, nz]`, z fastest),
+/// starting from and tied to `carried` (cells per step, `[nx, ny, nz, 3]`). Only cells marked
+/// in `in_data` enter the data term (a source sets the others, not transport). With no
+/// density in `after`, the carried move is returned as it is.
+pub(crate) fn fit_density_motion(
+    grid: &MotionGrid,
+    before: &[f32],
+    after: &[f32],
+    in_data: &[bool],
+    carried: &[f64],
+    priors: MotionPriors,
+    cg_iterations: usize,
+) -> MotionFit {
+    let cells = grid.cells();
+    assert_eq!(
+        (before.len(), after.len(), in_data.len(), carried.len()),
+        (cells, cells, cells, 3 * cells),
+        "density-motion fit: the grids' sizes"
+    );
+    let scale = after.iter().fold(0.0f32, |m, &v| m.max(v));
+    let misfit = |moves: &[f64]| -> f64 {
+        let before: Vec<f64> = before.iter().map(|&v| (v / scale) as f64).collect();
+        let (value, _) = grid.carried(&before, moves);
+        let (mut moved, mut still) = (0.0, 0.0);
+        for cell in (0..cells).filter(|&c| in_data[c]) {
+            let target = (after[cell] / scale) as f64;
+            moved += (value[cell] - target).powi(2);
+            still += (before[cell] - target).powi(2);
+        }
+        if still > 0.0 {
+            (moved / still).sqrt()
+        } else {
+            0.0
+        }
+    };
+    if !(scale > 0.0) || !scale.is_finite() {
+        return MotionFit {
+            moves: carried.to_vec(),
+            misfit_carried: 0.0,
+            misfit_fitted: 0.0,
+        };
+    }
+    let mut moves = carried.to_vec();
+    let normalised = |field: &[f32]| -> Vec<f32> { field.iter().map(|&v| v / scale).collect() };
+    let (before_unit, after_unit) = (normalised(before), normalised(after));
+    let mut operator_out = vec![0.0; 3 * cells];
+    for &sigma in &SMOOTHING_PASSES {
+        let blurred = |field: &[f32]| -> Vec<f64> {
+            let field = if sigma > 0.0 {
+                smoothed(field, grid.resolution, 1, sigma, [true; 3])
+            } else {
+                field.to_vec()
+            };
+            field.into_iter().map(f64::from).collect()
+        };
+        let (source, target) = (blurred(&before_unit), blurred(&after_unit));
+        let (value, slope) = grid.carried(&source, &moves);
+        // The residual's Jacobian with respect to the move is minus the slope.
+        let mut jacobian = vec![0.0; 3 * cells];
+        let mut rhs = vec![0.0; 3 * cells];
+        grid.regularise(&priors, &moves, &mut operator_out);
+        for cell in 0..cells {
+            for c in 0..3 {
+                rhs[3 * cell + c] =
+                    priors.inertia * carried[3 * cell + c] - operator_out[3 * cell + c];
+            }
+            if !in_data[cell] {
+                continue;
+            }
+            let residual = value[cell] - target[cell];
+            for c in 0..3 {
+                jacobian[3 * cell + c] = -slope[3 * cell + c];
+                rhs[3 * cell + c] -= jacobian[3 * cell + c] * residual;
+            }
+        }
+        let apply = |x: &[f64], out: &mut [f64]| {
+            grid.regularise(&priors, x, out);
+            for cell in 0..cells {
+                let j = &jacobian[3 * cell..3 * cell + 3];
+                let along = j[0] * x[3 * cell] + j[1] * x[3 * cell + 1] + j[2] * x[3 * cell + 2];
+                for c in 0..3 {
+                    out[3 * cell + c] += j[c] * along;
+                }
+            }
+        };
+        let step = conjugate_gradients(apply, &rhs, cg_iterations);
+        moves.iter_mut().zip(&step).for_each(|(m, s)| *m += s);
+    }
+    MotionFit {
+        misfit_carried: misfit(carried),
+        misfit_fitted: misfit(&moves),
+        moves,
+    }
+}
+
+/// Solves `A x = rhs` for a symmetric positive (semi-)definite `A`, from `x = 0`.
+fn conjugate_gradients(
+    apply: impl Fn(&[f64], &mut [f64]),
+    rhs: &[f64],
+    iterations: usize,
+) -> Vec<f64> {
+    let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+    let mut x = vec![0.0; rhs.len()];
+    let mut residual = rhs.to_vec();
+    let mut direction = residual.clone();
+    let mut applied = vec![0.0; rhs.len()];
+    let mut squared = dot(&residual, &residual);
+    let stop = (CG_TOLERANCE * CG_TOLERANCE) * squared;
+    for _ in 0..iterations {
+        if squared <= stop || squared == 0.0 {
+            break;
+        }
+        apply(&direction, &mut applied);
+        let curvature = dot(&direction, &applied);
+        if !(curvature > 0.0) {
+            break;
+        }
+        let alpha = squared / curvature;
+        for i in 0..x.len() {
+            x[i] += alpha * direction[i];
+            residual[i] -= alpha * applied[i];
+        }
+        let next = dot(&residual, &residual);
+        let beta = next / squared;
+        squared = next;
+        for i in 0..x.len() {
+            direction[i] = residual[i] + beta * direction[i];
+        }
+    }
+    x
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const WALLS: OpenFaces = OpenFaces::NONE;
+
+    fn grid(n: usize, open: OpenFaces) -> MotionGrid {
+        MotionGrid {
+            resolution: [n, n + 2, n + 1],
+            open,
+        }
+    }
+
+    /// A smooth blob centred at `centre` (cell-index coordinates), `radius` cells wide.
+    fn blob(grid: &MotionGrid, centre: [f64; 3], radius: f64) -> Vec<f32> {
+        (0..grid.cells())
+            .map(|cell| {
+                let at = grid.coordinates(cell);
+                let r2: f64 = (0..3).map(|a| (at[a] as f64 - centre[a]).powi(2)).sum();
+                (-0.5 * r2 / (radius * radius)).exp() as f32
+            })
+            .collect()
+    }
+
+    /// Deterministic values in [-1, 1].
+    fn noise(len: usize, seed: u64) -> Vec<f64> {
+        let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        (0..len)
+            .map(|_| {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                (state >> 11) as f64 / (1u64 << 52) as f64 - 1.0
+            })
+            .collect()
+    }
+
+    fn dot(a: &[f64], b: &[f64]) -> f64 {
+        a.iter().zip(b).map(|(x, y)| x * y).sum()
+    }
+
+    /// The regulariser is a symmetric operator (the solver's conjugate gradients need it),
+    /// and positive: `x . R x` is the sum of its squared differences and divergences.
+    #[test]
+    fn the_regulariser_is_symmetric_and_positive() {
+        let grid = grid(5, WALLS);
+        let priors = MotionPriors {
+            smoothness: 0.3,
+            divergence: 7.0,
+            inertia: 0.1,
+        };
+        let (x, y) = (noise(3 * grid.cells(), 1), noise(3 * grid.cells(), 2));
+        let (mut rx, mut ry) = (vec![0.0; x.len()], vec![0.0; y.len()]);
+        grid.regularise(&priors, &x, &mut rx);
+        grid.regularise(&priors, &y, &mut ry);
+        let (a, b) = (dot(&x, &ry), dot(&rx, &y));
+        assert!((a - b).abs() <= 1e-9 * a.abs().max(1.0), "{a} vs {b}");
+        assert!(dot(&x, &rx) > 0.0);
+        // Only the divergence: a uniform move has none, so the operator leaves it at zero.
+        let divergence_only = MotionPriors {
+            smoothness: 0.0,
+            divergence: 1.0,
+            inertia: 0.0,
+        };
+        let uniform: Vec<f64> = (0..grid.cells()).flat_map(|_| [0.4, -1.1, 0.7]).collect();
+        let mut out = vec![0.0; uniform.len()];
+        grid.regularise(&divergence_only, &uniform, &mut out);
+        assert!(out.iter().all(|v| v.abs() < 1e-12));
+        // ... and an expansion has some.
+        let expansion: Vec<f64> = (0..grid.cells())
+            .flat_map(|cell| grid.coordinates(cell).map(|c| c as f64))
+            .collect();
+        grid.regularise(&divergence_only, &expansion, &mut out);
+        assert!(dot(&expansion, &out) > 1.0);
+    }
+
+    /// The step's value moves with the move as minus the slope says (the Jacobian the
+    /// Gauss-Newton passes linearise with). On a linear density, where trilinear sampling and
+    /// central differences are both exact, the two agree to rounding away from the walls.
+    #[test]
+    fn the_slope_is_the_derivative_of_the_carried_value() {
+        let grid = grid(8, WALLS);
+        let density: Vec<f64> = (0..grid.cells())
+            .map(|cell| {
+                let [i, j, k] = grid.coordinates(cell).map(|c| c as f64);
+                2.0 + 0.3 * i - 0.2 * j + 0.5 * k
+            })
+            .collect();
+        let moves: Vec<f64> = noise(3 * grid.cells(), 3)
+            .iter()
+            .map(|v| 0.4 * v + 0.21)
+            .collect();
+        let (value, slope) = grid.carried(&density, &moves);
+        let step = 1e-4;
+        let mut checked = 0;
+        for axis in 0..3 {
+            let mut nudged = moves.clone();
+            (0..grid.cells()).for_each(|cell| nudged[3 * cell + axis] += step);
+            let (moved, _) = grid.carried(&density, &nudged);
+            for cell in 0..grid.cells() {
+                let at = grid.coordinates(cell);
+                if !(0..3).all(|a| at[a] >= 1 && at[a] + 2 <= grid.resolution[a]) {
+                    continue;
+                }
+                let numeric = (moved[cell] - value[cell]) / step;
+                let analytic = -slope[3 * cell + axis];
+                assert!(
+                    (numeric - analytic).abs() < 1e-6,
+                    "axis {axis} cell {at:?}: {numeric} vs {analytic}"
+                );
+                checked += 1;
+            }
+        }
+        assert!(checked > 100);
+        assert!((slope[3 * grid.index([3, 3, 3]) + 2] - 0.5).abs() < 1e-9);
+    }
+
+    /// Past an open face there is clear air; past a wall the outermost cells are read.
+    #[test]
+    fn a_departure_past_an_open_face_brings_clear_air() {
+        let open_top = OpenFaces {
+            low: [false; 3],
+            high: [false, true, false],
+            flow: 1.0,
+        };
+        let grid = grid(4, open_top);
+        let density = vec![1.0; grid.cells()];
+        let down =
+            |dy: f64| -> Vec<f64> { (0..grid.cells()).flat_map(|_| [0.0, dy, 0.0]).collect() };
+        // Moving down: the top row comes from above the box.
+        let (value, _) = grid.carried(&density, &down(-1.0));
+        let top = grid.resolution[1] - 1;
+        for cell in 0..grid.cells() {
+            let expected = if grid.coordinates(cell)[1] == top {
+                0.0
+            } else {
+                1.0
+            };
+            assert_eq!(value[cell], expected, "cell {:?}", grid.coordinates(cell));
+        }
+        // Moving up: the floor is a wall, so the bottom row reads the bottom row.
+        let (value, _) = grid.carried(&density, &down(1.0));
+        assert!(value.iter().all(|&v| v == 1.0));
+    }
+
+    /// Conjugate gradients solve a small symmetric positive system.
+    #[test]
+    fn conjugate_gradients_solve_a_positive_system() {
+        let matrix = [[4.0, 1.0, 0.5], [1.0, 3.0, -0.2], [0.5, -0.2, 2.0]];
+        let truth = [0.3, -1.2, 2.5];
+        let apply = |x: &[f64], out: &mut [f64]| {
+            for (row, o) in matrix.iter().zip(out.iter_mut()) {
+                *o = dot(row, x);
+            }
+        };
+        let mut rhs = [0.0; 3];
+        apply(&truth, &mut rhs);
+        let x = conjugate_gradients(apply, &rhs, 10);
+        for (a, b) in x.iter().zip(truth) {
+            assert!((a - b).abs() < 1e-9, "{x:?}");
+        }
+    }
+
+    /// A blob moved by a uniform shift of more than a cell: fitted from no move at all, the
+    /// move inside the blob is the shift, and the fit explains the frames' difference.
+    #[test]
+    fn the_fit_finds_a_uniform_shift() {
+        let grid = grid(14, WALLS);
+        let shift = [1.3, 0.8, -0.6];
+        let centre = [6.5, 7.0, 7.5];
+        let before = blob(&grid, centre, 2.2);
+        let after = blob(&grid, [0, 1, 2].map(|a| centre[a] + shift[a]), 2.2);
+        let fit = fit_density_motion(
+            &grid,
+            &before,
+            &after,
+            &vec![true; grid.cells()],
+            &vec![0.0; 3 * grid.cells()],
+            MotionPriors {
+                smoothness: 0.001,
+                divergence: 1000.0,
+                inertia: 0.0,
+            },
+            400,
+        );
+        assert!(fit.misfit_carried > 0.99, "{}", fit.misfit_carried);
+        assert!(fit.misfit_fitted < 0.1, "{}", fit.misfit_fitted);
+        let (mut error, mut norm) = (0.0, 0.0);
+        for cell in (0..grid.cells()).filter(|&c| after[c] > 0.1) {
+            for a in 0..3 {
+                error += (fit.moves[3 * cell + a] - shift[a]).powi(2);
+                norm += shift[a] * shift[a];
+            }
+        }
+        let relative = (error / norm).sqrt();
+        assert!(relative < 0.1, "relative error {relative}");
+    }
+
+    /// With no smoke in frame t there is nothing to fit: the carried move comes back.
+    #[test]
+    fn no_smoke_keeps_the_carried_move() {
+        let grid = grid(4, WALLS);
+        let carried = noise(3 * grid.cells(), 4);
+        let fit = fit_density_motion(
+            &grid,
+            &vec![1.0; grid.cells()],
+            &vec![0.0; grid.cells()],
+            &vec![true; grid.cells()],
+            &carried,
+            MotionPriors {
+                smoothness: 1.0,
+                divergence: 1.0,
+                inertia: 1.0,
+            },
+            10,
+        );
+        assert_eq!(fit.moves, carried);
+    }
+
+    /// The tie holds the fit to the carried move where the densities say nothing.
+    #[test]
+    fn the_tie_keeps_the_carried_move_where_nothing_moves() {
+        let grid = grid(6, WALLS);
+        let still = blob(&grid, [3.0, 3.5, 3.0], 1.5);
+        let carried: Vec<f64> = (0..grid.cells()).flat_map(|_| [0.5, 0.0, 0.0]).collect();
+        let fit = |inertia: f64| {
+            fit_density_motion(
+                &grid,
+                &still,
+                &still,
+                &vec![false; grid.cells()],
+                &carried,
+                MotionPriors {
+                    smoothness: 0.001,
+                    divergence: 1000.0,
+                    inertia,
+                },
+                400,
+            )
+        };
+        // No data term: the carried uniform move costs nothing and stays.
+        let tied = fit(0.01);
+        for (a, b) in tied.moves.iter().zip(&carried) {
+            assert!((a - b).abs() < 1e-6, "{a} vs {b}");
+        }
+    }
+}
