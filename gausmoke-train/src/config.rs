@@ -192,6 +192,17 @@ pub enum CorrectionTarget {
     Density,
 }
 
+/// What the density-motion fit (`velocity_from_density_motion`) starts from and is tied to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DensityMotionPrior {
+    /// The previous frame's velocity carried along itself (as
+    /// `xtask/reference/velocity_from_density.py --chain` tracks it).
+    Carried,
+    /// The frame's own velocity as the joint iterations fitted it to the pictures.
+    Frame,
+}
+
 /// What the training does with obstacles the data set describes (PINF `obstacles`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -524,8 +535,11 @@ pub struct TrainConfig {
     pub density_motion_smoothness: f32,
     /// Weight of that fit's divergence prior (`|div u|^2`).
     pub density_motion_divergence: f32,
-    /// Weight of that fit's tie to the previous frame's velocity carried along itself.
+    /// Weight of that fit's tie to its prior (`density_motion_prior`).
     pub density_motion_inertia: f32,
+    /// What that fit starts from and is tied to: `carried` (the previous frame's velocity
+    /// carried along itself) or `frame` (the frame's velocity from the joint iterations).
+    pub density_motion_prior: DensityMotionPrior,
     /// Time step of the velocity update and advection, in frames.
     pub dt: f32,
     /// Channels of the U-Net's first level.
@@ -791,6 +805,7 @@ impl Default for TrainConfig {
             density_motion_smoothness: 0.001,
             density_motion_divergence: 1000.0,
             density_motion_inertia: 0.01,
+            density_motion_prior: DensityMotionPrior::Carried,
             dt: 1.0,
             unet_channels: 16,
             time_frequencies: 4,
@@ -1505,6 +1520,36 @@ mod tests {
                     ..TrainConfig::default()
                 },
                 "refine_velocity_share",
+            ),
+            (
+                TrainConfig {
+                    density_motion_divergence: -1.0,
+                    ..TrainConfig::default()
+                },
+                "density_motion_divergence",
+            ),
+            (
+                TrainConfig {
+                    density_motion_inertia: f32::NAN,
+                    ..TrainConfig::default()
+                },
+                "density_motion_inertia",
+            ),
+            (
+                TrainConfig {
+                    velocity_from_density_motion: true,
+                    correction_iterations: 5,
+                    ..TrainConfig::default()
+                },
+                "correction_iterations",
+            ),
+            (
+                TrainConfig {
+                    velocity_from_density_motion: true,
+                    velocity_from_ground_truth: true,
+                    ..TrainConfig::default()
+                },
+                "velocity_from_ground_truth",
             ),
             (
                 TrainConfig {

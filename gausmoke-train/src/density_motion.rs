@@ -7,13 +7,15 @@
 //! sum over data cells (rho_{t-1}(x - d(x)) - rho_t(x))^2
 //!     + A |grad d|^2   (forward differences, each component, no term across a wall)
 //!     + B |div d|^2    (central differences, one-sided at the walls)
-//!     + G |d - d_carried|^2
+//!     + G |d - d_prior|^2
 //! ```
 //!
-//! `d` is the move per step in cells, `d_carried` the previous frame's velocity carried along
-//! itself (where the fit also starts). The densities are divided by frame t's largest value.
+//! `d` is the move per step in cells, `d_prior` where the fit starts: the previous frame's
+//! velocity carried along itself, or the frame's own velocity from the joint iterations
+//! (`density_motion_prior`). The densities are divided by frame t's largest value.
 //! Solved by Gauss-Newton with warping: ten passes, each linearising the step's residual about
-//! the current `d` and solving for the update by conjugate gradients, with the densities
+//! the current `d` and solving for the update by conjugate gradients (halved while it raises
+//! the objective, where the script takes it whole), with the densities
 //! smoothed by 2, 1, 0.5 cells and then not at all, two passes each and four at the end, so the
 //! linearisation holds for moves of a cell or more.
 //!
@@ -29,6 +31,10 @@ use crate::host_grid::smoothed;
 
 /// Width (cells) of the Gaussian smoothing of both densities at each Gauss-Newton pass.
 const SMOOTHING_PASSES: [f32; 10] = [2.0, 2.0, 1.0, 1.0, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0];
+
+/// A Gauss-Newton step that raises the objective is halved up to this many times, then
+/// dropped.
+const STEP_HALVINGS: usize = 6;
 
 /// Conjugate gradients stop once the residual is this fraction of the right-hand side's norm.
 const CG_TOLERANCE: f64 = 1e-6;
@@ -56,10 +62,14 @@ pub(crate) struct MotionGrid {
 pub(crate) struct MotionFit {
     /// The move per step, cells, `[nx, ny, nz, 3]`, z fastest.
     pub moves: Vec<f64>,
-    /// The data residual of the carried move (where the fit started) and of the fit, each
+    /// The data residual of the start (the prior) and of the fit, each
     /// relative to that of no move at all (`|rho_t - rho_{t-1}|` over the data cells).
-    pub misfit_carried: f64,
+    pub misfit_prior: f64,
     pub misfit_fitted: f64,
+    /// Gauss-Newton steps halved because the whole step raised the objective.
+    pub rejected_steps: usize,
+    /// Whether the passes ended worse than they started (unsmoothed), so the start was kept.
+    pub kept_start: bool,
 }
 
 impl MotionGrid {
@@ -219,21 +229,21 @@ fn central(i: usize, n: usize) -> (usize, usize) {
 }
 
 /// The move per step (cells) that carries `before` onto `after` (`[nx, ny, nz]`, z fastest),
-/// starting from and tied to `carried` (cells per step, `[nx, ny, nz, 3]`). Only cells marked
+/// starting from and tied to `prior` (cells per step, `[nx, ny, nz, 3]`). Only cells marked
 /// in `in_data` enter the data term (a source sets the others, not transport). With no
-/// density in `after`, the carried move is returned as it is.
+/// density in `after`, the prior is returned as it is.
 pub(crate) fn fit_density_motion(
     grid: &MotionGrid,
     before: &[f32],
     after: &[f32],
     in_data: &[bool],
-    carried: &[f64],
+    prior: &[f64],
     priors: MotionPriors,
     cg_iterations: usize,
 ) -> MotionFit {
     let cells = grid.cells();
     assert_eq!(
-        (before.len(), after.len(), in_data.len(), carried.len()),
+        (before.len(), after.len(), in_data.len(), prior.len()),
         (cells, cells, cells, 3 * cells),
         "density-motion fit: the grids' sizes"
     );
@@ -255,15 +265,24 @@ pub(crate) fn fit_density_motion(
     };
     if !(scale > 0.0) || !scale.is_finite() {
         return MotionFit {
-            moves: carried.to_vec(),
-            misfit_carried: 0.0,
+            moves: prior.to_vec(),
+            misfit_prior: 0.0,
             misfit_fitted: 0.0,
+            rejected_steps: 0,
+            kept_start: true,
         };
     }
-    let mut moves = carried.to_vec();
+    let mut moves = prior.to_vec();
     let normalised = |field: &[f32]| -> Vec<f32> { field.iter().map(|&v| v / scale).collect() };
     let (before_unit, after_unit) = (normalised(before), normalised(after));
     let mut operator_out = vec![0.0; 3 * cells];
+    let mut rejected_steps = 0;
+    let problem = Problem {
+        grid,
+        priors: &priors,
+        in_data,
+        prior,
+    };
     for &sigma in &SMOOTHING_PASSES {
         let blurred = |field: &[f32]| -> Vec<f64> {
             let field = if sigma > 0.0 {
@@ -282,7 +301,7 @@ pub(crate) fn fit_density_motion(
         for cell in 0..cells {
             for c in 0..3 {
                 rhs[3 * cell + c] =
-                    priors.inertia * carried[3 * cell + c] - operator_out[3 * cell + c];
+                    priors.inertia * prior[3 * cell + c] - operator_out[3 * cell + c];
             }
             if !in_data[cell] {
                 continue;
@@ -304,13 +323,72 @@ pub(crate) fn fit_density_motion(
             }
         };
         let step = conjugate_gradients(apply, &rhs, cg_iterations);
-        moves.iter_mut().zip(&step).for_each(|(m, s)| *m += s);
+        // Damped: where the densities pin the move down only weakly, a full step can leave the
+        // range where the linearisation holds and fit worse than no step at all.
+        let start = objective(&problem, &source, &target, &moves, &mut operator_out);
+        let mut length = 1.0;
+        for _ in 0..STEP_HALVINGS {
+            let tried: Vec<f64> = moves
+                .iter()
+                .zip(&step)
+                .map(|(m, s)| m + length * s)
+                .collect();
+            if objective(&problem, &source, &target, &tried, &mut operator_out) < start {
+                moves = tried;
+                break;
+            }
+            rejected_steps += 1;
+            length *= 0.5;
+        }
+    }
+    // The smoothed passes can lead into a basin the unsmoothed objective likes less than the
+    // start: then the start is kept.
+    let (source, target): (Vec<f64>, Vec<f64>) = before_unit
+        .iter()
+        .zip(&after_unit)
+        .map(|(&b, &a)| (f64::from(b), f64::from(a)))
+        .unzip();
+    let kept_start = objective(&problem, &source, &target, &moves, &mut operator_out)
+        >= objective(&problem, &source, &target, prior, &mut operator_out);
+    if kept_start {
+        moves = prior.to_vec();
     }
     MotionFit {
-        misfit_carried: misfit(carried),
+        misfit_prior: misfit(prior),
         misfit_fitted: misfit(&moves),
         moves,
+        rejected_steps,
+        kept_start,
     }
+}
+
+/// What stays fixed through the passes.
+struct Problem<'a> {
+    grid: &'a MotionGrid,
+    priors: &'a MotionPriors,
+    in_data: &'a [bool],
+    prior: &'a [f64],
+}
+
+/// The fit's objective (up to a constant) for `moves` between `source` and `target`; `out` is
+/// scratch.
+fn objective(
+    problem: &Problem,
+    source: &[f64],
+    target: &[f64],
+    moves: &[f64],
+    out: &mut [f64],
+) -> f64 {
+    let (value, _) = problem.grid.carried(source, moves);
+    let data: f64 = (0..target.len())
+        .filter(|&c| problem.in_data[c])
+        .map(|c| (value[c] - target[c]).powi(2))
+        .sum();
+    problem.grid.regularise(problem.priors, moves, out);
+    let quadratic: f64 = (0..moves.len())
+        .map(|i| moves[i] * out[i] - 2.0 * problem.priors.inertia * moves[i] * problem.prior[i])
+        .sum();
+    data + quadratic
 }
 
 /// Solves `A x = rhs` for a symmetric positive (semi-)definite `A`, from `x = 0`.
@@ -535,7 +613,7 @@ mod tests {
             },
             400,
         );
-        assert!(fit.misfit_carried > 0.99, "{}", fit.misfit_carried);
+        assert!(fit.misfit_prior > 0.99, "{}", fit.misfit_prior);
         assert!(fit.misfit_fitted < 0.1, "{}", fit.misfit_fitted);
         let (mut error, mut norm) = (0.0, 0.0);
         for cell in (0..grid.cells()).filter(|&c| after[c] > 0.1) {
@@ -548,17 +626,17 @@ mod tests {
         assert!(relative < 0.1, "relative error {relative}");
     }
 
-    /// With no smoke in frame t there is nothing to fit: the carried move comes back.
+    /// With no smoke in frame t there is nothing to fit: the prior comes back.
     #[test]
-    fn no_smoke_keeps_the_carried_move() {
+    fn no_smoke_keeps_the_prior() {
         let grid = grid(4, WALLS);
-        let carried = noise(3 * grid.cells(), 4);
+        let prior = noise(3 * grid.cells(), 4);
         let fit = fit_density_motion(
             &grid,
             &vec![1.0; grid.cells()],
             &vec![0.0; grid.cells()],
             &vec![true; grid.cells()],
-            &carried,
+            &prior,
             MotionPriors {
                 smoothness: 1.0,
                 divergence: 1.0,
@@ -566,22 +644,22 @@ mod tests {
             },
             10,
         );
-        assert_eq!(fit.moves, carried);
+        assert_eq!(fit.moves, prior);
     }
 
-    /// The tie holds the fit to the carried move where the densities say nothing.
+    /// The tie holds the fit to the prior where the densities say nothing.
     #[test]
-    fn the_tie_keeps_the_carried_move_where_nothing_moves() {
+    fn the_tie_keeps_the_prior_where_nothing_moves() {
         let grid = grid(6, WALLS);
         let still = blob(&grid, [3.0, 3.5, 3.0], 1.5);
-        let carried: Vec<f64> = (0..grid.cells()).flat_map(|_| [0.5, 0.0, 0.0]).collect();
+        let prior: Vec<f64> = (0..grid.cells()).flat_map(|_| [0.5, 0.0, 0.0]).collect();
         let fit = |inertia: f64| {
             fit_density_motion(
                 &grid,
                 &still,
                 &still,
                 &vec![false; grid.cells()],
-                &carried,
+                &prior,
                 MotionPriors {
                     smoothness: 0.001,
                     divergence: 1000.0,
@@ -590,9 +668,9 @@ mod tests {
                 400,
             )
         };
-        // No data term: the carried uniform move costs nothing and stays.
+        // No data term: the uniform prior costs nothing and stays.
         let tied = fit(0.01);
-        for (a, b) in tied.moves.iter().zip(&carried) {
+        for (a, b) in tied.moves.iter().zip(&prior) {
             assert!((a - b).abs() < 1e-6, "{a} vs {b}");
         }
     }

@@ -57,8 +57,9 @@ use crate::attribute_grads::{
 };
 use crate::carried_smoothing::{grow_carried_sizes, smooth_carried_densities};
 use crate::config::{
-    BlurAxes, CarrierShare, CorrectionTarget, EmissionTiming, HeldView, IntegratorKind,
-    InterpolationKind, LookaheadVelocity, Obstacles, OptimizerReset, ProjectionKind, TrainConfig,
+    BlurAxes, CarrierShare, CorrectionTarget, DensityMotionPrior, EmissionTiming, HeldView,
+    IntegratorKind, InterpolationKind, LookaheadVelocity, Obstacles, OptimizerReset,
+    ProjectionKind, TrainConfig,
 };
 use crate::density_motion::{MotionGrid, MotionPriors, fit_density_motion};
 use crate::emission::{EmissionOptions, EmissionReport, emit};
@@ -1877,8 +1878,11 @@ impl Trainer {
             (velocity, unprojected) = corrected;
         }
         if let Some(before) = &motion_before {
-            (velocity, unprojected) =
-                self.velocity_from_density_motion(t, before, &previous_velocity);
+            let prior = match config.density_motion_prior {
+                DensityMotionPrior::Carried => previous_velocity.clone(),
+                DensityMotionPrior::Frame => velocity.clone(),
+            };
+            (velocity, unprojected) = self.velocity_from_density_motion(t, before, prior);
         }
         self.state.velocity = velocity;
         Ok(FrameOutcome {
@@ -2032,19 +2036,19 @@ impl Trainer {
 
     /// The velocity whose semi-Lagrangian step carries `before` (frame t-1's density on the
     /// grid) onto the density of the Gaussians as they are now, starting from and tied to
-    /// `carried` (the previous velocity carried along itself; `velocity_from_density_motion`,
-    /// see [`crate::density_motion`]): the projected and the unprojected fit.
+    /// `prior` (`velocity_from_density_motion`, `density_motion_prior`; see
+    /// [`crate::density_motion`]): the projected and the unprojected fit.
     fn velocity_from_density_motion(
         &self,
         t: usize,
         before: &[f32],
-        carried: &Tensor<4>,
+        prior: Tensor<4>,
     ) -> (Tensor<4>, Tensor<4>) {
         let _phase = phase!("velocity from density motion");
         let after = self.density_host();
         let dt = self.config.dt as f64;
         let cell = self.grid.cell_size().to_array().map(f64::from);
-        let carried_moves: Vec<f64> = read_floats(carried.clone())
+        let prior_moves: Vec<f64> = read_floats(prior.detach())
             .iter()
             .enumerate()
             .map(|(i, &u)| u as f64 * dt / cell[i % 3])
@@ -2059,8 +2063,8 @@ impl Trainer {
         let priors = MotionPriors {
             smoothness: self.config.density_motion_smoothness as f64,
             divergence: self.config.density_motion_divergence as f64,
-            // Frame 1 starts from the still velocity of frame 0, which is no estimate.
-            inertia: if t <= 1 {
+            // Frame 1's carried velocity is frame 0's still one, which is no estimate.
+            inertia: if t <= 1 && self.config.density_motion_prior == DensityMotionPrior::Carried {
                 0.0
             } else {
                 self.config.density_motion_inertia as f64
@@ -2075,14 +2079,16 @@ impl Trainer {
             before,
             &after,
             &in_data,
-            &carried_moves,
+            &prior_moves,
             priors,
             DENSITY_MOTION_CG_ITERATIONS,
         );
         tracing::debug!(
             frame = t,
-            misfit_carried = fit.misfit_carried,
+            misfit_prior = fit.misfit_prior,
             misfit_fitted = fit.misfit_fitted,
+            rejected_steps = fit.rejected_steps,
+            kept_start = fit.kept_start,
             "velocity from density motion"
         );
         let velocity: Vec<f32> = fit
@@ -2794,6 +2800,80 @@ mod tests {
     #[test]
     fn the_velocity_correction_fits_the_move_of_the_centres() {
         velocity_correction_fits_a_swirl(CorrectionTarget::Centres);
+    }
+
+    /// The density-motion fit in the trainer's units: Gaussians gathered in a ball and moved by
+    /// a known shift between the two densities give back that shift over `dt` as a velocity
+    /// (world units per frame) where the smoke is.
+    #[test]
+    fn the_density_motion_velocity_is_the_shift_of_the_density() {
+        use gausmoke_data::synth::{SynthConfig, generate};
+        use gausmoke_render::backends::device_by_name;
+        let dir = tempfile::tempdir().unwrap();
+        let data = dir.path().join("data");
+        let scene = SynthConfig {
+            frames: 3,
+            ..SynthConfig::tiny()
+        };
+        generate(&scene, &data).unwrap();
+        let config = TrainConfig {
+            gaussians: 400,
+            grid_resolution: 16,
+            frames: Some(3),
+            unet_channels: 4,
+            time_frequencies: 2,
+            dt: 0.5,
+            velocity_from_density_motion: true,
+            ..TrainConfig::default()
+        };
+        let device = device_by_name("flex").unwrap().autodiff();
+        let sequence = Sequence::open(&data, &config).unwrap();
+        let mut trainer = Trainer::new(sequence, config, device.clone()).unwrap();
+        let grid = trainer.grid;
+        let cell = grid.cell_size();
+        let centre = (grid.lo() + grid.hi()) * 0.5;
+        let shift = cell * Vec3::new(0.8, 1.2, -0.5);
+        let mut rng = SplitMix64::new(7);
+        let n = 400;
+        let ball: Vec<Vec3> = (0..n)
+            .map(|_| {
+                let r = Vec3::new(
+                    rng.range(-1.0, 1.0),
+                    rng.range(-1.0, 1.0),
+                    rng.range(-1.0, 1.0),
+                );
+                centre + r * (grid.hi() - grid.lo()) * 0.15
+            })
+            .collect();
+        let density_at = |trainer: &mut Trainer, offset: Vec3| {
+            let means: Vec<f32> = ball.iter().flat_map(|p| (*p + offset).to_array()).collect();
+            let means = Tensor::<2>::from_data(TensorData::new(means, [n, 3]), &device);
+            trainer.state.gaussians = trainer.state.gaussians.clone().with_means(means);
+            trainer.density_host()
+        };
+        let before = density_at(&mut trainer, Vec3::ZERO);
+        let after = density_at(&mut trainer, shift);
+        let [nx, ny, nz] = grid.resolution();
+        let still = Tensor::<4>::zeros([nx, ny, nz, 3], &device);
+        // Frame 1: not tied to the prior (frame 0's still velocity), which would pull the
+        // flat inside of the ball, where the density shows no motion, towards zero.
+        let (_, fitted) = trainer.velocity_from_density_motion(1, &before, still);
+        let fitted = read_floats(fitted);
+        let largest = after.iter().fold(0.0f32, |m, &v| m.max(v));
+        let smoke: Vec<usize> = (0..after.len())
+            .filter(|&c| after[c] > 0.2 * largest)
+            .collect();
+        assert!(smoke.len() > 20, "{} cells of smoke", smoke.len());
+        let expected = shift / 0.5;
+        for axis in 0..3 {
+            let mean =
+                smoke.iter().map(|&c| fitted[3 * c + axis]).sum::<f32>() / smoke.len() as f32;
+            assert!(
+                (mean - expected[axis]).abs() < 0.2 * expected.abs().max_element(),
+                "axis {axis}: mean {mean} in the smoke, expected {}",
+                expected[axis]
+            );
+        }
     }
 
     /// The same with the refined density as the target.
