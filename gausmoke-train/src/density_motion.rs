@@ -263,7 +263,7 @@ pub(crate) fn fit_density_motion(
             0.0
         }
     };
-    if !(scale > 0.0) || !scale.is_finite() {
+    if scale.is_nan() || scale <= 0.0 || scale.is_infinite() {
         return MotionFit {
             moves: prior.to_vec(),
             misfit_prior: 0.0,
@@ -410,7 +410,7 @@ fn conjugate_gradients(
         }
         apply(&direction, &mut applied);
         let curvature = dot(&direction, &applied);
-        if !(curvature > 0.0) {
+        if curvature.is_nan() || curvature <= 0.0 {
             break;
         }
         let alpha = squared / curvature;
@@ -560,13 +560,13 @@ mod tests {
         // Moving down: the top row comes from above the box.
         let (value, _) = grid.carried(&density, &down(-1.0));
         let top = grid.resolution[1] - 1;
-        for cell in 0..grid.cells() {
+        for (cell, &v) in value.iter().enumerate() {
             let expected = if grid.coordinates(cell)[1] == top {
                 0.0
             } else {
                 1.0
             };
-            assert_eq!(value[cell], expected, "cell {:?}", grid.coordinates(cell));
+            assert_eq!(v, expected, "cell {:?}", grid.coordinates(cell));
         }
         // Moving up: the floor is a wall, so the bottom row reads the bottom row.
         let (value, _) = grid.carried(&density, &down(1.0));
@@ -617,9 +617,9 @@ mod tests {
         assert!(fit.misfit_fitted < 0.1, "{}", fit.misfit_fitted);
         let (mut error, mut norm) = (0.0, 0.0);
         for cell in (0..grid.cells()).filter(|&c| after[c] > 0.1) {
-            for a in 0..3 {
-                error += (fit.moves[3 * cell + a] - shift[a]).powi(2);
-                norm += shift[a] * shift[a];
+            for (a, s) in shift.iter().enumerate() {
+                error += (fit.moves[3 * cell + a] - s).powi(2);
+                norm += s * s;
             }
         }
         let relative = (error / norm).sqrt();
