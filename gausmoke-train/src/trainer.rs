@@ -2707,8 +2707,8 @@ fn static_gaussians_at_start(
     }
 }
 
-/// Conjugate-gradient iterations per Gauss-Newton pass of the density-motion fit, as in
-/// `xtask/reference/velocity_from_density.py`, whose figures they repeat.
+/// Conjugate-gradient iterations per Gauss-Newton pass of the density-motion fit, the
+/// default of `xtask/reference/velocity_from_density.py`, whose bound it was measured with.
 const DENSITY_MOTION_CG_ITERATIONS: usize = 400;
 
 /// The state Algorithm 1 starts from: Gaussians spread in the box, zero velocity, Phi's
