@@ -14,16 +14,17 @@
 //! velocity carried along itself, or the frame's own velocity from the joint iterations
 //! (`density_motion_prior`). The densities are divided by frame t's largest value.
 //! Solved by Gauss-Newton with warping: ten passes, each linearising the step's residual about
-//! the current `d` and solving for the update by conjugate gradients (halved while it raises
-//! the objective, where the script takes it whole), with the densities
-//! smoothed by 2, 1, 0.5 cells and then not at all, two passes each and four at the end, so the
-//! linearisation holds for moves of a cell or more.
+//! the current `d` and solving for the update by conjugate gradients, with the densities
+//! smoothed by 2, 1, 0.5 cells and then not at all (two passes each, four at the end), so the
+//! linearisation holds for moves of a cell or more. Unlike the script, a step is halved while
+//! it raises the objective, and the start is kept if the passes end above it.
 //!
 //! It is `xtask/reference/velocity_from_density.py`'s tracked fit in the trainer: on the long
 //! plume that fit, run on a preset run's own density grids, was 0.07-0.13 truer than the run's
-//! velocity at frames 18 and 36 (docs/RESULTS.md). The pictures only ever see how the density
-//! moves; this asks the velocity to explain that motion on the grid, where the joint
-//! iterations fit it through a few Gaussians' centres.
+//! velocity at frames 18 and 36. The pictures only ever see how the density moves; this asks
+//! the velocity to explain that motion on the grid, where the joint iterations fit it through
+//! the Gaussians' centres. In the trainer it makes the plume's velocity truer and costs the
+//! held-out view about 2 dB and the 3D density (docs/RESULTS.md, "Why we fall short", item 1).
 
 use gausmoke_model::OpenFaces;
 
@@ -66,7 +67,7 @@ pub(crate) struct MotionFit {
     /// relative to that of no move at all (`|rho_t - rho_{t-1}|` over the data cells).
     pub misfit_prior: f64,
     pub misfit_fitted: f64,
-    /// Gauss-Newton steps halved because the whole step raised the objective.
+    /// How often a Gauss-Newton step was halved because it raised the objective.
     pub rejected_steps: usize,
     /// Whether the passes ended worse than they started (unsmoothed), so the start was kept.
     pub kept_start: bool,
