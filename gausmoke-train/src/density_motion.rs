@@ -94,8 +94,7 @@ impl MotionGrid {
         for cell in 0..field.len() {
             let at = self.coordinates(cell);
             for axis in 0..3 {
-                let n = self.resolution[axis];
-                let (low, high) = (at[axis].saturating_sub(1), (at[axis] + 1).min(n - 1));
+                let (low, high) = central(at[axis], self.resolution[axis]);
                 if low == high {
                     continue;
                 }
@@ -249,21 +248,6 @@ pub(crate) fn fit_density_motion(
         "density-motion fit: the grids' sizes"
     );
     let scale = after.iter().fold(0.0f32, |m, &v| m.max(v));
-    let misfit = |moves: &[f64]| -> f64 {
-        let before: Vec<f64> = before.iter().map(|&v| (v / scale) as f64).collect();
-        let (value, _) = grid.carried(&before, moves);
-        let (mut moved, mut still) = (0.0, 0.0);
-        for cell in (0..cells).filter(|&c| in_data[c]) {
-            let target = (after[cell] / scale) as f64;
-            moved += (value[cell] - target).powi(2);
-            still += (before[cell] - target).powi(2);
-        }
-        if still > 0.0 {
-            (moved / still).sqrt()
-        } else {
-            0.0
-        }
-    };
     if scale.is_nan() || scale <= 0.0 || scale.is_infinite() {
         return MotionFit {
             moves: prior.to_vec(),
@@ -273,9 +257,11 @@ pub(crate) fn fit_density_motion(
             kept_start: true,
         };
     }
-    let mut moves = prior.to_vec();
     let normalised = |field: &[f32]| -> Vec<f32> { field.iter().map(|&v| v / scale).collect() };
     let (before_unit, after_unit) = (normalised(before), normalised(after));
+    let as_f64 = |field: &[f32]| -> Vec<f64> { field.iter().map(|&v| f64::from(v)).collect() };
+    let (source_plain, target_plain) = (as_f64(&before_unit), as_f64(&after_unit));
+    let mut moves = prior.to_vec();
     let mut operator_out = vec![0.0; 3 * cells];
     let mut rejected_steps = 0;
     let problem = Problem {
@@ -285,16 +271,16 @@ pub(crate) fn fit_density_motion(
         prior,
     };
     for &sigma in &SMOOTHING_PASSES {
-        let blurred = |field: &[f32]| -> Vec<f64> {
-            let field = if sigma > 0.0 {
-                smoothed(field, grid.resolution, 1, sigma, [true; 3])
-            } else {
-                field.to_vec()
-            };
-            field.into_iter().map(f64::from).collect()
+        let blurred =
+            |field: &[f32]| as_f64(&smoothed(field, grid.resolution, 1, sigma, [true; 3]));
+        let smoothed_pair;
+        let (source, target): (&[f64], &[f64]) = if sigma > 0.0 {
+            smoothed_pair = (blurred(&before_unit), blurred(&after_unit));
+            (&smoothed_pair.0, &smoothed_pair.1)
+        } else {
+            (&source_plain, &target_plain)
         };
-        let (source, target) = (blurred(&before_unit), blurred(&after_unit));
-        let (value, slope) = grid.carried(&source, &moves);
+        let (value, slope) = grid.carried(source, &moves);
         // The residual's Jacobian with respect to the move is minus the slope.
         let mut jacobian = vec![0.0; 3 * cells];
         let mut rhs = vec![0.0; 3 * cells];
@@ -326,7 +312,7 @@ pub(crate) fn fit_density_motion(
         let step = conjugate_gradients(apply, &rhs, cg_iterations);
         // Damped: where the densities pin the move down only weakly, a full step can leave the
         // range where the linearisation holds and fit worse than no step at all.
-        let start = objective(&problem, &source, &target, &moves, &mut operator_out);
+        let start = objective(&problem, source, target, &moves, &mut operator_out);
         let mut length = 1.0;
         for _ in 0..STEP_HALVINGS {
             let tried: Vec<f64> = moves
@@ -334,7 +320,7 @@ pub(crate) fn fit_density_motion(
                 .zip(&step)
                 .map(|(m, s)| m + length * s)
                 .collect();
-            if objective(&problem, &source, &target, &tried, &mut operator_out) < start {
+            if objective(&problem, source, target, &tried, &mut operator_out) < start {
                 moves = tried;
                 break;
             }
@@ -344,16 +330,21 @@ pub(crate) fn fit_density_motion(
     }
     // The smoothed passes can lead into a basin the unsmoothed objective likes less than the
     // start: then the start is kept.
-    let (source, target): (Vec<f64>, Vec<f64>) = before_unit
-        .iter()
-        .zip(&after_unit)
-        .map(|(&b, &a)| (f64::from(b), f64::from(a)))
-        .unzip();
-    let kept_start = objective(&problem, &source, &target, &moves, &mut operator_out)
-        >= objective(&problem, &source, &target, prior, &mut operator_out);
+    let (source, target) = (&source_plain, &target_plain);
+    let kept_start = objective(&problem, source, target, &moves, &mut operator_out)
+        >= objective(&problem, source, target, prior, &mut operator_out);
     if kept_start {
         moves = prior.to_vec();
     }
+    // No move carries each cell's own value: the misfit's yardstick.
+    let still = data_term(&problem, source, target, &vec![0.0; 3 * cells]);
+    let misfit = |moves: &[f64]| {
+        if still > 0.0 {
+            (data_term(&problem, source, target, moves) / still).sqrt()
+        } else {
+            0.0
+        }
+    };
     MotionFit {
         misfit_prior: misfit(prior),
         misfit_fitted: misfit(&moves),
@@ -380,16 +371,21 @@ fn objective(
     moves: &[f64],
     out: &mut [f64],
 ) -> f64 {
-    let (value, _) = problem.grid.carried(source, moves);
-    let data: f64 = (0..target.len())
-        .filter(|&c| problem.in_data[c])
-        .map(|c| (value[c] - target[c]).powi(2))
-        .sum();
+    let data = data_term(problem, source, target, moves);
     problem.grid.regularise(problem.priors, moves, out);
     let quadratic: f64 = (0..moves.len())
         .map(|i| moves[i] * out[i] - 2.0 * problem.priors.inertia * moves[i] * problem.prior[i])
         .sum();
     data + quadratic
+}
+
+/// The squared difference of `source` carried by `moves` from `target` over the data cells.
+fn data_term(problem: &Problem, source: &[f64], target: &[f64], moves: &[f64]) -> f64 {
+    let (value, _) = problem.grid.carried(source, moves);
+    (0..target.len())
+        .filter(|&c| problem.in_data[c])
+        .map(|c| (value[c] - target[c]).powi(2))
+        .sum()
 }
 
 /// Solves `A x = rhs` for a symmetric positive (semi-)definite `A`, from `x = 0`.

@@ -39,7 +39,7 @@ use gausmoke_render::HostGaussians;
 use gausmoke_render::math::softplus;
 
 use crate::respawn::{
-    INVISIBLE_OPACITY, SpawnLattice, draw_weighted, make_isotropic, peak_opacity,
+    INVISIBLE_OPACITY, SpawnLattice, draw_weighted, in_region, make_isotropic, peak_opacity,
 };
 
 /// `(2 pi)^(3/2)`: the integral of an unnormalised 3D Gaussian of unit standard deviations.
@@ -132,8 +132,6 @@ pub fn emit(
         nx * ny * nz,
         "density after does not match the lattice"
     );
-    let [lo, hi] = options.region;
-    let inside = |p: Vec3| p.cmpge(lo).all() && p.cmple(hi).all();
     let cell_volume = lattice.cell_size().x * lattice.cell_size().y * lattice.cell_size().z;
     // The cells that lost density, with their loss, and the box's net loss.
     let mut cells: Vec<(usize, f32)> = Vec::new();
@@ -142,7 +140,7 @@ pub fn emit(
         for j in 0..ny {
             for k in 0..nz {
                 let cell = (i * ny + j) * nz + k;
-                if !inside(lattice.cell_centre([i, j, k])) {
+                if !in_region(options.region, lattice.cell_centre([i, j, k])) {
                     continue;
                 }
                 let loss = before[cell] - after[cell];
@@ -169,7 +167,7 @@ pub fn emit(
     let in_box: Vec<usize> = visible
         .iter()
         .copied()
-        .filter(|&i| inside(centre(i)))
+        .filter(|&i| in_region(options.region, centre(i)))
         .collect();
     let neighbours = if in_box.is_empty() { &visible } else { &in_box };
     let typical = median(neighbours.iter().map(|&i| mass(gaussians, i)).collect());

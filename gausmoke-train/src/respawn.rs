@@ -106,6 +106,12 @@ impl SpawnLattice {
     }
 }
 
+/// Whether `p` lies in the world-space box `[lo, hi]` (bounds included), as a region such as
+/// `respawn_region` holds cell centres.
+pub fn in_region([lo, hi]: [Vec3; 2], p: Vec3) -> bool {
+    p.cmpge(lo).all() && p.cmple(hi).all()
+}
+
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RespawnOptions {
     /// Most Gaussians recycled per frame, as a fraction of all.
@@ -337,10 +343,9 @@ pub fn respawn(
             }
         }
     }
-    if let Some([lo, hi]) = options.region {
+    if let Some(region) = options.region {
         for (cell, score) in scores.iter_mut().enumerate() {
-            let centre = lattice.cell_centre(lattice.cell_of(cell));
-            if centre.cmplt(lo).any() || centre.cmpgt(hi).any() {
+            if !in_region(region, lattice.cell_centre(lattice.cell_of(cell))) {
                 *score = 0.0;
             }
         }

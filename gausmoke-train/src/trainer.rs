@@ -71,7 +71,8 @@ use crate::host_grid::smoothed;
 use crate::iterate_mean::IterateMean;
 use crate::residual_blur::{ResidualBlur, coarse_to_fine};
 use crate::respawn::{
-    DeficitView, RespawnOptions, RespawnReport, SpawnLattice, recycling_candidates, respawn,
+    DeficitView, RespawnOptions, RespawnReport, SpawnLattice, in_region, recycling_candidates,
+    respawn,
 };
 use crate::run_folder::read_frame_gaussians;
 use crate::sequence::{Observation, Sequence};
@@ -1287,12 +1288,16 @@ impl Trainer {
             .map(|frame| self.training_views(frame))
             .collect();
 
-        // What the source must hold (`emission_fraction`): frame t-1's density.
-        let density_before = (config.emission_fraction > 0.0).then(|| self.density_host());
-        // What the density-motion fit carries onto frame t's (`velocity_from_density_motion`).
-        let motion_before = config
-            .velocity_from_density_motion
-            .then(|| self.density_host());
+        // Frame t-1's density, splatted once: what the source must hold (`emission_fraction`)
+        // and what the density-motion fit carries onto frame t's
+        // (`velocity_from_density_motion`).
+        let emitting = config.emission_fraction > 0.0;
+        let frame_start_density =
+            (emitting || config.velocity_from_density_motion).then(|| self.density_host());
+        let density_before = frame_start_density.as_deref().filter(|_| emitting);
+        let motion_before = frame_start_density
+            .as_deref()
+            .filter(|_| config.velocity_from_density_motion);
         let true_velocity = if config.velocity_from_ground_truth {
             Some(self.true_velocity(t)?)
         } else {
@@ -1300,7 +1305,7 @@ impl Trainer {
         };
         // Emission before the joint iterations: the box's loss to the carrier that starts
         // the frame, born at frame t's positions and held there while the velocity is fitted.
-        let born = match (&density_before, config.emission_timing) {
+        let born = match (density_before, config.emission_timing) {
             (Some(before), EmissionTiming::BeforeJoint) => {
                 let carrier = true_velocity.as_ref().unwrap_or(&previous_velocity);
                 self.emit_before_joint(t, carrier, before)
@@ -1591,9 +1596,8 @@ impl Trainer {
         self.keep_out_of_obstacles();
         // Recycling sees the transported Gaussians against frame t: what they miss entered
         // the box (or was never fitted), and the refinement fits the recycled ones.
-        let after_joint = density_before
-            .as_deref()
-            .filter(|_| config.emission_timing == EmissionTiming::AfterJoint);
+        let after_joint =
+            density_before.filter(|_| config.emission_timing == EmissionTiming::AfterJoint);
         let renewal = self.renew_gaussians(t, after_joint, born)?;
         let (respawned, emitted, split) = (
             renewal.recycled.indices,
@@ -1877,7 +1881,7 @@ impl Trainer {
         {
             (velocity, unprojected) = corrected;
         }
-        if let Some(before) = &motion_before {
+        if let Some(before) = motion_before {
             let prior = match config.density_motion_prior {
                 DensityMotionPrior::Carried => previous_velocity.clone(),
                 DensityMotionPrior::Frame => velocity.clone(),
@@ -2057,9 +2061,9 @@ impl Trainer {
             .config
             .respawn_region
             .map(|fractions| self.spawn_lattice().region_from_fractions(fractions));
-        let in_data = self.grid.cells_where(|p| {
-            inflow.is_none_or(|[lo, hi]| !(p.cmpge(lo).all() && p.cmple(hi).all()))
-        });
+        let in_data = self
+            .grid
+            .cells_where(|p| inflow.is_none_or(|region| !in_region(region, p)));
         let priors = MotionPriors {
             smoothness: self.config.density_motion_smoothness as f64,
             divergence: self.config.density_motion_divergence as f64,
@@ -2807,15 +2811,7 @@ mod tests {
     /// (world units per frame) where the smoke is.
     #[test]
     fn the_density_motion_velocity_is_the_shift_of_the_density() {
-        use gausmoke_data::synth::{SynthConfig, generate};
-        use gausmoke_render::backends::device_by_name;
         let dir = tempfile::tempdir().unwrap();
-        let data = dir.path().join("data");
-        let scene = SynthConfig {
-            frames: 3,
-            ..SynthConfig::tiny()
-        };
-        generate(&scene, &data).unwrap();
         let config = TrainConfig {
             gaussians: 400,
             grid_resolution: 16,
@@ -2826,9 +2822,7 @@ mod tests {
             velocity_from_density_motion: true,
             ..TrainConfig::default()
         };
-        let device = device_by_name("flex").unwrap().autodiff();
-        let sequence = Sequence::open(&data, &config).unwrap();
-        let mut trainer = Trainer::new(sequence, config, device.clone()).unwrap();
+        let (mut trainer, device) = tiny_trainer(dir.path(), config);
         let grid = trainer.grid;
         let cell = grid.cell_size();
         let centre = (grid.lo() + grid.hi()) * 0.5;
@@ -2882,16 +2876,27 @@ mod tests {
         velocity_correction_fits_a_swirl(CorrectionTarget::Density);
     }
 
-    fn velocity_correction_fits_a_swirl(target: CorrectionTarget) {
+    /// A trainer for `config` on the tiny synthetic scene with `config.frames` frames, written
+    /// to `dir`; on the flex backend.
+    fn tiny_trainer(dir: &Path, config: TrainConfig) -> (Trainer, Device) {
         use gausmoke_data::synth::{SynthConfig, generate};
         use gausmoke_render::backends::device_by_name;
-        let dir = tempfile::tempdir().unwrap();
-        let data = dir.path().join("data");
+        let data = dir.join("data");
         let scene = SynthConfig {
-            frames: 2,
+            frames: config.frames.expect("the test names its frames"),
             ..SynthConfig::tiny()
         };
         generate(&scene, &data).unwrap();
+        let device = device_by_name("flex").unwrap().autodiff();
+        let sequence = Sequence::open(&data, &config).unwrap();
+        (
+            Trainer::new(sequence, config, device.clone()).unwrap(),
+            device,
+        )
+    }
+
+    fn velocity_correction_fits_a_swirl(target: CorrectionTarget) {
+        let dir = tempfile::tempdir().unwrap();
         let config = TrainConfig {
             gaussians: 400,
             grid_resolution: 8,
@@ -2902,9 +2907,7 @@ mod tests {
             correction_target: target,
             ..TrainConfig::default()
         };
-        let device = device_by_name("flex").unwrap().autodiff();
-        let sequence = Sequence::open(&data, &config).unwrap();
-        let mut trainer = Trainer::new(sequence, config, device.clone()).unwrap();
+        let (mut trainer, device) = tiny_trainer(dir.path(), config);
         let grid = trainer.grid;
         let previous = trainer.state.gaussians.means.val().detach();
         let centre = (grid.lo() + grid.hi()) * 0.5;
