@@ -6,7 +6,7 @@
 //! ```text
 //! sum over data cells (rho_{t-1}(x - d(x)) - rho_t(x))^2
 //!     + A |grad d|^2   (forward differences, each component, no term across a wall)
-//!     + B |div d|^2    (central differences, one-sided at the walls)
+//!     + B |div d|^2    (the exact projection's divergence, walls and open faces included)
 //!     + G |d - d_prior|^2
 //! ```
 //!
@@ -27,6 +27,7 @@
 //! held-out view about 2 dB and the 3D density (docs/RESULTS.md, "Why we fall short", item 1).
 
 use gausmoke_model::OpenFaces;
+use gausmoke_model::projection::Divergence;
 
 use crate::host_grid::smoothed;
 
@@ -74,7 +75,7 @@ pub(crate) struct MotionFit {
 }
 
 impl MotionGrid {
-    fn cells(&self) -> usize {
+    pub(crate) fn cells(&self) -> usize {
         self.resolution.iter().product()
     }
 
@@ -172,19 +173,48 @@ impl MotionGrid {
         (value, slope)
     }
 
+    /// `moves` carried along themselves by one semi-Lagrangian step, as a velocity is carried
+    /// from one frame to the next: each cell takes the move found at its departure point,
+    /// clamped to the outermost cell centres.
+    pub(crate) fn self_carried(&self, moves: &[f64]) -> Vec<f64> {
+        self.carried_along(moves, 1.0)
+    }
+
+    /// `moves` of one frame carried back to the frame before, along themselves: each cell
+    /// takes the move found where its own move leads.
+    pub(crate) fn self_carried_back(&self, moves: &[f64]) -> Vec<f64> {
+        self.carried_along(moves, -1.0)
+    }
+
+    fn carried_along(&self, moves: &[f64], direction: f64) -> Vec<f64> {
+        let mut out = vec![0.0; moves.len()];
+        for cell in 0..self.cells() {
+            let at = self.coordinates(cell);
+            let mut departure = [0.0; 3];
+            for axis in 0..3 {
+                let n = self.resolution[axis] as f64;
+                departure[axis] =
+                    (at[axis] as f64 - direction * moves[3 * cell + axis]).clamp(0.0, n - 1.0);
+            }
+            self.sample(moves, 3, departure, &mut out[3 * cell..3 * cell + 3]);
+        }
+        out
+    }
+
     /// `out = (A L + B D^T D + G) moves`: `L` the forward differences' normal matrix (a
-    /// Laplacian with no flux through the walls), `D` the central-difference divergence.
+    /// Laplacian with no flux through the walls), `D` the projection's own divergence (faces
+    /// the mean of their two cells, no flow through a wall, `flow` times the inner cell's
+    /// through an open face), so that what the fit counts as divergence-free is what `Pi`
+    /// leaves alone.
     fn regularise(&self, priors: &MotionPriors, moves: &[f64], out: &mut [f64]) {
         let cells = self.cells();
         out.iter_mut()
             .zip(moves)
             .for_each(|(o, m)| *o = priors.inertia * m);
-        let mut divergence = vec![0.0; cells];
         for cell in 0..cells {
             let at = self.coordinates(cell);
             for axis in 0..3 {
-                let n = self.resolution[axis];
-                if at[axis] + 1 < n {
+                if at[axis] + 1 < self.resolution[axis] {
                     let mut next = at;
                     next[axis] += 1;
                     let other = self.index(next);
@@ -195,30 +225,24 @@ impl MotionGrid {
                         out[3 * other + c] -= difference;
                     }
                 }
-                let (low, high) = central(at[axis], n);
-                if low != high {
-                    let (mut lower, mut upper) = (at, at);
-                    lower[axis] = low;
-                    upper[axis] = high;
-                    divergence[cell] += (moves[3 * self.index(upper) + axis]
-                        - moves[3 * self.index(lower) + axis])
-                        / (high - low) as f64;
-                }
             }
         }
-        for (cell, &d) in divergence.iter().enumerate() {
-            let at = self.coordinates(cell);
-            for axis in 0..3 {
-                let (low, high) = central(at[axis], self.resolution[axis]);
-                if low != high {
-                    let share = priors.divergence * d / (high - low) as f64;
-                    let (mut lower, mut upper) = (at, at);
-                    lower[axis] = low;
-                    upper[axis] = high;
-                    out[3 * self.index(upper) + axis] += share;
-                    out[3 * self.index(lower) + axis] -= share;
-                }
-            }
+        let operator = self.divergence();
+        let mut divergence = vec![0.0; cells];
+        operator.apply(moves, &mut divergence);
+        divergence.iter_mut().for_each(|d| *d *= priors.divergence);
+        let mut back = vec![0.0; 3 * cells];
+        operator.apply_transpose(&divergence, &mut back);
+        out.iter_mut().zip(&back).for_each(|(o, b)| *o += b);
+    }
+
+    /// The projection's divergence on unit cells (moves are in cells).
+    fn divergence(&self) -> Divergence {
+        Divergence {
+            resolution: self.resolution,
+            cell: [1.0; 3],
+            open: self.open,
+            solids: None,
         }
     }
 }
@@ -430,6 +454,12 @@ mod tests {
     use super::*;
 
     const WALLS: OpenFaces = OpenFaces::NONE;
+    /// Every face open with a zero-gradient outflow: a uniform move is divergence-free.
+    const OPEN: OpenFaces = OpenFaces {
+        low: [true; 3],
+        high: [true; 3],
+        flow: 1.0,
+    };
 
     fn grid(n: usize, open: OpenFaces) -> MotionGrid {
         MotionGrid {
@@ -483,7 +513,8 @@ mod tests {
         let (a, b) = (dot(&x, &ry), dot(&rx, &y));
         assert!((a - b).abs() <= 1e-9 * a.abs().max(1.0), "{a} vs {b}");
         assert!(dot(&x, &rx) > 0.0);
-        // Only the divergence: a uniform move has none, so the operator leaves it at zero.
+        // Only the divergence: through open faces a uniform move has none, so the operator
+        // leaves it at zero; between walls it flows through them, which counts.
         let divergence_only = MotionPriors {
             smoothness: 0.0,
             divergence: 1.0,
@@ -491,8 +522,11 @@ mod tests {
         };
         let uniform: Vec<f64> = (0..grid.cells()).flat_map(|_| [0.4, -1.1, 0.7]).collect();
         let mut out = vec![0.0; uniform.len()];
-        grid.regularise(&divergence_only, &uniform, &mut out);
+        let open = MotionGrid { open: OPEN, ..grid };
+        open.regularise(&divergence_only, &uniform, &mut out);
         assert!(out.iter().all(|v| v.abs() < 1e-12));
+        grid.regularise(&divergence_only, &uniform, &mut out);
+        assert!(dot(&uniform, &out) > 1.0);
         // ... and an expansion has some.
         let expansion: Vec<f64> = (0..grid.cells())
             .flat_map(|cell| grid.coordinates(cell).map(|c| c as f64))
@@ -588,11 +622,12 @@ mod tests {
         }
     }
 
-    /// A blob moved by a uniform shift of more than a cell: fitted from no move at all, the
-    /// move inside the blob is the shift, and the fit explains the frames' difference.
+    /// A blob moved by a uniform shift of more than a cell through a box with open faces
+    /// (where a uniform move is divergence-free): fitted from no move at all, the move inside
+    /// the blob is the shift, and the fit explains the frames' difference.
     #[test]
     fn the_fit_finds_a_uniform_shift() {
-        let grid = grid(14, WALLS);
+        let grid = grid(14, OPEN);
         let shift = [1.3, 0.8, -0.6];
         let centre = [6.5, 7.0, 7.5];
         let before = blob(&grid, centre, 2.2);
@@ -623,6 +658,34 @@ mod tests {
         assert!(relative < 0.1, "relative error {relative}");
     }
 
+    /// A velocity carried along itself: a uniform field stays as it is (inside and where the
+    /// departure points are clamped at the walls), and a field that varies along x takes, at
+    /// each cell, the value from where its own move came from (forward) or leads (back).
+    #[test]
+    fn a_velocity_carried_along_itself() {
+        let grid = grid(6, WALLS);
+        let uniform: Vec<f64> = (0..grid.cells()).flat_map(|_| [0.7, -1.2, 0.4]).collect();
+        let carried = grid.self_carried(&uniform);
+        let largest = carried
+            .iter()
+            .zip(&uniform)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        assert!(largest < 1e-12, "{largest}");
+        // u_x = 0.5 + 0.1 x, the others zero: the cell at x takes u_x at x - u_x(x).
+        let ramp: Vec<f64> = (0..grid.cells())
+            .flat_map(|cell| [0.5 + 0.1 * grid.coordinates(cell)[0] as f64, 0.0, 0.0])
+            .collect();
+        let carried = grid.self_carried(&ramp);
+        let cell = grid.index([3, 2, 2]);
+        let departure = 3.0 - 0.8;
+        assert!((carried[3 * cell] - (0.5 + 0.1 * departure)).abs() < 1e-12);
+        assert_eq!(&carried[3 * cell + 1..3 * cell + 3], &[0.0, 0.0]);
+        // Carried back, the cell takes u_x where its move leads: x + u_x(x).
+        let back = grid.self_carried_back(&ramp);
+        assert!((back[3 * cell] - (0.5 + 0.1 * (3.0 + 0.8))).abs() < 1e-12);
+    }
+
     /// With no smoke in frame t there is nothing to fit: the prior comes back.
     #[test]
     fn no_smoke_keeps_the_prior() {
@@ -647,7 +710,7 @@ mod tests {
     /// The tie holds the fit to the prior where the densities say nothing.
     #[test]
     fn the_tie_keeps_the_prior_where_nothing_moves() {
-        let grid = grid(6, WALLS);
+        let grid = grid(6, OPEN);
         let still = blob(&grid, [3.0, 3.5, 3.0], 1.5);
         let prior: Vec<f64> = (0..grid.cells()).flat_map(|_| [0.5, 0.0, 0.0]).collect();
         let fit = |inertia: f64| {
@@ -665,7 +728,8 @@ mod tests {
                 400,
             )
         };
-        // No data term: the uniform prior costs nothing and stays.
+        // No data term: the uniform prior (divergence-free through open faces) costs nothing
+        // and stays.
         let tied = fit(0.01);
         for (a, b) in tied.moves.iter().zip(&prior) {
             assert!((a - b).abs() < 1e-6, "{a} vs {b}");

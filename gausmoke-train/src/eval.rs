@@ -48,6 +48,15 @@ pub struct FrameEval {
     /// were not there; 1: straight through).
     #[serde(default)]
     pub obstacle_normal_flow: Option<f64>,
+    /// The velocity estimated from the run's densities (`gausmoke-train velocity`, in
+    /// `RUN/velocity_estimate/`), when there is one: its mean |div| and, against ground
+    /// truth, its relative error and cosine, measured as the run's own velocity's are.
+    #[serde(default)]
+    pub estimate_mean_abs_divergence: Option<f64>,
+    #[serde(default)]
+    pub estimate_velocity_relative_error: Option<f64>,
+    #[serde(default)]
+    pub estimate_velocity_cosine: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -64,6 +73,10 @@ pub struct EvalReport {
     pub obstacle_density_fraction_mean: Option<f64>,
     #[serde(default)]
     pub obstacle_normal_flow_mean: Option<f64>,
+    #[serde(default)]
+    pub estimate_velocity_relative_error_mean: Option<f64>,
+    #[serde(default)]
+    pub estimate_velocity_cosine_mean: Option<f64>,
     pub test_lpips_mean: Option<f64>,
     /// Where the LPIPS weights came from, or why LPIPS is absent.
     pub lpips: String,
@@ -251,9 +264,19 @@ pub fn evaluate(
         device,
     );
     let mut frames = Vec::new();
+    let mut previous_density: Option<Vec<f32>> = None;
     for t in 0..scene.frames() {
         let Some(state) = folder.read_frame_state(t, &grid)? else {
             break;
+        };
+        let estimate = match &previous_density {
+            Some(before) => crate::velocity_estimate::read_estimate(
+                run,
+                t,
+                grid.resolution(),
+                [before, &state.density],
+            )?,
+            None => None,
         };
         let velocity = &state.velocity;
         let density = &state.density;
@@ -282,6 +305,10 @@ pub fn evaluate(
         let average = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
         let truth = ground_truth_errors(&scene, &grid, t, density, velocity)?;
         let leakage = obstacle_leakage(&scene.obstacles, &grid, density, velocity);
+        let estimate_truth = match &estimate {
+            Some(estimated) => ground_truth_errors(&scene, &grid, t, density, estimated)?,
+            None => None,
+        };
         // u^0 is zero by construction (Algorithm 1, line 1): velocity errors from frame 1.
         let velocity_truth = truth.filter(|_| t > 0);
         frames.push(FrameEval {
@@ -303,7 +330,13 @@ pub fn evaluate(
             obstacle_density_fraction: leakage.map(|(fraction, _)| fraction),
             // u^0 is zero by construction.
             obstacle_normal_flow: leakage.filter(|_| t > 0).map(|(_, normal)| normal),
+            estimate_mean_abs_divergence: estimate.as_ref().map(|estimated| {
+                metrics::mean_abs_divergence(&grid, open_faces, solids.as_ref(), estimated)
+            }),
+            estimate_velocity_relative_error: estimate_truth.map(|e| e.velocity_relative_error),
+            estimate_velocity_cosine: estimate_truth.map(|e| e.velocity_cosine),
         });
+        previous_density = Some(state.density);
     }
     if frames.is_empty() {
         return Err(TrainError::Dataset {
@@ -322,6 +355,10 @@ pub fn evaluate(
         density_correlation_mean: mean(frames.iter().map(|f| f.density_correlation)),
         obstacle_density_fraction_mean: mean(frames.iter().map(|f| f.obstacle_density_fraction)),
         obstacle_normal_flow_mean: mean(frames.iter().map(|f| f.obstacle_normal_flow)),
+        estimate_velocity_relative_error_mean: mean(
+            frames.iter().map(|f| f.estimate_velocity_relative_error),
+        ),
+        estimate_velocity_cosine_mean: mean(frames.iter().map(|f| f.estimate_velocity_cosine)),
         test_lpips_mean: mean(frames.iter().map(|f| f.test_lpips)),
         lpips: match lpips_weights {
             Some(path) => format!("AlexNet LPIPS v0.1, weights from {}", path.display()),

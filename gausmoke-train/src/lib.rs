@@ -47,6 +47,7 @@ pub mod state;
 mod step_log;
 pub mod tensorboard;
 pub mod trainer;
+pub mod velocity_estimate;
 pub mod view_agreement;
 pub mod viridis;
 pub mod visuals;

@@ -19,6 +19,7 @@ use gausmoke_data::synth::{self, SynthConfig};
 use gausmoke_data::{LoadOptions, inspect, load_dnerf, load_pinf};
 use gausmoke_render::{Camera, RasterOptions, backends, procedural, render_volume};
 use gausmoke_train::memory::{self, MemoryEstimate};
+use gausmoke_train::velocity_estimate::EstimateOptions;
 use gausmoke_train::{Run, TrainConfig, eval, sequence::Sequence};
 
 #[derive(Debug, Parser)]
@@ -44,6 +45,33 @@ enum Command {
         /// default: the file `cargo xtask lpips-weights` caches, when present.
         #[arg(long)]
         lpips_weights: Option<PathBuf>,
+        #[arg(long, default_value = "flex", value_parser = compiled_device, help = device_help())]
+        device: String,
+    },
+    /// Estimate a trained run's velocity from its density grids (ours): for each frame, the
+    /// velocity that carries the frame before's density onto the frame's, tracked through the
+    /// frames. Written beside the run's own velocity to RUN/velocity_estimate/; `eval` then
+    /// scores both against a synthetic scene's ground truth.
+    Velocity {
+        /// The run folder written by `train`.
+        #[arg(long)]
+        run: PathBuf,
+        /// Weight of the estimate's smoothness (|grad u|^2, u in cells per frame).
+        #[arg(long, default_value_t = EstimateOptions::default().smoothness)]
+        smoothness: f64,
+        /// Weight of its divergence (|div u|^2).
+        #[arg(long, default_value_t = EstimateOptions::default().divergence)]
+        divergence: f64,
+        /// Weight of its tie to the frame before's estimate carried along itself.
+        #[arg(long, default_value_t = EstimateOptions::default().inertia)]
+        inertia: f64,
+        /// Also track the frames backwards and take the mean of both chains (twice the time).
+        #[arg(long)]
+        two_sided: bool,
+        /// No progress bar.
+        #[arg(long)]
+        quiet: bool,
+        /// Backend of the projection that makes each estimate divergence-free.
         #[arg(long, default_value = "flex", value_parser = compiled_device, help = device_help())]
         device: String,
     },
@@ -228,6 +256,24 @@ fn run_command(cli: Cli) -> Result<()> {
     match cli.command {
         None => quickstart(),
         Some(Command::Train(args)) => train(args, None),
+        Some(Command::Velocity {
+            run,
+            smoothness,
+            divergence,
+            inertia,
+            two_sided,
+            quiet,
+            device,
+        }) => {
+            let options = EstimateOptions {
+                smoothness,
+                divergence,
+                inertia,
+                two_sided,
+            };
+            let device = backends::device_by_name(&device).map_err(anyhow::Error::msg)?;
+            estimate_velocity(&run, &options, &device, quiet)
+        }
         Some(Command::Eval {
             run,
             lpips_weights,
@@ -254,6 +300,16 @@ fn run_command(cli: Cli) -> Result<()> {
                 "density correlation  {}",
                 show(report.density_correlation_mean)
             );
+            if report.estimate_velocity_relative_error_mean.is_some() {
+                println!(
+                    "estimate rel. error  {} (velocity_estimate/)",
+                    show(report.estimate_velocity_relative_error_mean)
+                );
+                println!(
+                    "estimate cosine      {}",
+                    show(report.estimate_velocity_cosine_mean)
+                );
+            }
             println!("held-out LPIPS       {}", show(report.test_lpips_mean));
             println!("  ({})", report.lpips);
             println!("wrote {}", run.join("eval.json").display());
@@ -511,6 +567,50 @@ fn parse_frames(text: &str) -> Result<std::ops::Range<usize>> {
         bail!("--frames `{text}` is empty");
     }
     Ok(range)
+}
+
+/// `velocity --run DIR`: the velocity estimated from a run's density grids.
+fn estimate_velocity(
+    run: &Path,
+    options: &EstimateOptions,
+    device: &burn::tensor::Device,
+    quiet: bool,
+) -> Result<()> {
+    use gausmoke_train::velocity_estimate::{estimate_dir, estimate_run_velocity};
+    let bar = if quiet {
+        indicatif::ProgressBar::hidden()
+    } else {
+        indicatif::ProgressBar::new(0)
+    };
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("[{bar:40}] {pos}/{len} frames, eta {eta}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    let start = Instant::now();
+    let summary = estimate_run_velocity(run, options, device, |done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })?;
+    bar.finish_and_clear();
+    let kept = summary.frames.iter().filter(|f| f.kept_start).count();
+    let mean = |f: fn(&gausmoke_train::velocity_estimate::FrameEstimate) -> f64| {
+        summary.frames.iter().map(f).sum::<f64>() / summary.frames.len() as f64
+    };
+    println!(
+        "{} frames in {:.1} s; misfit (relative to no motion) {:.3} carried, {:.3} fitted \
+         (forward chain); {kept} frame(s) kept the carried estimate",
+        summary.frames.len(),
+        start.elapsed().as_secs_f64(),
+        mean(|f| f.misfit_prior),
+        mean(|f| f.misfit_fitted),
+    );
+    println!(
+        "wrote {}; `gausmoke-train eval --run {}` scores it",
+        estimate_dir(run).display(),
+        run.display()
+    );
+    Ok(())
 }
 
 /// `render --run DIR`: videos of a trained reconstruction.

@@ -226,6 +226,49 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
         "frame-0 density correlation {correlation}"
     );
     assert!(run.join("eval.json").is_file());
+    assert!(
+        report
+            .frames
+            .iter()
+            .all(|f| f.estimate_velocity_relative_error.is_none())
+    );
+
+    // The velocity estimated from the run's densities (the CLI), scored beside the run's own.
+    let output = binary()
+        .args(["velocity", "--quiet", "--run"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert!(stdout.contains("3 frames"), "{stdout}");
+    let report = eval::evaluate(&run, &device_by_name("flex").unwrap(), None).unwrap();
+    assert!(report.frames[0].estimate_velocity_relative_error.is_none());
+    for frame in &report.frames[1..] {
+        let error = frame.estimate_velocity_relative_error.unwrap();
+        let divergence = frame.estimate_mean_abs_divergence.unwrap();
+        eprintln!(
+            "frame {}: estimate error {error:.3}, mean |div| {divergence:.2e}",
+            frame.frame
+        );
+        assert!(error.is_finite() && frame.estimate_velocity_cosine.unwrap().is_finite());
+    }
+    assert!(report.estimate_velocity_relative_error_mean.is_some());
+    // A frame trained again leaves the estimate stale: eval refuses it rather than score it.
+    let folder = gausmoke_train::RunFolder::at(&run);
+    let info = folder.read_run_info().unwrap();
+    let grid = used.grid(info.box_lo.into(), info.box_hi.into()).unwrap();
+    let mut state = folder.read_frame_state(2, &grid).unwrap().unwrap();
+    state.density[0] += 1.0;
+    folder.write_frame_state(2, &grid, &state).unwrap();
+    let error = eval::evaluate(&run, &device_by_name("flex").unwrap(), None)
+        .unwrap_err()
+        .to_string();
+    assert!(error.contains("trained again"), "{error}");
 }
 
 fn binary() -> Command {

@@ -123,6 +123,11 @@ pub struct ReproduceArgs {
     /// with). The command must name the same run (key) as the record; no --set.
     #[arg(long, value_name = "KEY")]
     config_of: Option<String>,
+    /// After each run, estimate its velocity from its density grids (`gausmoke-train
+    /// velocity`, the default weights) and record that estimate's errors beside the run's
+    /// own velocity's (`velocity_estimate_*`).
+    #[arg(long)]
+    velocity_estimate: bool,
 }
 
 fn quick_scalar_real() -> TrainConfig {
@@ -588,6 +593,9 @@ fn command_line(args: &ReproduceArgs) -> String {
     if args.no_ablations {
         line += " --no-ablations";
     }
+    if args.velocity_estimate {
+        line += " --velocity-estimate";
+    }
     if let Some(data) = &args.data {
         line += &format!(" --data {}", shell_quoted(&data.display().to_string()));
     }
@@ -800,6 +808,18 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
         let wall_seconds = start.elapsed().as_secs_f64();
         let gaussians = trainer.trainer.state.gaussians.len();
         drop(trainer);
+        let estimate_seconds = if args.velocity_estimate {
+            let start = Instant::now();
+            gausmoke_train::velocity_estimate::estimate_run_velocity(
+                &run_dir,
+                &Default::default(),
+                &device,
+                |_, _| {},
+            )?;
+            Some(start.elapsed().as_secs_f64())
+        } else {
+            None
+        };
         let report = eval::evaluate(&run_dir, &device, lpips_weights.as_deref())?;
         let metrics: Value = serde_json::from_str(
             &std::fs::read_to_string(run_dir.join("metrics.json")).context("metrics.json")?,
@@ -863,6 +883,14 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             "velocity_cosine_per_frame": per_frame(|f| f.velocity_cosine),
             "density_relative_error_per_frame": per_frame(|f| f.density_relative_error),
             "density_correlation_per_frame": per_frame(|f| f.density_correlation),
+            "velocity_estimate_relative_error": report.estimate_velocity_relative_error_mean,
+            "velocity_estimate_cosine": report.estimate_velocity_cosine_mean,
+            "velocity_estimate_relative_error_per_frame":
+                per_frame(|f| f.estimate_velocity_relative_error),
+            "velocity_estimate_cosine_per_frame": per_frame(|f| f.estimate_velocity_cosine),
+            "velocity_estimate_mean_abs_divergence_per_frame":
+                per_frame(|f| f.estimate_mean_abs_divergence),
+            "velocity_estimate_seconds": estimate_seconds,
             "obstacle_density_fraction": report.obstacle_density_fraction_mean,
             "obstacle_normal_flow": report.obstacle_normal_flow_mean,
             "obstacle_density_fraction_per_frame": per_frame(|f| f.obstacle_density_fraction),
@@ -950,6 +978,7 @@ mod tests {
             docs: None,
             independent: Vec::new(),
             config_of: None,
+            velocity_estimate: false,
         }
     }
 

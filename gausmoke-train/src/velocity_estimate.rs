@@ -1,0 +1,531 @@
+//! A velocity estimated after training from the run's own density grids (`gausmoke-train
+//! velocity --run DIR`, ours): for each frame t, the velocity whose semi-Lagrangian step
+//! carries frame t-1's density grid onto frame t's ([`crate::density_motion`]), tracked
+//! through the frames: frame t's fit starts from, and is tied to, frame t-1's estimate carried
+//! along itself. Frame 1 starts from no motion, untied. With `two_sided` a second chain runs
+//! backwards from the last frame (each fit tied to the next frame's estimate carried back
+//! along itself) and the estimate is the mean of the two.
+//!
+//! The run's own velocity is what carried its Gaussians; it is left as it is. On the long
+//! plume this estimate, read off the same run's densities, is truer than the run's velocity,
+//! while the same fit used as the trainer's carrier costs the pictures (docs/RESULTS.md, "Why
+//! we fall short", item 1): so it is an output beside the run's velocity, not a step of it.
+//! `gausmoke-train eval` scores it against a synthetic scene's ground truth next to the run's.
+//!
+//! Written to `RUN/velocity_estimate/`: `frame_TTT.safetensors` (`velocity`, `[nx, ny, nz,
+//! 3]`, world units per frame as the frame files keep theirs; with `two_sided` also
+//! `velocity_forward` and `velocity_backward`, the two chains) and `estimate.json` (the
+//! settings, and per frame the fit's misfits and a fingerprint of the two densities it was
+//! fitted to, so that an estimate of a run trained again is not read as this one's).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use burn::tensor::{Device, Tensor, TensorData};
+use gausmoke_model::{ProjectionOptions, project_velocity};
+use gausmoke_render::device_traffic::read_floats;
+use serde::{Deserialize, Serialize};
+
+use crate::arrays::{HostArrays, read_arrays, take_array, write_arrays};
+use crate::density_motion::{MotionFit, MotionGrid, MotionPriors, fit_density_motion};
+use crate::hash::Fnv1a;
+use crate::respawn::{SpawnLattice, in_region};
+use crate::run_folder::RunFolder;
+use crate::sequence::Sequence;
+use crate::{TrainConfig, TrainError};
+
+/// Conjugate-gradient iterations per Gauss-Newton pass, as the trainer's fit takes.
+const CG_ITERATIONS: usize = 400;
+
+/// The estimate's folder inside a run folder.
+pub fn estimate_dir(run: &Path) -> PathBuf {
+    run.join("velocity_estimate")
+}
+
+/// Frame `t`'s estimate file inside a run folder.
+pub fn estimate_path(run: &Path, t: usize) -> PathBuf {
+    estimate_dir(run).join(format!("frame_{t:03}.safetensors"))
+}
+
+/// The fit's weights (see [`crate::density_motion`]): the smoothness `A`, the divergence `B`
+/// and the tie `G` to the previous frame's estimate carried along itself.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct EstimateOptions {
+    pub smoothness: f64,
+    pub divergence: f64,
+    pub inertia: f64,
+    /// Also track the frames backwards (each fit tied to the next frame's estimate carried
+    /// back along itself) and take the mean of the two chains: each frame's estimate then
+    /// draws on the frames after it as well as those before.
+    #[serde(default)]
+    pub two_sided: bool,
+}
+
+impl Default for EstimateOptions {
+    /// The weights that erred least on the long plume's exact density
+    /// (`xtask/reference/velocity_from_density.py`).
+    fn default() -> Self {
+        Self {
+            smoothness: 0.001,
+            divergence: 1000.0,
+            inertia: 0.01,
+            two_sided: false,
+        }
+    }
+}
+
+impl EstimateOptions {
+    fn validate(&self) -> Result<(), TrainError> {
+        for (name, value) in [
+            ("smoothness", self.smoothness),
+            ("divergence", self.divergence),
+            ("inertia", self.inertia),
+        ] {
+            if !(0.0..=1e6).contains(&value) {
+                return Err(TrainError::Config {
+                    origin: format!("velocity estimate --{name}"),
+                    reason: format!("{value} is outside [0, 1e6]"),
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// One frame's fit (the forward chain's).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameEstimate {
+    pub frame: usize,
+    /// The data residual of the start (the carried estimate) and of the fit, each relative to
+    /// that of no motion.
+    pub misfit_prior: f64,
+    pub misfit_fitted: f64,
+    /// Whether the fit ended worse than its start, which was kept.
+    pub kept_start: bool,
+    /// With `two_sided`, the backward chain's misfit (the mean of the two chains is not a fit
+    /// of its own).
+    #[serde(default)]
+    pub backward_misfit_fitted: Option<f64>,
+    /// Fingerprints of frames t-1 and t's density grids as fitted.
+    pub density_fingerprints: [String; 2],
+    pub seconds: f64,
+}
+
+/// `estimate.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EstimateSummary {
+    pub options: EstimateOptions,
+    /// Cells left out of the data term: the run's inflow box (`respawn_region`), where a
+    /// source sets the density, not transport.
+    pub inflow_cells: usize,
+    pub frames: Vec<FrameEstimate>,
+}
+
+/// A fingerprint of a density grid's values.
+pub fn density_fingerprint(density: &[f32]) -> String {
+    let mut hash = Fnv1a::default();
+    for v in density {
+        hash.write(&v.to_le_bytes());
+    }
+    hash.hex()
+}
+
+/// Estimates the velocity of every frame of the run folder `run` from its density grids and
+/// writes it to [`estimate_dir`], each frame's fit made divergence-free by the exact `Pi` with
+/// the run's open faces and the data set's solids (on `device`); `on_frame(done, total)`
+/// reports progress.
+pub fn estimate_run_velocity(
+    run: &Path,
+    options: &EstimateOptions,
+    device: &Device,
+    mut on_frame: impl FnMut(usize, usize),
+) -> Result<EstimateSummary, TrainError> {
+    options.validate()?;
+    let folder = RunFolder::at(run);
+    if !folder.run_info_path().is_file() {
+        return Err(TrainError::Config {
+            origin: run.display().to_string(),
+            reason: "this folder is not a GauSmoke run (it has no run.json); pass the --out \
+                     folder of a `gausmoke-train train`"
+                .into(),
+        });
+    }
+    let config: TrainConfig = folder.read_config()?;
+    let info = folder.read_run_info()?;
+    let grid = config.grid(info.box_lo.into(), info.box_hi.into())?;
+    // The data set says where its solids are, which the projection keeps the flow out of.
+    let scene = Sequence::open(&info.data, &config)?;
+    let projection = ProjectionOptions {
+        rel_tolerance: config.projection_tolerance,
+        max_iterations: config.projection_max_iterations,
+        open_faces: config.open_faces()?,
+        solids: crate::trainer::solid_cells(&scene, &config, &grid)?,
+        ..ProjectionOptions::default()
+    };
+    drop(scene);
+    let mut densities = Vec::new();
+    while let Some(state) = folder.read_frame_state(densities.len(), &grid)? {
+        densities.push(state.density);
+    }
+    if densities.len() < 2 {
+        return Err(TrainError::Dataset {
+            path: run.to_path_buf(),
+            reason: format!(
+                "{} finished frame(s) in frames/: a velocity needs two",
+                densities.len()
+            ),
+        });
+    }
+    let motion_grid = MotionGrid {
+        resolution: grid.resolution(),
+        open: config.open_faces()?,
+    };
+    let lattice = SpawnLattice {
+        lo: grid.lo(),
+        hi: grid.hi(),
+        resolution: grid.resolution(),
+    };
+    let inflow = config
+        .respawn_region
+        .map(|fractions| lattice.region_from_fractions(fractions));
+    let in_data = grid.cells_where(|p| inflow.is_none_or(|region| !in_region(region, p)));
+    let dt = f64::from(config.dt);
+    let cell = grid.cell_size().to_array().map(f64::from);
+    let fingerprints: Vec<String> = densities.iter().map(|d| density_fingerprint(d)).collect();
+
+    let dir = estimate_dir(run);
+    std::fs::create_dir_all(&dir).map_err(|source| TrainError::Io {
+        path: dir.clone(),
+        source,
+    })?;
+    let [nx, ny, nz] = grid.resolution();
+    let frame_count = densities.len();
+    let sides = if options.two_sided { 2 } else { 1 };
+    let total = sides * (frame_count - 1);
+    let mut done = 0;
+    // One chain of fits through the frames in `order`, each tied to the one before it carried
+    // to its frame by `carry`.
+    let mut track = |order: Vec<usize>, carry: &dyn Fn(&[f64]) -> Vec<f64>| {
+        let mut fits: Vec<Option<(MotionFit, f64)>> = vec![None; frame_count];
+        let mut previous: Option<Vec<f64>> = None;
+        for t in order {
+            let start = Instant::now();
+            let (prior, inertia) = match &previous {
+                Some(moves) => (carry(moves), options.inertia),
+                None => (vec![0.0; 3 * motion_grid.cells()], 0.0),
+            };
+            let priors = MotionPriors {
+                smoothness: options.smoothness,
+                divergence: options.divergence,
+                inertia,
+            };
+            let fit = fit_density_motion(
+                &motion_grid,
+                &densities[t - 1],
+                &densities[t],
+                &in_data,
+                &prior,
+                priors,
+                CG_ITERATIONS,
+            );
+            tracing::info!(
+                frame = t,
+                misfit_prior = format!("{:.3}", fit.misfit_prior),
+                misfit_fitted = format!("{:.3}", fit.misfit_fitted),
+                kept_start = fit.kept_start,
+                "velocity estimated"
+            );
+            previous = Some(fit.moves.clone());
+            fits[t] = Some((fit, start.elapsed().as_secs_f64()));
+            done += 1;
+            on_frame(done, total);
+        }
+        fits
+    };
+    let forward = track((1..frame_count).collect(), &|m| motion_grid.self_carried(m));
+    let backward = options.two_sided.then(|| {
+        track((1..frame_count).rev().collect(), &|m| {
+            motion_grid.self_carried_back(m)
+        })
+    });
+    let velocity_of = |moves: &[f64]| -> Vec<f32> {
+        let world: Vec<f32> = moves
+            .iter()
+            .enumerate()
+            .map(|(i, &m)| (m * cell[i % 3] / dt) as f32)
+            .collect();
+        let world = Tensor::from_data(TensorData::new(world, [nx, ny, nz, 3]), device);
+        read_floats(project_velocity(&grid, world, projection.clone()))
+    };
+    let mut frames = Vec::new();
+    for t in 1..frame_count {
+        let (ahead, ahead_seconds) = forward[t].as_ref().expect("every frame fitted");
+        let behind = backward
+            .as_ref()
+            .map(|fits| fits[t].as_ref().expect("every frame fitted"));
+        let shape = vec![nx, ny, nz, 3];
+        let mut arrays = HostArrays::new();
+        let velocity = match behind {
+            None => velocity_of(&ahead.moves),
+            Some((behind, _)) => {
+                let mean: Vec<f64> = ahead
+                    .moves
+                    .iter()
+                    .zip(&behind.moves)
+                    .map(|(a, b)| 0.5 * (a + b))
+                    .collect();
+                arrays.insert(
+                    "velocity_forward".into(),
+                    (shape.clone(), velocity_of(&ahead.moves)),
+                );
+                arrays.insert(
+                    "velocity_backward".into(),
+                    (shape.clone(), velocity_of(&behind.moves)),
+                );
+                velocity_of(&mean)
+            }
+        };
+        arrays.insert("velocity".into(), (shape, velocity));
+        write_arrays(&estimate_path(run, t), &arrays)?;
+        frames.push(FrameEstimate {
+            frame: t,
+            misfit_prior: ahead.misfit_prior,
+            misfit_fitted: ahead.misfit_fitted,
+            kept_start: ahead.kept_start,
+            backward_misfit_fitted: behind.map(|(fit, _)| fit.misfit_fitted),
+            density_fingerprints: [fingerprints[t - 1].clone(), fingerprints[t].clone()],
+            seconds: ahead_seconds + behind.map_or(0.0, |(_, seconds)| *seconds),
+        });
+    }
+    let summary = EstimateSummary {
+        options: *options,
+        inflow_cells: in_data.iter().filter(|&&inside| !inside).count(),
+        frames,
+    };
+    let path = dir.join("estimate.json");
+    let text = serde_json::to_string_pretty(&summary).expect("the summary serialises");
+    std::fs::write(&path, text).map_err(|source| TrainError::Io { path, source })?;
+    Ok(summary)
+}
+
+/// Frame `t`'s estimated velocity (`[nx, ny, nz, 3]`, world units per frame) when the run has
+/// one fitted to the densities it holds now (`densities` = frames t-1 and t's); `Err` when an
+/// estimate exists but was fitted to other densities (the run was trained again since).
+pub fn read_estimate(
+    run: &Path,
+    t: usize,
+    resolution: [usize; 3],
+    densities: [&[f32]; 2],
+) -> Result<Option<Vec<f32>>, TrainError> {
+    let path = estimate_path(run, t);
+    let summary_path = estimate_dir(run).join("estimate.json");
+    if t == 0 || !path.is_file() || !summary_path.is_file() {
+        return Ok(None);
+    }
+    let text = std::fs::read_to_string(&summary_path).map_err(|source| TrainError::Io {
+        path: summary_path.clone(),
+        source,
+    })?;
+    let summary: EstimateSummary = serde_json::from_str(&text).map_err(|e| TrainError::Arrays {
+        path: summary_path.clone(),
+        reason: format!("not a velocity estimate's summary: {e}"),
+    })?;
+    let stale = || TrainError::Arrays {
+        path: path.clone(),
+        reason: format!(
+            "this estimate was fitted to other density grids than frames {} and {t} now hold \
+             (the run was trained again since); run `gausmoke-train velocity --run {}` again",
+            t - 1,
+            run.display()
+        ),
+    };
+    let entry = summary
+        .frames
+        .iter()
+        .find(|f| f.frame == t)
+        .ok_or_else(stale)?;
+    if entry.density_fingerprints != densities.map(density_fingerprint) {
+        return Err(stale());
+    }
+    let [nx, ny, nz] = resolution;
+    let mut arrays = read_arrays(&path)?;
+    Ok(Some(take_array(
+        &mut arrays,
+        "velocity",
+        &[nx, ny, nz, 3],
+        &path,
+    )?))
+}
+
+#[cfg(test)]
+mod tests {
+    use gausmoke_core::glam::Vec3;
+
+    use super::*;
+    use crate::run_folder::{FrameState, RunInfo};
+
+    fn device() -> Device {
+        gausmoke_render::backends::device_by_name("flex").unwrap()
+    }
+
+    /// A run folder (beside the tiny synthetic scene, its data set) whose frames hold a smooth
+    /// blob moving by `shift` (world units) a frame, on a 16^3 grid over the unit box; frame 0
+    /// is at rest.
+    fn moving_blob_run(dir: &Path, shift: Vec3, frames: usize) -> (RunFolder, TrainConfig) {
+        let data = dir.join("data");
+        gausmoke_data::synth::generate(&gausmoke_data::synth::SynthConfig::tiny(), &data).unwrap();
+        let folder = RunFolder::at(&dir.join("run"));
+        folder.create().unwrap();
+        let config = TrainConfig {
+            grid_resolution: 16,
+            ..TrainConfig::default()
+        };
+        folder.write_config(&config).unwrap();
+        let (lo, hi) = ([0.0; 3], [1.0; 3]);
+        folder
+            .write_run_info(&RunInfo {
+                data,
+                data_fingerprint: None,
+                frames,
+                grid_resolution: [16; 3],
+                box_lo: lo,
+                box_hi: hi,
+                device: "none".into(),
+                version: "test".into(),
+            })
+            .unwrap();
+        let grid = config.grid(lo.into(), hi.into()).unwrap();
+        for t in 0..frames {
+            let centre = Vec3::new(0.4, 0.35, 0.45) + shift * t as f32;
+            let density = grid
+                .cell_centres()
+                .chunks(3)
+                .map(|p| (-(Vec3::from_slice(p) - centre).length_squared() / 0.02).exp())
+                .collect();
+            let state = FrameState {
+                gaussians: Default::default(),
+                statics: None,
+                velocity: vec![0.0; 3 * grid.num_cells()],
+                density,
+            };
+            folder.write_frame_state(t, &grid, &state).unwrap();
+        }
+        (folder, config)
+    }
+
+    /// A blob moving a known distance each frame: the estimate, read back through the files
+    /// eval reads, is that distance per frame in world units inside the smoke, one-sided or
+    /// two-sided, and an estimate of densities that have changed since is refused.
+    #[test]
+    fn the_estimate_is_the_blobs_motion_and_a_stale_one_is_refused() {
+        blob_estimate(false);
+        blob_estimate(true);
+    }
+
+    fn blob_estimate(two_sided: bool) {
+        let dir = tempfile::tempdir().unwrap();
+        let shift = Vec3::new(0.05, 0.07, -0.03);
+        let (folder, config) = moving_blob_run(dir.path(), shift, 3);
+        let run = folder.root();
+        let mut reported = Vec::new();
+        let options = EstimateOptions {
+            two_sided,
+            ..EstimateOptions::default()
+        };
+        let summary =
+            estimate_run_velocity(run, &options, &device(), |d, n| reported.push((d, n))).unwrap();
+        if two_sided {
+            assert_eq!(reported, [(1, 4), (2, 4), (3, 4), (4, 4)]);
+            let arrays = read_arrays(&estimate_path(run, 1)).unwrap();
+            assert!(arrays.contains_key("velocity_forward"));
+            assert!(arrays.contains_key("velocity_backward"));
+            assert!(
+                summary
+                    .frames
+                    .iter()
+                    .all(|f| f.backward_misfit_fitted.unwrap() < 0.2)
+            );
+        } else {
+            assert_eq!(reported, [(1, 2), (2, 2)]);
+            assert!(
+                summary
+                    .frames
+                    .iter()
+                    .all(|f| f.backward_misfit_fitted.is_none())
+            );
+        }
+        assert_eq!(summary.frames.len(), 2);
+        let grid = config.grid(Vec3::ZERO, Vec3::ONE).unwrap();
+        let state = |t| folder.read_frame_state(t, &grid).unwrap().unwrap().density;
+        for t in 1..3 {
+            let (before, after) = (state(t - 1), state(t));
+            let estimate = read_estimate(run, t, grid.resolution(), [&before, &after])
+                .unwrap()
+                .expect("an estimate for frame t");
+            let (mut error, mut norm) = (0.0f64, 0.0f64);
+            for (cell, &rho) in after.iter().enumerate() {
+                if rho > 0.3 {
+                    for a in 0..3 {
+                        error += f64::from(estimate[3 * cell + a] - shift[a]).powi(2);
+                        norm += f64::from(shift[a]).powi(2);
+                    }
+                }
+            }
+            let relative = (error / norm).sqrt();
+            assert!(
+                relative < 0.15,
+                "frame {t}, two-sided {two_sided}: relative error {relative}"
+            );
+            assert!(summary.frames[t - 1].misfit_fitted < 0.2);
+        }
+        // Frame 0 has no estimate (its velocity is zero by construction).
+        let zero = state(0);
+        assert!(
+            read_estimate(run, 0, grid.resolution(), [&zero, &zero])
+                .unwrap()
+                .is_none()
+        );
+        // Frame 2 trained again: its estimate no longer belongs to the run; frame 1's still does.
+        let mut changed = state(2);
+        changed[100] += 0.5;
+        let error = read_estimate(run, 2, grid.resolution(), [&state(1), &changed])
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("trained again"), "{error}");
+        assert!(
+            read_estimate(run, 1, grid.resolution(), [&zero, &state(1)])
+                .unwrap()
+                .is_some()
+        );
+    }
+
+    /// Settings outside their range and a run with one frame are refused by name.
+    #[test]
+    fn bad_settings_and_a_one_frame_run_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let (folder, _) = moving_blob_run(dir.path(), Vec3::ZERO, 1);
+        let run = folder.root();
+        let bad = EstimateOptions {
+            inertia: -1.0,
+            ..EstimateOptions::default()
+        };
+        let error = estimate_run_velocity(run, &bad, &device(), |_, _| {})
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("--inertia"), "{error}");
+        let error = estimate_run_velocity(run, &EstimateOptions::default(), &device(), |_, _| {})
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("a velocity needs two"), "{error}");
+        let empty = tempfile::tempdir().unwrap();
+        let error = estimate_run_velocity(
+            empty.path(),
+            &EstimateOptions::default(),
+            &device(),
+            |_, _| {},
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(error.contains("not a GauSmoke run"), "{error}");
+    }
+}
