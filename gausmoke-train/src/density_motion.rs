@@ -177,24 +177,13 @@ impl MotionGrid {
     /// from one frame to the next: each cell takes the move found at its departure point,
     /// clamped to the outermost cell centres.
     pub(crate) fn self_carried(&self, moves: &[f64]) -> Vec<f64> {
-        self.carried_along(moves, 1.0)
-    }
-
-    /// `moves` of one frame carried back to the frame before, along themselves: each cell
-    /// takes the move found where its own move leads.
-    pub(crate) fn self_carried_back(&self, moves: &[f64]) -> Vec<f64> {
-        self.carried_along(moves, -1.0)
-    }
-
-    fn carried_along(&self, moves: &[f64], direction: f64) -> Vec<f64> {
         let mut out = vec![0.0; moves.len()];
         for cell in 0..self.cells() {
             let at = self.coordinates(cell);
             let mut departure = [0.0; 3];
             for axis in 0..3 {
                 let n = self.resolution[axis] as f64;
-                departure[axis] =
-                    (at[axis] as f64 - direction * moves[3 * cell + axis]).clamp(0.0, n - 1.0);
+                departure[axis] = (at[axis] as f64 - moves[3 * cell + axis]).clamp(0.0, n - 1.0);
             }
             self.sample(moves, 3, departure, &mut out[3 * cell..3 * cell + 3]);
         }
@@ -660,7 +649,7 @@ mod tests {
 
     /// A velocity carried along itself: a uniform field stays as it is (inside and where the
     /// departure points are clamped at the walls), and a field that varies along x takes, at
-    /// each cell, the value from where its own move came from (forward) or leads (back).
+    /// each cell, the value from where its own move came from.
     #[test]
     fn a_velocity_carried_along_itself() {
         let grid = grid(6, WALLS);
@@ -681,9 +670,6 @@ mod tests {
         let departure = 3.0 - 0.8;
         assert!((carried[3 * cell] - (0.5 + 0.1 * departure)).abs() < 1e-12);
         assert_eq!(&carried[3 * cell + 1..3 * cell + 3], &[0.0, 0.0]);
-        // Carried back, the cell takes u_x where its move leads: x + u_x(x).
-        let back = grid.self_carried_back(&ramp);
-        assert!((back[3 * cell] - (0.5 + 0.1 * (3.0 + 0.8))).abs() < 1e-12);
     }
 
     /// With no smoke in frame t there is nothing to fit: the prior comes back.

@@ -65,9 +65,6 @@ enum Command {
         /// Weight of its tie to the frame before's estimate carried along itself.
         #[arg(long, default_value_t = EstimateOptions::default().inertia)]
         inertia: f64,
-        /// Also track the frames backwards and take the mean of both chains (twice the time).
-        #[arg(long)]
-        two_sided: bool,
         /// No progress bar.
         #[arg(long)]
         quiet: bool,
@@ -261,7 +258,6 @@ fn run_command(cli: Cli) -> Result<()> {
             smoothness,
             divergence,
             inertia,
-            two_sided,
             quiet,
             device,
         }) => {
@@ -269,7 +265,6 @@ fn run_command(cli: Cli) -> Result<()> {
                 smoothness,
                 divergence,
                 inertia,
-                two_sided,
             };
             let device = backends::device_by_name(&device).map_err(anyhow::Error::msg)?;
             estimate_velocity(&run, &options, &device, quiet)
@@ -598,8 +593,8 @@ fn estimate_velocity(
         summary.frames.iter().map(f).sum::<f64>() / summary.frames.len() as f64
     };
     println!(
-        "{} frames in {:.1} s; misfit (relative to no motion) {:.3} carried, {:.3} fitted \
-         (forward chain); {kept} frame(s) kept the carried estimate",
+        "{} frames in {:.1} s; misfit (relative to no motion) {:.3} carried, {:.3} fitted; \
+         {kept} frame(s) kept the carried estimate",
         summary.frames.len(),
         start.elapsed().as_secs_f64(),
         mean(|f| f.misfit_prior),

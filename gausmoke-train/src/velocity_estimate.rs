@@ -2,9 +2,7 @@
 //! velocity --run DIR`, ours): for each frame t, the velocity whose semi-Lagrangian step
 //! carries frame t-1's density grid onto frame t's ([`crate::density_motion`]), tracked
 //! through the frames: frame t's fit starts from, and is tied to, frame t-1's estimate carried
-//! along itself. Frame 1 starts from no motion, untied. With `two_sided` a second chain runs
-//! backwards from the last frame (each fit tied to the next frame's estimate carried back
-//! along itself) and the estimate is the mean of the two.
+//! along itself. Frame 1 starts from no motion, untied.
 //!
 //! The run's own velocity is what carried its Gaussians; it is left as it is. On the long
 //! plume this estimate, read off the same run's densities, is truer than the run's velocity,
@@ -13,8 +11,7 @@
 //! `gausmoke-train eval` scores it against a synthetic scene's ground truth next to the run's.
 //!
 //! Written to `RUN/velocity_estimate/`: `frame_TTT.safetensors` (`velocity`, `[nx, ny, nz,
-//! 3]`, world units per frame as the frame files keep theirs; with `two_sided` also
-//! `velocity_forward` and `velocity_backward`, the two chains) and `estimate.json` (the
+//! 3]`, world units per frame as the frame files keep theirs) and `estimate.json` (the
 //! settings, and per frame the fit's misfits and a fingerprint of the two densities it was
 //! fitted to, so that an estimate of a run trained again is not read as this one's).
 
@@ -27,7 +24,7 @@ use gausmoke_render::device_traffic::read_floats;
 use serde::{Deserialize, Serialize};
 
 use crate::arrays::{HostArrays, read_arrays, take_array, write_arrays};
-use crate::density_motion::{MotionFit, MotionGrid, MotionPriors, fit_density_motion};
+use crate::density_motion::{MotionGrid, MotionPriors, fit_density_motion};
 use crate::hash::Fnv1a;
 use crate::respawn::{SpawnLattice, in_region};
 use crate::run_folder::RunFolder;
@@ -54,11 +51,6 @@ pub struct EstimateOptions {
     pub smoothness: f64,
     pub divergence: f64,
     pub inertia: f64,
-    /// Also track the frames backwards (each fit tied to the next frame's estimate carried
-    /// back along itself) and take the mean of the two chains: each frame's estimate then
-    /// draws on the frames after it as well as those before.
-    #[serde(default)]
-    pub two_sided: bool,
 }
 
 impl Default for EstimateOptions {
@@ -69,7 +61,6 @@ impl Default for EstimateOptions {
             smoothness: 0.001,
             divergence: 1000.0,
             inertia: 0.01,
-            two_sided: false,
         }
     }
 }
@@ -92,7 +83,7 @@ impl EstimateOptions {
     }
 }
 
-/// One frame's fit (the forward chain's).
+/// One frame's fit.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FrameEstimate {
     pub frame: usize,
@@ -102,10 +93,6 @@ pub struct FrameEstimate {
     pub misfit_fitted: f64,
     /// Whether the fit ended worse than its start, which was kept.
     pub kept_start: bool,
-    /// With `two_sided`, the backward chain's misfit (the mean of the two chains is not a fit
-    /// of its own).
-    #[serde(default)]
-    pub backward_misfit_fitted: Option<f64>,
     /// Fingerprints of frames t-1 and t's density grids as fitted.
     pub density_fingerprints: [String; 2],
     pub seconds: f64,
@@ -199,103 +186,57 @@ pub fn estimate_run_velocity(
         source,
     })?;
     let [nx, ny, nz] = grid.resolution();
-    let frame_count = densities.len();
-    let sides = if options.two_sided { 2 } else { 1 };
-    let total = sides * (frame_count - 1);
-    let mut done = 0;
-    // One chain of fits through the frames in `order`, each tied to the one before it carried
-    // to its frame by `carry`.
-    let mut track = |order: Vec<usize>, carry: &dyn Fn(&[f64]) -> Vec<f64>| {
-        let mut fits: Vec<Option<(MotionFit, f64)>> = vec![None; frame_count];
-        let mut previous: Option<Vec<f64>> = None;
-        for t in order {
-            let start = Instant::now();
-            let (prior, inertia) = match &previous {
-                Some(moves) => (carry(moves), options.inertia),
-                None => (vec![0.0; 3 * motion_grid.cells()], 0.0),
-            };
-            let priors = MotionPriors {
-                smoothness: options.smoothness,
-                divergence: options.divergence,
-                inertia,
-            };
-            let fit = fit_density_motion(
-                &motion_grid,
-                &densities[t - 1],
-                &densities[t],
-                &in_data,
-                &prior,
-                priors,
-                CG_ITERATIONS,
-            );
-            tracing::info!(
-                frame = t,
-                misfit_prior = format!("{:.3}", fit.misfit_prior),
-                misfit_fitted = format!("{:.3}", fit.misfit_fitted),
-                kept_start = fit.kept_start,
-                "velocity estimated"
-            );
-            previous = Some(fit.moves.clone());
-            fits[t] = Some((fit, start.elapsed().as_secs_f64()));
-            done += 1;
-            on_frame(done, total);
-        }
-        fits
-    };
-    let forward = track((1..frame_count).collect(), &|m| motion_grid.self_carried(m));
-    let backward = options.two_sided.then(|| {
-        track((1..frame_count).rev().collect(), &|m| {
-            motion_grid.self_carried_back(m)
-        })
-    });
-    let velocity_of = |moves: &[f64]| -> Vec<f32> {
-        let world: Vec<f32> = moves
+    let total = densities.len() - 1;
+    let mut frames = Vec::new();
+    let mut previous: Option<Vec<f64>> = None;
+    for t in 1..densities.len() {
+        let start = Instant::now();
+        let (prior, inertia) = match &previous {
+            Some(moves) => (motion_grid.self_carried(moves), options.inertia),
+            None => (vec![0.0; 3 * motion_grid.cells()], 0.0),
+        };
+        let priors = MotionPriors {
+            smoothness: options.smoothness,
+            divergence: options.divergence,
+            inertia,
+        };
+        let fit = fit_density_motion(
+            &motion_grid,
+            &densities[t - 1],
+            &densities[t],
+            &in_data,
+            &prior,
+            priors,
+            CG_ITERATIONS,
+        );
+        let world: Vec<f32> = fit
+            .moves
             .iter()
             .enumerate()
             .map(|(i, &m)| (m * cell[i % 3] / dt) as f32)
             .collect();
         let world = Tensor::from_data(TensorData::new(world, [nx, ny, nz, 3]), device);
-        read_floats(project_velocity(&grid, world, projection.clone()))
-    };
-    let mut frames = Vec::new();
-    for t in 1..frame_count {
-        let (ahead, ahead_seconds) = forward[t].as_ref().expect("every frame fitted");
-        let behind = backward
-            .as_ref()
-            .map(|fits| fits[t].as_ref().expect("every frame fitted"));
-        let shape = vec![nx, ny, nz, 3];
+        let velocity = read_floats(project_velocity(&grid, world, projection.clone()));
         let mut arrays = HostArrays::new();
-        let velocity = match behind {
-            None => velocity_of(&ahead.moves),
-            Some((behind, _)) => {
-                let mean: Vec<f64> = ahead
-                    .moves
-                    .iter()
-                    .zip(&behind.moves)
-                    .map(|(a, b)| 0.5 * (a + b))
-                    .collect();
-                arrays.insert(
-                    "velocity_forward".into(),
-                    (shape.clone(), velocity_of(&ahead.moves)),
-                );
-                arrays.insert(
-                    "velocity_backward".into(),
-                    (shape.clone(), velocity_of(&behind.moves)),
-                );
-                velocity_of(&mean)
-            }
-        };
-        arrays.insert("velocity".into(), (shape, velocity));
+        arrays.insert("velocity".into(), (vec![nx, ny, nz, 3], velocity));
         write_arrays(&estimate_path(run, t), &arrays)?;
+        tracing::info!(
+            frame = t,
+            misfit_prior = format!("{:.3}", fit.misfit_prior),
+            misfit_fitted = format!("{:.3}", fit.misfit_fitted),
+            kept_start = fit.kept_start,
+            "velocity estimated"
+        );
         frames.push(FrameEstimate {
             frame: t,
-            misfit_prior: ahead.misfit_prior,
-            misfit_fitted: ahead.misfit_fitted,
-            kept_start: ahead.kept_start,
-            backward_misfit_fitted: behind.map(|(fit, _)| fit.misfit_fitted),
+            misfit_prior: fit.misfit_prior,
+            misfit_fitted: fit.misfit_fitted,
+            kept_start: fit.kept_start,
             density_fingerprints: [fingerprints[t - 1].clone(), fingerprints[t].clone()],
-            seconds: ahead_seconds + behind.map_or(0.0, |(_, seconds)| *seconds),
+            seconds: start.elapsed().as_secs_f64(),
         });
+        previous = Some(fit.moves);
+        on_frame(t, total);
     }
     let summary = EstimateSummary {
         options: *options,
@@ -414,46 +355,20 @@ mod tests {
     }
 
     /// A blob moving a known distance each frame: the estimate, read back through the files
-    /// eval reads, is that distance per frame in world units inside the smoke, one-sided or
-    /// two-sided, and an estimate of densities that have changed since is refused.
+    /// eval reads, is that distance per frame in world units inside the smoke, and an
+    /// estimate of densities that have changed since is refused.
     #[test]
     fn the_estimate_is_the_blobs_motion_and_a_stale_one_is_refused() {
-        blob_estimate(false);
-        blob_estimate(true);
-    }
-
-    fn blob_estimate(two_sided: bool) {
         let dir = tempfile::tempdir().unwrap();
         let shift = Vec3::new(0.05, 0.07, -0.03);
         let (folder, config) = moving_blob_run(dir.path(), shift, 3);
         let run = folder.root();
         let mut reported = Vec::new();
-        let options = EstimateOptions {
-            two_sided,
-            ..EstimateOptions::default()
-        };
-        let summary =
-            estimate_run_velocity(run, &options, &device(), |d, n| reported.push((d, n))).unwrap();
-        if two_sided {
-            assert_eq!(reported, [(1, 4), (2, 4), (3, 4), (4, 4)]);
-            let arrays = read_arrays(&estimate_path(run, 1)).unwrap();
-            assert!(arrays.contains_key("velocity_forward"));
-            assert!(arrays.contains_key("velocity_backward"));
-            assert!(
-                summary
-                    .frames
-                    .iter()
-                    .all(|f| f.backward_misfit_fitted.unwrap() < 0.2)
-            );
-        } else {
-            assert_eq!(reported, [(1, 2), (2, 2)]);
-            assert!(
-                summary
-                    .frames
-                    .iter()
-                    .all(|f| f.backward_misfit_fitted.is_none())
-            );
-        }
+        let summary = estimate_run_velocity(run, &EstimateOptions::default(), &device(), |d, n| {
+            reported.push((d, n))
+        })
+        .unwrap();
+        assert_eq!(reported, [(1, 2), (2, 2)]);
         assert_eq!(summary.frames.len(), 2);
         let grid = config.grid(Vec3::ZERO, Vec3::ONE).unwrap();
         let state = |t| folder.read_frame_state(t, &grid).unwrap().unwrap().density;
@@ -472,10 +387,7 @@ mod tests {
                 }
             }
             let relative = (error / norm).sqrt();
-            assert!(
-                relative < 0.15,
-                "frame {t}, two-sided {two_sided}: relative error {relative}"
-            );
+            assert!(relative < 0.15, "frame {t}: relative error {relative}");
             assert!(summary.frames[t - 1].misfit_fitted < 0.2);
         }
         // Frame 0 has no estimate (its velocity is zero by construction).
