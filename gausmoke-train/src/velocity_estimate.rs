@@ -25,6 +25,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::arrays::{HostArrays, read_arrays, take_array, write_arrays};
 use crate::density_motion::{MotionGrid, MotionPriors, fit_density_motion};
+use crate::export::write_atomic;
 use crate::hash::Fnv1a;
 use crate::respawn::{SpawnLattice, in_region};
 use crate::run_folder::RunFolder;
@@ -185,6 +186,15 @@ pub fn estimate_run_velocity(
         path: dir.clone(),
         source,
     })?;
+    // Without its summary no frame file is read, so an estimate stopped part way is not
+    // taken for the one before it.
+    let summary_path = dir.join("estimate.json");
+    if summary_path.is_file() {
+        std::fs::remove_file(&summary_path).map_err(|source| TrainError::Io {
+            path: summary_path.clone(),
+            source,
+        })?;
+    }
     let [nx, ny, nz] = grid.resolution();
     let total = densities.len() - 1;
     let mut frames = Vec::new();
@@ -243,9 +253,8 @@ pub fn estimate_run_velocity(
         inflow_cells: in_data.iter().filter(|&&inside| !inside).count(),
         frames,
     };
-    let path = dir.join("estimate.json");
     let text = serde_json::to_string_pretty(&summary).expect("the summary serialises");
-    std::fs::write(&path, text).map_err(|source| TrainError::Io { path, source })?;
+    write_atomic(&summary_path, text.as_bytes())?;
     Ok(summary)
 }
 

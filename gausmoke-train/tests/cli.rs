@@ -1,4 +1,4 @@
-//! The binary's `render`, `synth`, `inspect` and data-less `train` commands: renders the built-in scene to PNG files of the requested size, writes synthetic scenes at another size,
+//! The binary's `render`, `synth`, `inspect`, `velocity` and data-less `train` commands: renders the built-in scene to PNG files of the requested size, writes synthetic scenes at another size,
 //! reports a bad `--device` plainly.
 
 use std::process::Command;
@@ -199,4 +199,26 @@ fn train_without_data_says_so_and_keeps_the_scene_beside_the_run() {
     );
     assert!(dir.path().join("run-synthetic-data/info.json").is_file());
     assert!(run.join("frames/frame_000.safetensors").is_file());
+}
+
+#[test]
+fn velocity_of_a_folder_that_is_not_a_run_is_refused_plainly() {
+    let dir = tempfile::tempdir().unwrap();
+    let result = binary()
+        .args(["velocity", "--quiet", "--run"])
+        .arg(dir.path())
+        .output()
+        .expect("binary runs");
+    assert!(!result.status.success());
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    assert!(stderr.contains("not a GauSmoke run"), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    let result = binary()
+        .args(["velocity", "--inertia=-1", "--run"])
+        .arg(dir.path())
+        .output()
+        .expect("binary runs");
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    assert!(!result.status.success());
+    assert!(stderr.contains("--inertia"), "{stderr}");
 }
