@@ -24,7 +24,8 @@
 //! velocity at frames 18 and 36. The pictures only ever see how the density moves; this asks
 //! the velocity to explain that motion on the grid, where the joint iterations fit it through
 //! the Gaussians' centres. In the trainer it makes the plume's velocity truer and costs the
-//! held-out view about 2 dB and the 3D density (docs/RESULTS.md, "Why we fall short", item 1).
+//! held-out view about 2 dB and the 3D density (docs/RESULTS.md, "Why we fall short", item 1);
+//! after training, as an output beside the run's velocity, it is [`crate::velocity_estimate`].
 
 use gausmoke_model::OpenFaces;
 use gausmoke_model::projection::Divergence;

@@ -52,11 +52,11 @@ pub struct FrameEval {
     /// `RUN/velocity_estimate/`), when there is one: its mean |div| and, against ground
     /// truth, its relative error and cosine, measured as the run's own velocity's are.
     #[serde(default)]
-    pub estimate_mean_abs_divergence: Option<f64>,
+    pub velocity_estimate_mean_abs_divergence: Option<f64>,
     #[serde(default)]
-    pub estimate_velocity_relative_error: Option<f64>,
+    pub velocity_estimate_relative_error: Option<f64>,
     #[serde(default)]
-    pub estimate_velocity_cosine: Option<f64>,
+    pub velocity_estimate_cosine: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -74,9 +74,9 @@ pub struct EvalReport {
     #[serde(default)]
     pub obstacle_normal_flow_mean: Option<f64>,
     #[serde(default)]
-    pub estimate_velocity_relative_error_mean: Option<f64>,
+    pub velocity_estimate_relative_error_mean: Option<f64>,
     #[serde(default)]
-    pub estimate_velocity_cosine_mean: Option<f64>,
+    pub velocity_estimate_cosine_mean: Option<f64>,
     pub test_lpips_mean: Option<f64>,
     /// Where the LPIPS weights came from, or why LPIPS is absent.
     pub lpips: String,
@@ -330,11 +330,11 @@ pub fn evaluate(
             obstacle_density_fraction: leakage.map(|(fraction, _)| fraction),
             // u^0 is zero by construction.
             obstacle_normal_flow: leakage.filter(|_| t > 0).map(|(_, normal)| normal),
-            estimate_mean_abs_divergence: estimate.as_ref().map(|estimated| {
+            velocity_estimate_mean_abs_divergence: estimate.as_ref().map(|estimated| {
                 metrics::mean_abs_divergence(&grid, open_faces, solids.as_ref(), estimated)
             }),
-            estimate_velocity_relative_error: estimate_truth.map(|e| e.velocity_relative_error),
-            estimate_velocity_cosine: estimate_truth.map(|e| e.velocity_cosine),
+            velocity_estimate_relative_error: estimate_truth.map(|e| e.velocity_relative_error),
+            velocity_estimate_cosine: estimate_truth.map(|e| e.velocity_cosine),
         });
         previous_density = Some(state.density);
     }
@@ -355,10 +355,10 @@ pub fn evaluate(
         density_correlation_mean: mean(frames.iter().map(|f| f.density_correlation)),
         obstacle_density_fraction_mean: mean(frames.iter().map(|f| f.obstacle_density_fraction)),
         obstacle_normal_flow_mean: mean(frames.iter().map(|f| f.obstacle_normal_flow)),
-        estimate_velocity_relative_error_mean: mean(
-            frames.iter().map(|f| f.estimate_velocity_relative_error),
+        velocity_estimate_relative_error_mean: mean(
+            frames.iter().map(|f| f.velocity_estimate_relative_error),
         ),
-        estimate_velocity_cosine_mean: mean(frames.iter().map(|f| f.estimate_velocity_cosine)),
+        velocity_estimate_cosine_mean: mean(frames.iter().map(|f| f.velocity_estimate_cosine)),
         test_lpips_mean: mean(frames.iter().map(|f| f.test_lpips)),
         lpips: match lpips_weights {
             Some(path) => format!("AlexNet LPIPS v0.1, weights from {}", path.display()),

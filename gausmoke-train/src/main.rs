@@ -295,14 +295,14 @@ fn run_command(cli: Cli) -> Result<()> {
                 "density correlation  {}",
                 show(report.density_correlation_mean)
             );
-            if report.estimate_velocity_relative_error_mean.is_some() {
+            if report.velocity_estimate_relative_error_mean.is_some() {
                 println!(
                     "estimate rel. error  {} (velocity_estimate/)",
-                    show(report.estimate_velocity_relative_error_mean)
+                    show(report.velocity_estimate_relative_error_mean)
                 );
                 println!(
                     "estimate cosine      {}",
-                    show(report.estimate_velocity_cosine_mean)
+                    show(report.velocity_estimate_cosine_mean)
                 );
             }
             println!("held-out LPIPS       {}", show(report.test_lpips_mean));

@@ -230,7 +230,7 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
         report
             .frames
             .iter()
-            .all(|f| f.estimate_velocity_relative_error.is_none())
+            .all(|f| f.velocity_estimate_relative_error.is_none())
     );
 
     // The velocity estimated from the run's densities (the CLI), scored beside the run's own.
@@ -247,17 +247,17 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
     );
     assert!(stdout.contains("3 frames"), "{stdout}");
     let report = eval::evaluate(&run, &device_by_name("flex").unwrap(), None).unwrap();
-    assert!(report.frames[0].estimate_velocity_relative_error.is_none());
+    assert!(report.frames[0].velocity_estimate_relative_error.is_none());
     for frame in &report.frames[1..] {
-        let error = frame.estimate_velocity_relative_error.unwrap();
-        let divergence = frame.estimate_mean_abs_divergence.unwrap();
+        let error = frame.velocity_estimate_relative_error.unwrap();
+        let divergence = frame.velocity_estimate_mean_abs_divergence.unwrap();
         eprintln!(
             "frame {}: estimate error {error:.3}, mean |div| {divergence:.2e}",
             frame.frame
         );
-        assert!(error.is_finite() && frame.estimate_velocity_cosine.unwrap().is_finite());
+        assert!(error.is_finite() && frame.velocity_estimate_cosine.unwrap().is_finite());
     }
-    assert!(report.estimate_velocity_relative_error_mean.is_some());
+    assert!(report.velocity_estimate_relative_error_mean.is_some());
     // A frame trained again leaves the estimate stale: eval refuses it rather than score it.
     let folder = gausmoke_train::RunFolder::at(&run);
     let info = folder.read_run_info().unwrap();

@@ -883,13 +883,13 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             "velocity_cosine_per_frame": per_frame(|f| f.velocity_cosine),
             "density_relative_error_per_frame": per_frame(|f| f.density_relative_error),
             "density_correlation_per_frame": per_frame(|f| f.density_correlation),
-            "velocity_estimate_relative_error": report.estimate_velocity_relative_error_mean,
-            "velocity_estimate_cosine": report.estimate_velocity_cosine_mean,
+            "velocity_estimate_relative_error": report.velocity_estimate_relative_error_mean,
+            "velocity_estimate_cosine": report.velocity_estimate_cosine_mean,
             "velocity_estimate_relative_error_per_frame":
-                per_frame(|f| f.estimate_velocity_relative_error),
-            "velocity_estimate_cosine_per_frame": per_frame(|f| f.estimate_velocity_cosine),
+                per_frame(|f| f.velocity_estimate_relative_error),
+            "velocity_estimate_cosine_per_frame": per_frame(|f| f.velocity_estimate_cosine),
             "velocity_estimate_mean_abs_divergence_per_frame":
-                per_frame(|f| f.estimate_mean_abs_divergence),
+                per_frame(|f| f.velocity_estimate_mean_abs_divergence),
             "velocity_estimate_seconds": estimate_seconds,
             "obstacle_density_fraction": report.obstacle_density_fraction_mean,
             "obstacle_normal_flow": report.obstacle_normal_flow_mean,
