@@ -60,6 +60,25 @@ pub(crate) struct MotionGrid {
     pub open: OpenFaces,
 }
 
+/// Moves per step in cells (`[cells, 3]`) as a velocity in world units per time unit, for
+/// cells of size `cell` (per axis) and a step of `dt`.
+pub(crate) fn velocity_of_moves(moves: &[f64], cell: [f64; 3], dt: f64) -> Vec<f32> {
+    moves
+        .iter()
+        .enumerate()
+        .map(|(i, &m)| (m * cell[i % 3] / dt) as f32)
+        .collect()
+}
+
+/// The inverse of [`velocity_of_moves`].
+pub(crate) fn moves_of_velocity(velocity: &[f32], cell: [f64; 3], dt: f64) -> Vec<f64> {
+    velocity
+        .iter()
+        .enumerate()
+        .map(|(i, &u)| f64::from(u) * dt / cell[i % 3])
+        .collect()
+}
+
 /// What the fit found.
 #[derive(Debug, Clone)]
 pub(crate) struct MotionFit {

@@ -61,7 +61,9 @@ use crate::config::{
     IntegratorKind, InterpolationKind, LookaheadVelocity, Obstacles, OptimizerReset,
     ProjectionKind, TrainConfig,
 };
-use crate::density_motion::{MotionGrid, MotionPriors, fit_density_motion};
+use crate::density_motion::{
+    MotionGrid, MotionPriors, fit_density_motion, moves_of_velocity, velocity_of_moves,
+};
 use crate::emission::{EmissionOptions, EmissionReport, emit};
 use crate::held_out_trace::{HeldOutTrace, Stage, TracePoint};
 use crate::held_view::{
@@ -2052,11 +2054,7 @@ impl Trainer {
         let after = self.density_host();
         let dt = self.config.dt as f64;
         let cell = self.grid.cell_size().to_array().map(f64::from);
-        let prior_moves: Vec<f64> = read_floats(prior.detach())
-            .iter()
-            .enumerate()
-            .map(|(i, &u)| u as f64 * dt / cell[i % 3])
-            .collect();
+        let prior_moves = moves_of_velocity(&read_floats(prior.detach()), cell, dt);
         let inflow = self
             .config
             .respawn_region
@@ -2095,12 +2093,7 @@ impl Trainer {
             kept_start = fit.kept_start,
             "velocity from density motion"
         );
-        let velocity: Vec<f32> = fit
-            .moves
-            .iter()
-            .enumerate()
-            .map(|(i, &m)| (m * cell[i % 3] / dt) as f32)
-            .collect();
+        let velocity = velocity_of_moves(&fit.moves, cell, dt);
         let [nx, ny, nz] = self.grid.resolution();
         let unprojected =
             Tensor::from_data(TensorData::new(velocity, [nx, ny, nz, 3]), &self.device);
