@@ -527,9 +527,9 @@ pub struct TrainConfig {
     /// the refined ones (ours, the `density_motion` module; `false` = the paper's method, where
     /// the velocity is what the joint iterations fitted through the Gaussians' centres). The
     /// fit starts from, and is tied to, `density_motion_prior` (by default the previous
-    /// frame's velocity carried along itself); cells in the inflow box (`respawn_region`) are left out of its data term. The result
-    /// is projected by `Pi` (which also holds solid obstacles; the fit itself does not model
-    /// them). Phi is not changed. On the long plume it makes the velocity truer and costs
+    /// frame's velocity carried along itself); cells in the inflow box (`respawn_region`) are
+    /// left out of its data term. The result is projected by `Pi` (which also holds solid
+    /// obstacles; the fit itself does not model them). Phi is not changed. On the long plume it makes the velocity truer and costs
     /// the pictures and the 3D density (docs/RESULTS.md, "Why we fall short", item 1).
     pub velocity_from_density_motion: bool,
     /// Weight of that fit's smoothness prior (`|grad u|^2`, u in cells per step, densities

@@ -27,10 +27,11 @@
 //! held-out view about 2 dB and the 3D density (docs/RESULTS.md, "Why we fall short", item 1);
 //! after training, as an output beside the run's velocity, it is [`crate::velocity_estimate`].
 
-use gausmoke_model::OpenFaces;
 use gausmoke_model::projection::Divergence;
+use gausmoke_model::{GridSpec, OpenFaces};
 
 use crate::host_grid::smoothed;
+use crate::respawn::{SpawnLattice, in_region};
 
 /// Width (cells) of the Gaussian smoothing of both densities at each Gauss-Newton pass.
 const SMOOTHING_PASSES: [f32; 10] = [2.0, 2.0, 1.0, 1.0, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0];
@@ -58,6 +59,18 @@ pub(crate) struct MotionPriors {
 pub(crate) struct MotionGrid {
     pub resolution: [usize; 3],
     pub open: OpenFaces,
+}
+
+/// The cells whose density the fit asks transport to explain: all but those in the inflow box
+/// `respawn_region` (fractions of `grid`'s box), where a source sets the density.
+pub(crate) fn transport_cells(grid: &GridSpec, respawn_region: Option<[f32; 6]>) -> Vec<bool> {
+    let lattice = SpawnLattice {
+        lo: grid.lo(),
+        hi: grid.hi(),
+        resolution: grid.resolution(),
+    };
+    let inflow = respawn_region.map(|fractions| lattice.region_from_fractions(fractions));
+    grid.cells_where(|p| inflow.is_none_or(|region| !in_region(region, p)))
 }
 
 /// Moves per step in cells (`[cells, 3]`) as a velocity in world units per time unit, for

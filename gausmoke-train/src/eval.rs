@@ -263,20 +263,18 @@ pub fn evaluate(
         burn::tensor::TensorData::new(scene.background.to_vec(), [3]),
         device,
     );
+    let stored_estimate = crate::velocity_estimate::StoredEstimate::open(run)?;
     let mut frames = Vec::new();
     let mut previous_density: Option<Vec<f32>> = None;
     for t in 0..scene.frames() {
         let Some(state) = folder.read_frame_state(t, &grid)? else {
             break;
         };
-        let estimate = match &previous_density {
-            Some(before) => crate::velocity_estimate::read_estimate(
-                run,
-                t,
-                grid.resolution(),
-                [before, &state.density],
-            )?,
-            None => None,
+        let estimate = match (&stored_estimate, &previous_density) {
+            (Some(stored), Some(before)) => {
+                stored.frame(t, grid.resolution(), [before, &state.density])?
+            }
+            _ => None,
         };
         let velocity = &state.velocity;
         let density = &state.density;

@@ -62,7 +62,8 @@ use crate::config::{
     ProjectionKind, TrainConfig,
 };
 use crate::density_motion::{
-    MotionGrid, MotionPriors, fit_density_motion, moves_of_velocity, velocity_of_moves,
+    MotionGrid, MotionPriors, fit_density_motion, moves_of_velocity, transport_cells,
+    velocity_of_moves,
 };
 use crate::emission::{EmissionOptions, EmissionReport, emit};
 use crate::held_out_trace::{HeldOutTrace, Stage, TracePoint};
@@ -73,8 +74,7 @@ use crate::host_grid::smoothed;
 use crate::iterate_mean::IterateMean;
 use crate::residual_blur::{ResidualBlur, coarse_to_fine};
 use crate::respawn::{
-    DeficitView, RespawnOptions, RespawnReport, SpawnLattice, in_region, recycling_candidates,
-    respawn,
+    DeficitView, RespawnOptions, RespawnReport, SpawnLattice, recycling_candidates, respawn,
 };
 use crate::run_folder::read_frame_gaussians;
 use crate::sequence::{Observation, Sequence};
@@ -2055,13 +2055,7 @@ impl Trainer {
         let dt = self.config.dt as f64;
         let cell = self.grid.cell_size().to_array().map(f64::from);
         let prior_moves = moves_of_velocity(&read_floats(prior.detach()), cell, dt);
-        let inflow = self
-            .config
-            .respawn_region
-            .map(|fractions| self.spawn_lattice().region_from_fractions(fractions));
-        let in_data = self
-            .grid
-            .cells_where(|p| inflow.is_none_or(|region| !in_region(region, p)));
+        let in_data = transport_cells(&self.grid, self.config.respawn_region);
         let priors = MotionPriors {
             smoothness: self.config.density_motion_smoothness as f64,
             divergence: self.config.density_motion_divergence as f64,

@@ -24,10 +24,11 @@ use gausmoke_render::device_traffic::read_floats;
 use serde::{Deserialize, Serialize};
 
 use crate::arrays::{HostArrays, read_arrays, take_array, write_arrays};
-use crate::density_motion::{MotionGrid, MotionPriors, fit_density_motion, velocity_of_moves};
+use crate::density_motion::{
+    MotionGrid, MotionPriors, fit_density_motion, transport_cells, velocity_of_moves,
+};
 use crate::export::write_atomic;
 use crate::hash::Fnv1a;
-use crate::respawn::{SpawnLattice, in_region};
 use crate::run_folder::RunFolder;
 use crate::sequence::Sequence;
 use crate::{TrainConfig, TrainError};
@@ -167,17 +168,9 @@ pub fn estimate_run_velocity(
     }
     let motion_grid = MotionGrid {
         resolution: grid.resolution(),
-        open: config.open_faces()?,
+        open: projection.open_faces,
     };
-    let lattice = SpawnLattice {
-        lo: grid.lo(),
-        hi: grid.hi(),
-        resolution: grid.resolution(),
-    };
-    let inflow = config
-        .respawn_region
-        .map(|fractions| lattice.region_from_fractions(fractions));
-    let in_data = grid.cells_where(|p| inflow.is_none_or(|region| !in_region(region, p)));
+    let in_data = transport_cells(&grid, config.respawn_region);
     let dt = f64::from(config.dt);
     let cell = grid.cell_size().to_array().map(f64::from);
     let fingerprints: Vec<String> = densities.iter().map(|d| density_fingerprint(d)).collect();
@@ -254,53 +247,76 @@ pub fn estimate_run_velocity(
     Ok(summary)
 }
 
-/// Frame `t`'s estimated velocity (`[nx, ny, nz, 3]`, world units per frame) when the run has
-/// one fitted to the densities it holds now (`densities` = frames t-1 and t's); `Err` when an
-/// estimate exists but was fitted to other densities (the run was trained again since).
-pub fn read_estimate(
-    run: &Path,
-    t: usize,
-    resolution: [usize; 3],
-    densities: [&[f32]; 2],
-) -> Result<Option<Vec<f32>>, TrainError> {
-    let path = estimate_path(run, t);
-    let summary_path = estimate_dir(run).join("estimate.json");
-    if t == 0 || !path.is_file() || !summary_path.is_file() {
-        return Ok(None);
+/// A run's estimate as written by [`estimate_run_velocity`], its summary read once.
+#[derive(Debug, Clone)]
+pub struct StoredEstimate {
+    run: PathBuf,
+    summary: EstimateSummary,
+}
+
+impl StoredEstimate {
+    /// The run's estimate, `None` when it has none (or one stopped before its summary was
+    /// written).
+    pub fn open(run: &Path) -> Result<Option<Self>, TrainError> {
+        let summary_path = estimate_dir(run).join("estimate.json");
+        if !summary_path.is_file() {
+            return Ok(None);
+        }
+        let text = std::fs::read_to_string(&summary_path).map_err(|source| TrainError::Io {
+            path: summary_path.clone(),
+            source,
+        })?;
+        let summary = serde_json::from_str(&text).map_err(|e| TrainError::Arrays {
+            path: summary_path.clone(),
+            reason: format!("not a velocity estimate's summary: {e}"),
+        })?;
+        Ok(Some(Self {
+            run: run.to_path_buf(),
+            summary,
+        }))
     }
-    let text = std::fs::read_to_string(&summary_path).map_err(|source| TrainError::Io {
-        path: summary_path.clone(),
-        source,
-    })?;
-    let summary: EstimateSummary = serde_json::from_str(&text).map_err(|e| TrainError::Arrays {
-        path: summary_path.clone(),
-        reason: format!("not a velocity estimate's summary: {e}"),
-    })?;
-    let stale = || TrainError::Arrays {
-        path: path.clone(),
-        reason: format!(
-            "this estimate was fitted to other density grids than frames {} and {t} now hold \
-             (the run was trained again since); run `gausmoke-train velocity --run {}` again",
-            t - 1,
-            run.display()
-        ),
-    };
-    let entry = summary
-        .frames
-        .iter()
-        .find(|f| f.frame == t)
-        .ok_or_else(stale)?;
-    if entry.density_fingerprints != densities.map(density_fingerprint) {
-        return Err(stale());
+
+    /// Frame `t`'s estimated velocity (`[nx, ny, nz, 3]`, world units per frame) when it was
+    /// fitted to the densities the run holds now (`densities` = frames t-1 and t's); `Err` when
+    /// it was fitted to other densities (the run was trained again since).
+    pub fn frame(
+        &self,
+        t: usize,
+        resolution: [usize; 3],
+        densities: [&[f32]; 2],
+    ) -> Result<Option<Vec<f32>>, TrainError> {
+        let path = estimate_path(&self.run, t);
+        if t == 0 || !path.is_file() {
+            return Ok(None);
+        }
+        let stale = || TrainError::Arrays {
+            path: path.clone(),
+            reason: format!(
+                "this estimate was fitted to other density grids than frames {} and {t} now \
+                 hold (the run was trained again since); run `gausmoke-train velocity --run {}` \
+                 again",
+                t - 1,
+                self.run.display()
+            ),
+        };
+        let entry = self
+            .summary
+            .frames
+            .iter()
+            .find(|f| f.frame == t)
+            .ok_or_else(stale)?;
+        if entry.density_fingerprints != densities.map(density_fingerprint) {
+            return Err(stale());
+        }
+        let [nx, ny, nz] = resolution;
+        let mut arrays = read_arrays(&path)?;
+        Ok(Some(take_array(
+            &mut arrays,
+            "velocity",
+            &[nx, ny, nz, 3],
+            &path,
+        )?))
     }
-    let [nx, ny, nz] = resolution;
-    let mut arrays = read_arrays(&path)?;
-    Ok(Some(take_array(
-        &mut arrays,
-        "velocity",
-        &[nx, ny, nz, 3],
-        &path,
-    )?))
 }
 
 #[cfg(test)]
@@ -377,9 +393,11 @@ mod tests {
         assert_eq!(summary.frames.len(), 2);
         let grid = config.grid(Vec3::ZERO, Vec3::ONE).unwrap();
         let state = |t| folder.read_frame_state(t, &grid).unwrap().unwrap().density;
+        let stored = StoredEstimate::open(run).unwrap().expect("an estimate");
         for t in 1..3 {
             let (before, after) = (state(t - 1), state(t));
-            let estimate = read_estimate(run, t, grid.resolution(), [&before, &after])
+            let estimate = stored
+                .frame(t, grid.resolution(), [&before, &after])
                 .unwrap()
                 .expect("an estimate for frame t");
             let (mut error, mut norm) = (0.0f64, 0.0f64);
@@ -398,19 +416,22 @@ mod tests {
         // Frame 0 has no estimate (its velocity is zero by construction).
         let zero = state(0);
         assert!(
-            read_estimate(run, 0, grid.resolution(), [&zero, &zero])
+            stored
+                .frame(0, grid.resolution(), [&zero, &zero])
                 .unwrap()
                 .is_none()
         );
         // Frame 2 trained again: its estimate no longer belongs to the run; frame 1's still does.
         let mut changed = state(2);
         changed[100] += 0.5;
-        let error = read_estimate(run, 2, grid.resolution(), [&state(1), &changed])
+        let error = stored
+            .frame(2, grid.resolution(), [&state(1), &changed])
             .unwrap_err()
             .to_string();
         assert!(error.contains("trained again"), "{error}");
         assert!(
-            read_estimate(run, 1, grid.resolution(), [&zero, &state(1)])
+            stored
+                .frame(1, grid.resolution(), [&zero, &state(1)])
                 .unwrap()
                 .is_some()
         );
