@@ -1,5 +1,5 @@
 use std::ops::Range;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use gausmoke_core::glam::{Mat4, Vec3};
 use gausmoke_core::{Camera, Intrinsics};
@@ -24,6 +24,23 @@ pub enum Format {
     DNerf,
     /// nerfstudio `transforms.json`.
     Nerfstudio,
+}
+
+impl Format {
+    /// The format of the data set in the folder `path`, from the file that describes it: PINF
+    /// for `info.json`, D-NeRF for `transforms_train.json`, nerfstudio for `transforms.json`;
+    /// the first that the folder holds, in that order.
+    pub fn detect(path: &Path) -> Option<Self> {
+        if path.join("info.json").is_file() {
+            Some(Self::Pinf)
+        } else if path.join("transforms_train.json").is_file() {
+            Some(Self::DNerf)
+        } else if path.join("transforms.json").is_file() {
+            Some(Self::Nerfstudio)
+        } else {
+            None
+        }
+    }
 }
 
 /// A solid the smoke flows around, inside the smoke box (world units). The training's

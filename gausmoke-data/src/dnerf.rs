@@ -19,8 +19,8 @@ use gausmoke_core::{Camera, Intrinsics};
 use rayon::prelude::*;
 
 use crate::dataset::{
-    Dataset, Format, Frame, LoadOptions, PlannedView, Split, View, resize_to, scale_intrinsics,
-    time_indices,
+    Dataset, Format, Frame, LoadOptions, Obstacle, PlannedView, Split, View, resize_to,
+    scale_intrinsics, time_indices,
 };
 use crate::error::{DataError, Result};
 use crate::image::read_png_over;
@@ -123,6 +123,13 @@ pub fn plan_dnerf(dir: &Path, options: &LoadOptions) -> Result<Vec<PlannedView>>
         }
     }
     Ok(planned)
+}
+
+/// The solids `transforms_train.json` describes (`obstacles`), without reading a frame.
+pub(crate) fn obstacles(dir: &Path) -> Result<Vec<Obstacle>> {
+    let json = dir.join("transforms_train.json");
+    let value = read_json(&json)?;
+    read_obstacles(Node::root(&json, &value))
 }
 
 /// Loads a D-NeRF style data set from its folder.

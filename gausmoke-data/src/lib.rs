@@ -41,14 +41,24 @@ pub use pinf::{load_pinf, plan_pinf};
 
 pub use gausmoke_core::{Camera, Intrinsics, glam};
 
-/// What loading the data set at `path` (a PINF/HyFluid folder or `info.json`, or a D-NeRF
-/// folder) with `options` would produce, per view, without decoding a frame.
+/// What loading the data set at `path` (a PINF/HyFluid folder or `info.json`, a D-NeRF or a
+/// nerfstudio folder; see [`Format::detect`]) with `options` would produce, per view, without
+/// decoding a frame.
 pub fn plan(path: &Path, options: &LoadOptions) -> Result<Vec<PlannedView>> {
-    if path.join("transforms_train.json").is_file() {
-        plan_dnerf(path, options)
-    } else if is_nerfstudio(path) {
-        plan_nerfstudio(path, options)
-    } else {
-        plan_pinf(path, options)
+    match Format::detect(path) {
+        Some(Format::DNerf) => plan_dnerf(path, options),
+        Some(Format::Nerfstudio) => plan_nerfstudio(path, options),
+        // Without a known description, PINF's reader names the `info.json` it looked for.
+        Some(Format::Pinf) | None => plan_pinf(path, options),
+    }
+}
+
+/// The solids the data set at `path` describes (its `obstacles`; see [`Format::detect`]),
+/// read from its description alone, without decoding a frame. nerfstudio's format has none.
+pub fn read_obstacles(path: &Path) -> Result<Vec<Obstacle>> {
+    match Format::detect(path) {
+        Some(Format::DNerf) => dnerf::obstacles(path),
+        Some(Format::Nerfstudio) => Ok(Vec::new()),
+        Some(Format::Pinf) | None => pinf::obstacles(path),
     }
 }

@@ -22,7 +22,7 @@ use gausmoke_core::{Camera, Intrinsics};
 use rayon::prelude::*;
 
 use crate::dataset::{
-    Aabb, Dataset, Format, Frame, LoadOptions, PlannedView, Split, View, resize_to,
+    Aabb, Dataset, Format, Frame, LoadOptions, Obstacle, PlannedView, Split, View, resize_to,
     scale_intrinsics, time_indices,
 };
 use crate::error::{DataError, Result, io_err};
@@ -49,14 +49,26 @@ enum Source {
     Pngs(PathBuf),
 }
 
-/// Loads a PINF / HyFluid data set. `path` is the `info.json` file or the folder holding it.
-pub fn load_pinf(path: &Path, options: &LoadOptions) -> Result<Dataset> {
-    options.validate()?;
-    let info = if path.is_dir() {
+/// `info.json` itself, given it or the folder holding it.
+fn info_file(path: &Path) -> PathBuf {
+    if path.is_dir() {
         path.join("info.json")
     } else {
         path.to_path_buf()
-    };
+    }
+}
+
+/// The solids `info.json` describes (`obstacles`), without reading a camera or a frame.
+pub(crate) fn obstacles(path: &Path) -> Result<Vec<Obstacle>> {
+    let info = info_file(path);
+    let value = read_json(&info)?;
+    read_obstacles(Node::root(&info, &value))
+}
+
+/// Loads a PINF / HyFluid data set. `path` is the `info.json` file or the folder holding it.
+pub fn load_pinf(path: &Path, options: &LoadOptions) -> Result<Dataset> {
+    options.validate()?;
+    let info = info_file(path);
     let root_dir = info.parent().unwrap_or(Path::new(".")).to_path_buf();
     let value = read_json(&info)?;
     let root = Node::root(&info, &value);
@@ -145,11 +157,7 @@ fn read_entries(root: Node<'_>, root_dir: &Path) -> Result<Vec<Entry>> {
 /// without decoding a frame.
 pub fn plan_pinf(path: &Path, options: &LoadOptions) -> Result<Vec<PlannedView>> {
     options.validate()?;
-    let info = if path.is_dir() {
-        path.join("info.json")
-    } else {
-        path.to_path_buf()
-    };
+    let info = info_file(path);
     let root_dir = info.parent().unwrap_or(Path::new(".")).to_path_buf();
     let value = read_json(&info)?;
     let entries = read_entries(Node::root(&info, &value), &root_dir)?;

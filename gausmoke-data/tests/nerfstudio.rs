@@ -91,6 +91,12 @@ fn a_nerfstudio_copy_of_a_scene_loads_as_the_original() {
         ..Default::default()
     };
     let planned = plan_nerfstudio(&ns, &options).unwrap();
+    assert_eq!(
+        gausmoke_data::plan(&ns, &options).unwrap(),
+        planned,
+        "the format is told by its transforms.json"
+    );
+    assert!(gausmoke_data::read_obstacles(&ns).unwrap().is_empty());
     let subset = load_nerfstudio(&ns, &options).unwrap();
     assert_eq!(subset.times, original.times[2..5]);
     for (plan, view) in planned.iter().zip(&subset.views) {

@@ -322,6 +322,11 @@ fn obstacles_round_trip_through_the_pinf_loader() {
     synth::generate(&cfg, &out).unwrap();
     let ds = load_pinf(&out, &LoadOptions::default()).unwrap();
     assert_eq!(ds.obstacles, vec![cfg.solids[0].shape]);
+    assert_eq!(
+        gausmoke_data::read_obstacles(&out).unwrap(),
+        ds.obstacles,
+        "the description alone gives the loader's obstacles"
+    );
     let info = out.join("info.json");
     let text = std::fs::read_to_string(&info).unwrap();
     // A box beside the sphere, and a box turned inside out.
@@ -343,9 +348,15 @@ fn obstacles_round_trip_through_the_pinf_loader() {
             max: Vec3::new(0.1, 0.15, 0.1)
         }
     );
+    assert_eq!(gausmoke_data::read_obstacles(&out).unwrap(), ds.obstacles);
     let err = with_box("[0.1, 0.0, 0.1]").unwrap_err().to_string();
     assert!(
         err.contains("obstacles[1].box") && err.contains("min"),
+        "{err}"
+    );
+    let err = gausmoke_data::read_obstacles(&out).unwrap_err().to_string();
+    assert!(
+        err.contains("info.json") && err.contains("obstacles[1].box"),
         "{err}"
     );
     std::fs::write(&info, text.replace("\"sphere\"", "\"ball\"")).unwrap();
@@ -374,6 +385,34 @@ fn obstacles_round_trip_through_the_pinf_loader() {
             .obstacles
             .is_empty()
     );
+    assert!(gausmoke_data::read_obstacles(&tiny).unwrap().is_empty());
+    // Read from the description alone: with every camera's frames gone, the loader fails
+    // and the obstacles are still there.
+    std::fs::write(&info, &text).unwrap();
+    for entry in std::fs::read_dir(&out).unwrap() {
+        let path = entry.unwrap().path();
+        if path.file_name().is_some_and(|n| n != "info.json") {
+            if path.is_dir() {
+                std::fs::remove_dir_all(&path).unwrap();
+            } else {
+                std::fs::remove_file(&path).unwrap();
+            }
+        }
+    }
+    assert!(load_pinf(&out, &LoadOptions::default()).is_err());
+    assert_eq!(
+        gausmoke_data::read_obstacles(&out).unwrap(),
+        vec![cfg.solids[0].shape]
+    );
+    assert_eq!(
+        gausmoke_data::read_obstacles(&info).unwrap(),
+        vec![cfg.solids[0].shape],
+        "the path of info.json itself"
+    );
+    let err = gausmoke_data::read_obstacles(tmp.path())
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("info.json"), "{err}");
 }
 
 /// The blocks preset: no smoke and no velocity ever inside the block or the wall, the plume
@@ -493,6 +532,11 @@ fn blender_layout_round_trips_through_the_dnerf_loader() {
     assert_eq!(ds.times, [0.0, 0.5, 1.0]);
     let shapes: Vec<_> = cfg.solids.iter().map(|s| s.shape).collect();
     assert_eq!(ds.obstacles, shapes);
+    assert_eq!(gausmoke_data::read_obstacles(&out).unwrap(), shapes);
+    assert_eq!(
+        gausmoke_data::Format::detect(&out),
+        Some(gausmoke_data::Format::DNerf)
+    );
     let bbox = ds.bbox.unwrap();
     let (lo, hi) = synth::world_box();
     assert!((bbox.min - lo).length() < 1e-6 && (bbox.max - hi).length() < 1e-6);

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use gausmoke_core::Camera;
 use gausmoke_core::glam::Vec3;
 use gausmoke_data::{
-    Dataset, Image, LoadOptions, Obstacle, PlannedView, Split, load_dnerf, load_pinf,
+    Dataset, Format, Image, LoadOptions, Obstacle, PlannedView, Split, load_dnerf, load_pinf,
 };
 
 use crate::hash::Fnv1a;
@@ -80,19 +80,18 @@ impl Sequence {
     /// at the configured image size and frame count, and splits views as configured.
     pub fn open(path: &Path, config: &TrainConfig) -> Result<Self, TrainError> {
         let options = Self::load_options(config);
-        let dataset = if path.join("info.json").is_file() {
-            load_pinf(path, &options)?
-        } else if path.join("transforms_train.json").is_file() {
-            load_dnerf(path, &options)?
-        } else if gausmoke_data::is_nerfstudio(path) {
-            gausmoke_data::load_nerfstudio(path, &options)?
-        } else {
-            return Err(TrainError::Dataset {
-                path: path.to_path_buf(),
-                reason: "neither info.json (PINF/HyFluid), transforms_train.json (D-NeRF) nor \
-                         transforms.json (nerfstudio) found"
-                    .into(),
-            });
+        let dataset = match Format::detect(path) {
+            Some(Format::Pinf) => load_pinf(path, &options)?,
+            Some(Format::DNerf) => load_dnerf(path, &options)?,
+            Some(Format::Nerfstudio) => gausmoke_data::load_nerfstudio(path, &options)?,
+            None => {
+                return Err(TrainError::Dataset {
+                    path: path.to_path_buf(),
+                    reason: "neither info.json (PINF/HyFluid), transforms_train.json (D-NeRF) \
+                             nor transforms.json (nerfstudio) found"
+                        .into(),
+                });
+            }
         };
         Self::from_dataset(path, &dataset, config)
     }
