@@ -14,8 +14,10 @@
 //! velocity carried along itself, or the frame's own velocity from the joint iterations
 //! (`density_motion_prior`). The densities are divided by frame t's largest value.
 //! Solved by Gauss-Newton with warping: ten passes, each linearising the step's residual about
-//! the current `d` and solving for the update by conjugate gradients, with the densities
-//! smoothed by 2, 1, 0.5 cells and then not at all (two passes each, four at the end), so the
+//! the current `d` and solving for the update by conjugate gradients, preconditioned by the
+//! inverse of `c I + B D^T D` (exact for the box without obstacles, [`Preconditioner`]): the
+//! weight B makes the system stiff, and without it 400 iterations stopped far short. The
+//! densities are smoothed by 2, 1, 0.5 cells and then not at all (two passes each, four at the end), so the
 //! linearisation holds for moves of a cell or more. Unlike the script, a step is halved while
 //! it raises the objective, and the start is kept if the passes end above it.
 //!
@@ -28,7 +30,8 @@
 //! after training, as an output beside the run's velocity, it is [`crate::velocity_estimate`].
 
 use gausmoke_model::projection::Divergence;
-use gausmoke_model::{GridSpec, OpenFaces};
+use gausmoke_model::projection::spectral::SpectralSolver;
+use gausmoke_model::{GridSpec, OpenFaces, SolidCells};
 
 use crate::host_grid::smoothed;
 use crate::respawn::{SpawnLattice, in_region};
@@ -54,11 +57,13 @@ pub(crate) struct MotionPriors {
 
 /// The grid the densities live on and where the smoke may leave it: a departure point past an
 /// open face samples clear air (zero density); past a wall it is clamped to the outermost
-/// cell centres.
-#[derive(Debug, Clone, Copy)]
+/// cell centres. Obstacle cells (`solids`, as the projection has them) hold no move and no
+/// data, no move crosses their faces, and no smoothness term reaches into them.
+#[derive(Debug, Clone)]
 pub(crate) struct MotionGrid {
     pub resolution: [usize; 3],
     pub open: OpenFaces,
+    pub solids: Option<SolidCells>,
 }
 
 /// The cells whose density the fit asks transport to explain: all but those in the inflow box
@@ -105,11 +110,29 @@ pub(crate) struct MotionFit {
     pub rejected_steps: usize,
     /// Whether the passes ended worse than they started (unsmoothed), so the start was kept.
     pub kept_start: bool,
+    /// Conjugate-gradient iterations over all passes, and the largest residual a pass's solve
+    /// ended on, relative to its right-hand side ([`CG_TOLERANCE`] when every solve
+    /// converged).
+    pub solver_iterations: usize,
+    pub solver_residual: f64,
 }
 
 impl MotionGrid {
     pub(crate) fn cells(&self) -> usize {
         self.resolution.iter().product()
+    }
+
+    fn is_solid(&self, cell: usize) -> bool {
+        self.solids.as_ref().is_some_and(|s| s.is_solid(cell))
+    }
+
+    /// Per cell and axis (`[cells * 3]`), whether the move's component may be non-zero: the
+    /// projection's free components (none in or beside an obstacle along its axis).
+    fn free_components(&self) -> Vec<bool> {
+        let operator = self.divergence();
+        (0..3 * self.cells())
+            .map(|i| operator.component_is_free(i / 3, i % 3))
+            .collect()
     }
 
     fn index(&self, [i, j, k]: [usize; 3]) -> usize {
@@ -224,10 +247,10 @@ impl MotionGrid {
     }
 
     /// `out = (A L + B D^T D + G) moves`: `L` the forward differences' normal matrix (a
-    /// Laplacian with no flux through the walls), `D` the projection's own divergence (faces
-    /// the mean of their two cells, no flow through a wall, `flow` times the inner cell's
-    /// through an open face), so that what the fit counts as divergence-free is what `Pi`
-    /// leaves alone.
+    /// Laplacian with no flux through the walls or into obstacles), `D` the projection's own
+    /// divergence (faces the mean of their two cells, no flow through a wall or an obstacle's
+    /// face, `flow` times the inner cell's through an open face), so that what the fit counts
+    /// as divergence-free is what `Pi` leaves alone.
     fn regularise(&self, priors: &MotionPriors, moves: &[f64], out: &mut [f64]) {
         let cells = self.cells();
         out.iter_mut()
@@ -240,6 +263,9 @@ impl MotionGrid {
                     let mut next = at;
                     next[axis] += 1;
                     let other = self.index(next);
+                    if self.is_solid(cell) || self.is_solid(other) {
+                        continue;
+                    }
                     for c in 0..3 {
                         let difference =
                             priors.smoothness * (moves[3 * cell + c] - moves[3 * other + c]);
@@ -264,7 +290,7 @@ impl MotionGrid {
             resolution: self.resolution,
             cell: [1.0; 3],
             open: self.open,
-            solids: None,
+            solids: self.solids.clone(),
         }
     }
 }
@@ -276,8 +302,10 @@ fn central(i: usize, n: usize) -> (usize, usize) {
 
 /// The move per step (cells) that carries `before` onto `after` (`[nx, ny, nz]`, z fastest),
 /// starting from and tied to `prior` (cells per step, `[nx, ny, nz, 3]`). Only cells marked
-/// in `in_data` enter the data term (a source sets the others, not transport). With no
-/// density in `after`, the prior is returned as it is.
+/// in `in_data` and outside obstacles enter the data term (a source sets the others, not
+/// transport; smoke in an obstacle is a reconstruction's leak). The move's components the
+/// obstacles pin (see [`MotionGrid`]) stay zero. With no density in `after`, the prior is
+/// returned as it is, pinned components zeroed.
 pub(crate) fn fit_density_motion(
     grid: &MotionGrid,
     before: &[f32],
@@ -293,6 +321,23 @@ pub(crate) fn fit_density_motion(
         (cells, cells, cells, 3 * cells),
         "density-motion fit: the grids' sizes"
     );
+    let free = grid.free_components();
+    let pinned = |field: &mut [f64]| {
+        field
+            .iter_mut()
+            .zip(&free)
+            .filter(|(_, free)| !**free)
+            .for_each(|(v, _)| *v = 0.0);
+    };
+    let mut prior = prior.to_vec();
+    pinned(&mut prior);
+    let prior = prior.as_slice();
+    let in_data: Vec<bool> = in_data
+        .iter()
+        .enumerate()
+        .map(|(c, &d)| d && !grid.is_solid(c))
+        .collect();
+    let in_data = in_data.as_slice();
     let scale = after.iter().fold(0.0f32, |m, &v| m.max(v));
     if scale.is_nan() || scale <= 0.0 || scale.is_infinite() {
         return MotionFit {
@@ -301,15 +346,24 @@ pub(crate) fn fit_density_motion(
             misfit_fitted: 0.0,
             rejected_steps: 0,
             kept_start: true,
+            solver_iterations: 0,
+            solver_residual: 0.0,
         };
     }
     let normalised = |field: &[f32]| -> Vec<f32> { field.iter().map(|&v| v / scale).collect() };
     let (before_unit, after_unit) = (normalised(before), normalised(after));
     let as_f64 = |field: &[f32]| -> Vec<f64> { field.iter().map(|&v| f64::from(v)).collect() };
     let (source_plain, target_plain) = (as_f64(&before_unit), as_f64(&after_unit));
-    let mut moves = prior.to_vec();
+    let start = prior.to_vec();
+    let box_operator = Divergence {
+        solids: None,
+        ..grid.divergence()
+    };
+    let spectral = SpectralSolver::for_grid(&box_operator);
+    let mut moves = start.clone();
     let mut operator_out = vec![0.0; 3 * cells];
     let mut rejected_steps = 0;
+    let (mut solver_iterations, mut solver_residual) = (0, 0.0f64);
     let problem = Problem {
         grid,
         priors: &priors,
@@ -345,6 +399,16 @@ pub(crate) fn fit_density_motion(
                 rhs[3 * cell + c] -= jacobian[3 * cell + c] * residual;
             }
         }
+        // Solved over the free components alone: conjugate gradients from zero stay there.
+        pinned(&mut rhs);
+        let preconditioner = Preconditioner {
+            operator: &box_operator,
+            solver: &spectral,
+            scale: priors.inertia
+                + 6.0 * priors.smoothness
+                + jacobian.iter().map(|j| j * j).sum::<f64>() / cells as f64,
+            divergence: priors.divergence,
+        };
         let apply = |x: &[f64], out: &mut [f64]| {
             grid.regularise(&priors, x, out);
             for cell in 0..cells {
@@ -354,8 +418,16 @@ pub(crate) fn fit_density_motion(
                     out[3 * cell + c] += j[c] * along;
                 }
             }
+            pinned(out);
         };
-        let step = conjugate_gradients(apply, &rhs, cg_iterations);
+        let precondition = |r: &[f64], z: &mut [f64]| {
+            preconditioner.apply(r, z);
+            pinned(z);
+        };
+        let solve = conjugate_gradients(apply, precondition, &rhs, cg_iterations);
+        solver_iterations += solve.iterations;
+        solver_residual = solver_residual.max(solve.relative_residual);
+        let step = solve.x;
         // Damped: where the densities pin the move down only weakly, a full step can leave the
         // range where the linearisation holds and fit worse than no step at all.
         let start = objective(&problem, source, target, &moves, &mut operator_out);
@@ -378,9 +450,9 @@ pub(crate) fn fit_density_motion(
     // start: then the start is kept.
     let (source, target) = (&source_plain, &target_plain);
     let kept_start = objective(&problem, source, target, &moves, &mut operator_out)
-        >= objective(&problem, source, target, prior, &mut operator_out);
+        >= objective(&problem, source, target, &start, &mut operator_out);
     if kept_start {
-        moves = prior.to_vec();
+        moves = start;
     }
     // No move carries each cell's own value: the misfit's yardstick.
     let still = data_term(&problem, source, target, &vec![0.0; 3 * cells]);
@@ -397,6 +469,35 @@ pub(crate) fn fit_density_motion(
         moves,
         rejected_steps,
         kept_start,
+        solver_iterations,
+        solver_residual,
+    }
+}
+
+/// `(c I + B D^T D)^-1` for the box without its obstacles, `D` the divergence on unit cells:
+/// the fit's normal matrix with its data and smoothness terms as one scale `c` (their mean
+/// diagonal), whose large divergence part it inverts exactly. By Woodbury's identity it is
+/// `(I - D^T (D D^T + c/B I)^-1 D) / c`, one shifted direct solve.
+struct Preconditioner<'a> {
+    operator: &'a Divergence,
+    solver: &'a SpectralSolver,
+    scale: f64,
+    divergence: f64,
+}
+
+impl Preconditioner<'_> {
+    fn apply(&self, r: &[f64], z: &mut [f64]) {
+        z.copy_from_slice(r);
+        if self.divergence > 0.0 {
+            let mut pressure = vec![0.0; r.len() / 3];
+            self.operator.apply(r, &mut pressure);
+            self.solver
+                .solve_shifted(&mut pressure, self.scale / self.divergence);
+            let mut gradient = vec![0.0; r.len()];
+            self.operator.apply_transpose(&pressure, &mut gradient);
+            z.iter_mut().zip(&gradient).for_each(|(z, g)| *z -= g);
+        }
+        z.iter_mut().for_each(|z| *z /= self.scale);
     }
 }
 
@@ -434,41 +535,65 @@ fn data_term(problem: &Problem, source: &[f64], target: &[f64], moves: &[f64]) -
         .sum()
 }
 
-/// Solves `A x = rhs` for a symmetric positive (semi-)definite `A`, from `x = 0`.
+/// Solves `A x = rhs` for a symmetric positive (semi-)definite `A`, from `x = 0`, with the
+/// symmetric positive preconditioner `precondition(r, z)` (`z = M^-1 r`), until the residual
+/// is [`CG_TOLERANCE`] of `rhs` or after `iterations`.
 fn conjugate_gradients(
     apply: impl Fn(&[f64], &mut [f64]),
+    precondition: impl Fn(&[f64], &mut [f64]),
     rhs: &[f64],
     iterations: usize,
-) -> Vec<f64> {
+) -> Solve {
     let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
     let mut x = vec![0.0; rhs.len()];
     let mut residual = rhs.to_vec();
-    let mut direction = residual.clone();
+    let mut preconditioned = vec![0.0; rhs.len()];
+    precondition(&residual, &mut preconditioned);
+    let mut direction = preconditioned.clone();
     let mut applied = vec![0.0; rhs.len()];
-    let mut squared = dot(&residual, &residual);
-    let stop = (CG_TOLERANCE * CG_TOLERANCE) * squared;
-    for _ in 0..iterations {
-        if squared <= stop || squared == 0.0 {
-            break;
-        }
+    let mut along = dot(&residual, &preconditioned);
+    let first = dot(&residual, &residual);
+    let stop = (CG_TOLERANCE * CG_TOLERANCE) * first;
+    let mut squared = first;
+    let mut used = 0;
+    while used < iterations && squared > stop && squared > 0.0 {
         apply(&direction, &mut applied);
         let curvature = dot(&direction, &applied);
         if curvature.is_nan() || curvature <= 0.0 {
             break;
         }
-        let alpha = squared / curvature;
+        used += 1;
+        let alpha = along / curvature;
         for i in 0..x.len() {
             x[i] += alpha * direction[i];
             residual[i] -= alpha * applied[i];
         }
-        let next = dot(&residual, &residual);
-        let beta = next / squared;
-        squared = next;
+        squared = dot(&residual, &residual);
+        precondition(&residual, &mut preconditioned);
+        let next = dot(&residual, &preconditioned);
+        let beta = next / along;
+        along = next;
         for i in 0..x.len() {
-            direction[i] = residual[i] + beta * direction[i];
+            direction[i] = preconditioned[i] + beta * direction[i];
         }
     }
-    x
+    Solve {
+        x,
+        iterations: used,
+        relative_residual: if first > 0.0 {
+            (squared / first).sqrt()
+        } else {
+            0.0
+        },
+    }
+}
+
+/// What [`conjugate_gradients`] reached.
+struct Solve {
+    x: Vec<f64>,
+    iterations: usize,
+    /// The residual's norm relative to the right-hand side's.
+    relative_residual: f64,
 }
 
 #[cfg(test)]
@@ -487,6 +612,7 @@ mod tests {
         MotionGrid {
             resolution: [n, n + 2, n + 1],
             open,
+            solids: None,
         }
     }
 
@@ -544,7 +670,10 @@ mod tests {
         };
         let uniform: Vec<f64> = (0..grid.cells()).flat_map(|_| [0.4, -1.1, 0.7]).collect();
         let mut out = vec![0.0; uniform.len()];
-        let open = MotionGrid { open: OPEN, ..grid };
+        let open = MotionGrid {
+            open: OPEN,
+            ..grid.clone()
+        };
         open.regularise(&divergence_only, &uniform, &mut out);
         assert!(out.iter().all(|v| v.abs() < 1e-12));
         grid.regularise(&divergence_only, &uniform, &mut out);
@@ -555,6 +684,94 @@ mod tests {
             .collect();
         grid.regularise(&divergence_only, &expansion, &mut out);
         assert!(dot(&expansion, &out) > 1.0);
+    }
+
+    /// A block of obstacle cells in the middle of the grid.
+    fn with_block(grid: MotionGrid, lo: [usize; 3], hi: [usize; 3]) -> MotionGrid {
+        let flags = (0..grid.cells())
+            .map(|cell| {
+                let at = grid.coordinates(cell);
+                (0..3).all(|a| (lo[a]..hi[a]).contains(&at[a]))
+            })
+            .collect();
+        MotionGrid {
+            solids: SolidCells::new(grid.resolution, flags),
+            ..grid
+        }
+    }
+
+    /// With obstacles the regulariser is still symmetric and positive over the moves the
+    /// obstacles leave free, and it ignores the pinned ones.
+    #[test]
+    fn the_regulariser_with_obstacles_is_symmetric_and_positive() {
+        let grid = with_block(grid(6, OPEN), [2, 2, 2], [4, 5, 4]);
+        let free = grid.free_components();
+        assert!(free.iter().any(|f| !f) && free.iter().filter(|f| **f).count() > 300);
+        let priors = MotionPriors {
+            smoothness: 0.3,
+            divergence: 7.0,
+            inertia: 0.0,
+        };
+        let masked = |seed| -> Vec<f64> {
+            noise(3 * grid.cells(), seed)
+                .into_iter()
+                .zip(&free)
+                .map(|(v, &f)| if f { v } else { 0.0 })
+                .collect()
+        };
+        let (x, y) = (masked(5), masked(6));
+        let (mut rx, mut ry) = (vec![0.0; x.len()], vec![0.0; y.len()]);
+        grid.regularise(&priors, &x, &mut rx);
+        grid.regularise(&priors, &y, &mut ry);
+        let (a, b) = (dot(&x, &ry), dot(&rx, &y));
+        assert!((a - b).abs() <= 1e-9 * a.abs().max(1.0), "{a} vs {b}");
+        assert!(dot(&x, &rx) > 0.0);
+        // A move inside the obstacle reaches no smoothness or divergence term.
+        let mut lone = vec![0.0; x.len()];
+        let inside = grid.index([3, 3, 3]);
+        assert!(grid.is_solid(inside));
+        lone[3 * inside..3 * inside + 3].copy_from_slice(&[1.0, -2.0, 0.5]);
+        grid.regularise(&priors, &lone, &mut rx);
+        assert!(rx.iter().all(|v| *v == 0.0));
+    }
+
+    /// A blob passing beside an obstacle: the fit leaves the components the obstacle pins at
+    /// zero, even from a prior that has them, and still finds the shift away from it.
+    #[test]
+    fn the_fit_keeps_out_of_obstacles() {
+        let grid = with_block(grid(14, OPEN), [2, 2, 2], [5, 5, 5]);
+        let shift = [1.0, 0.7, -0.5];
+        let centre = [9.0, 8.5, 8.5];
+        let before = blob(&grid, centre, 2.0);
+        let after = blob(&grid, [0, 1, 2].map(|a| centre[a] + shift[a]), 2.0);
+        let prior: Vec<f64> = (0..grid.cells()).flat_map(|_| [0.2, 0.2, 0.2]).collect();
+        let fit = fit_density_motion(
+            &grid,
+            &before,
+            &after,
+            &vec![true; grid.cells()],
+            &prior,
+            MotionPriors {
+                smoothness: 0.001,
+                divergence: 1000.0,
+                inertia: 0.0,
+            },
+            400,
+        );
+        let free = grid.free_components();
+        for (i, m) in fit.moves.iter().enumerate() {
+            assert!(free[i] || *m == 0.0, "component {i}: {m}");
+        }
+        assert!(fit.misfit_fitted < 0.1, "{}", fit.misfit_fitted);
+        let (mut error, mut norm) = (0.0, 0.0);
+        for cell in (0..grid.cells()).filter(|&c| after[c] > 0.1) {
+            for (a, s) in shift.iter().enumerate() {
+                error += (fit.moves[3 * cell + a] - s).powi(2);
+                norm += s * s;
+            }
+        }
+        let relative = (error / norm).sqrt();
+        assert!(relative < 0.15, "relative error {relative}");
     }
 
     /// The step's value moves with the move as minus the slope says (the Jacobian the
@@ -638,9 +855,41 @@ mod tests {
         };
         let mut rhs = [0.0; 3];
         apply(&truth, &mut rhs);
-        let x = conjugate_gradients(apply, &rhs, 10);
+        let solve = conjugate_gradients(apply, |r, z| z.copy_from_slice(r), &rhs, 10);
+        assert!(solve.relative_residual < 1e-9 && solve.iterations <= 3);
+        let x = solve.x;
         for (a, b) in x.iter().zip(truth) {
             assert!((a - b).abs() < 1e-9, "{x:?}");
+        }
+    }
+
+    /// Without obstacles the preconditioner inverts `c I + B D^T D` exactly.
+    #[test]
+    fn the_preconditioner_inverts_the_divergence_part() {
+        let open_top = OpenFaces {
+            low: [false; 3],
+            high: [false, true, false],
+            flow: 1.0,
+        };
+        let grid = grid(5, open_top);
+        let operator = grid.divergence();
+        let solver = SpectralSolver::for_grid(&operator);
+        let preconditioner = Preconditioner {
+            operator: &operator,
+            solver: &solver,
+            scale: 0.02,
+            divergence: 1000.0,
+        };
+        let r = noise(3 * grid.cells(), 7);
+        let mut z = vec![0.0; r.len()];
+        preconditioner.apply(&r, &mut z);
+        let mut divergence = vec![0.0; grid.cells()];
+        operator.apply(&z, &mut divergence);
+        let mut back = vec![0.0; r.len()];
+        operator.apply_transpose(&divergence, &mut back);
+        for i in 0..r.len() {
+            let rebuilt = 0.02 * z[i] + 1000.0 * back[i];
+            assert!((rebuilt - r[i]).abs() < 1e-8, "{i}: {rebuilt} vs {}", r[i]);
         }
     }
 
@@ -669,6 +918,17 @@ mod tests {
         );
         assert!(fit.misfit_prior > 0.99, "{}", fit.misfit_prior);
         assert!(fit.misfit_fitted < 0.1, "{}", fit.misfit_fitted);
+        // Every pass's linear solve converged, within the cap of 400 iterations.
+        assert!(
+            fit.solver_residual <= CG_TOLERANCE,
+            "{}",
+            fit.solver_residual
+        );
+        assert!(
+            fit.solver_iterations < 10 * 400,
+            "{}",
+            fit.solver_iterations
+        );
         let (mut error, mut norm) = (0.0, 0.0);
         for cell in (0..grid.cells()).filter(|&c| after[c] > 0.1) {
             for (a, s) in shift.iter().enumerate() {

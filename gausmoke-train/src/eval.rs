@@ -57,6 +57,9 @@ pub struct FrameEval {
     pub velocity_estimate_relative_error: Option<f64>,
     #[serde(default)]
     pub velocity_estimate_cosine: Option<f64>,
+    /// Data sets with obstacles: [`FrameEval::obstacle_normal_flow`] of the estimate.
+    #[serde(default)]
+    pub velocity_estimate_obstacle_normal_flow: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -77,6 +80,8 @@ pub struct EvalReport {
     pub velocity_estimate_relative_error_mean: Option<f64>,
     #[serde(default)]
     pub velocity_estimate_cosine_mean: Option<f64>,
+    #[serde(default)]
+    pub velocity_estimate_obstacle_normal_flow_mean: Option<f64>,
     pub test_lpips_mean: Option<f64>,
     /// Where the LPIPS weights came from, or why LPIPS is absent.
     pub lpips: String,
@@ -258,7 +263,7 @@ pub fn evaluate(
     let scene = Sequence::open(&info.data, &config)?;
     let grid = config.grid(scene.lo, scene.hi)?;
     let open_faces = config.open_faces()?;
-    let solids = crate::trainer::solid_cells(&scene, &config, &grid)?;
+    let solids = crate::trainer::solid_cells(&scene.obstacles, &config, &grid)?;
     let background = burn::tensor::Tensor::<1>::from_data(
         burn::tensor::TensorData::new(scene.background.to_vec(), [3]),
         device,
@@ -303,6 +308,9 @@ pub fn evaluate(
         let average = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
         let truth = ground_truth_errors(&scene, &grid, t, density, velocity)?;
         let leakage = obstacle_leakage(&scene.obstacles, &grid, density, velocity);
+        let estimate_leakage = estimate
+            .as_ref()
+            .and_then(|estimated| obstacle_leakage(&scene.obstacles, &grid, density, estimated));
         let estimate_truth = match &estimate {
             Some(estimated) => ground_truth_errors(&scene, &grid, t, density, estimated)?,
             None => None,
@@ -333,6 +341,7 @@ pub fn evaluate(
             }),
             velocity_estimate_relative_error: estimate_truth.map(|e| e.velocity_relative_error),
             velocity_estimate_cosine: estimate_truth.map(|e| e.velocity_cosine),
+            velocity_estimate_obstacle_normal_flow: estimate_leakage.map(|(_, normal)| normal),
         });
         previous_density = Some(state.density);
     }
@@ -357,6 +366,11 @@ pub fn evaluate(
             frames.iter().map(|f| f.velocity_estimate_relative_error),
         ),
         velocity_estimate_cosine_mean: mean(frames.iter().map(|f| f.velocity_estimate_cosine)),
+        velocity_estimate_obstacle_normal_flow_mean: mean(
+            frames
+                .iter()
+                .map(|f| f.velocity_estimate_obstacle_normal_flow),
+        ),
         test_lpips_mean: mean(frames.iter().map(|f| f.test_lpips)),
         lpips: match lpips_weights {
             Some(path) => format!("AlexNet LPIPS v0.1, weights from {}", path.display()),

@@ -305,6 +305,18 @@ fn run_command(cli: Cli) -> Result<()> {
                     show(report.velocity_estimate_cosine_mean)
                 );
             }
+            if report.obstacle_normal_flow_mean.is_some() {
+                println!(
+                    "obstacle normal flow {}",
+                    show(report.obstacle_normal_flow_mean)
+                );
+            }
+            if report.velocity_estimate_obstacle_normal_flow_mean.is_some() {
+                println!(
+                    "estimate normal flow {}",
+                    show(report.velocity_estimate_obstacle_normal_flow_mean)
+                );
+            }
             println!("held-out LPIPS       {}", show(report.test_lpips_mean));
             println!("  ({})", report.lpips);
             println!("wrote {}", run.join("eval.json").display());
@@ -600,6 +612,25 @@ fn estimate_velocity(
         mean(|f| f.misfit_prior),
         mean(|f| f.misfit_fitted),
     );
+    // A solve stopped by its iteration cap is a different estimate from the fit's minimum.
+    let unconverged: Vec<_> = summary
+        .frames
+        .iter()
+        .filter(|f| f.solver_residual > 1e-3)
+        .collect();
+    if let Some(worst) = unconverged
+        .iter()
+        .max_by(|a, b| a.solver_residual.total_cmp(&b.solver_residual))
+    {
+        eprintln!(
+            "warning: the fit's linear solves stopped short of convergence in {} frame(s) \
+             (worst: frame {}, residual {:.1e} of its start): those frames are not the fit's \
+             minimum",
+            unconverged.len(),
+            worst.frame,
+            worst.solver_residual
+        );
+    }
     println!(
         "wrote {}; `gausmoke-train eval --run {}` scores it",
         estimate_dir(run).display(),

@@ -549,7 +549,7 @@ impl Trainer {
         let background =
             Tensor::<1>::from_data(TensorData::new(sequence.background.to_vec(), [3]), &device);
         let raster = config.raster_options();
-        let solids = solid_cells(&sequence, &config, &grid)?;
+        let solids = solid_cells(&sequence.obstacles, &config, &grid)?;
         let mut state = fresh_state(&sequence, &config, &grid, &device);
         if let Some(path) = &config.init_gaussians {
             state.gaussians = warm_start(path, config.gaussians, &device)?;
@@ -2066,9 +2066,11 @@ impl Trainer {
                 self.config.density_motion_inertia as f64
             },
         };
+        let projection = self.projection();
         let grid = MotionGrid {
             resolution: self.grid.resolution(),
-            open: self.projection().open_faces,
+            open: projection.open_faces,
+            solids: projection.solids,
         };
         let fit = fit_density_motion(
             &grid,
@@ -2085,6 +2087,8 @@ impl Trainer {
             misfit_fitted = fit.misfit_fitted,
             rejected_steps = fit.rejected_steps,
             kept_start = fit.kept_start,
+            solver_iterations = fit.solver_iterations,
+            solver_residual = fit.solver_residual,
             "velocity from density motion"
         );
         let velocity = velocity_of_moves(&fit.moves, cell, dt);
@@ -2567,11 +2571,11 @@ fn outside_obstacles(means: Tensor<2>, obstacles: &[Obstacle]) -> Tensor<2> {
 /// and `config.obstacles` makes them solid; refused with the penalty form of `Pi`, which has no
 /// notion of them, and when they cover no cell (a sphere smaller than the grid can see).
 pub(crate) fn solid_cells(
-    sequence: &Sequence,
+    obstacles: &[Obstacle],
     config: &TrainConfig,
     grid: &GridSpec,
 ) -> Result<Option<SolidCells>, TrainError> {
-    if sequence.obstacles.is_empty() || config.obstacles == Obstacles::Ignore {
+    if obstacles.is_empty() || config.obstacles == Obstacles::Ignore {
         return Ok(None);
     }
     let refuse = |reason: String| TrainError::Config {
@@ -2582,10 +2586,10 @@ pub(crate) fn solid_cells(
         return Err(refuse(format!(
             "the data set describes {} obstacle(s), which only projection = \"exact\" keeps \
              the flow out of: use it, or set obstacles = \"ignore\"",
-            sequence.obstacles.len()
+            obstacles.len()
         )));
     }
-    let flags = grid.cells_where(|p| sequence.obstacles.iter().any(|o| o.contains(p)));
+    let flags = grid.cells_where(|p| obstacles.iter().any(|o| o.contains(p)));
     let solids = SolidCells::new(grid.resolution(), flags).expect("one flag per cell");
     if solids.count() == 0 {
         return Err(refuse(format!(

@@ -30,7 +30,6 @@ use crate::density_motion::{
 use crate::export::write_atomic;
 use crate::hash::Fnv1a;
 use crate::run_folder::RunFolder;
-use crate::sequence::Sequence;
 use crate::{TrainConfig, TrainError};
 
 /// Conjugate-gradient iterations per Gauss-Newton pass, as the trainer's fit takes.
@@ -96,6 +95,12 @@ pub struct FrameEstimate {
     pub misfit_fitted: f64,
     /// Whether the fit ended worse than its start, which was kept.
     pub kept_start: bool,
+    /// The fit's conjugate-gradient iterations, and the largest residual one of its linear
+    /// solves ended on, relative to its right-hand side (1e-6 when all converged).
+    #[serde(default)]
+    pub solver_iterations: usize,
+    #[serde(default)]
+    pub solver_residual: f64,
     /// Fingerprints of frames t-1 and t's density grids as fitted.
     pub density_fingerprints: [String; 2],
     pub seconds: f64,
@@ -144,15 +149,14 @@ pub fn estimate_run_velocity(
     let info = folder.read_run_info()?;
     let grid = config.grid(info.box_lo.into(), info.box_hi.into())?;
     // The data set says where its solids are, which the projection keeps the flow out of.
-    let scene = Sequence::open(&info.data, &config)?;
+    let obstacles = gausmoke_data::read_obstacles(&info.data)?;
     let projection = ProjectionOptions {
         rel_tolerance: config.projection_tolerance,
         max_iterations: config.projection_max_iterations,
         open_faces: config.open_faces()?,
-        solids: crate::trainer::solid_cells(&scene, &config, &grid)?,
+        solids: crate::trainer::solid_cells(&obstacles, &config, &grid)?,
         ..ProjectionOptions::default()
     };
-    drop(scene);
     let mut densities = Vec::new();
     while let Some(state) = folder.read_frame_state(densities.len(), &grid)? {
         densities.push(state.density);
@@ -169,6 +173,7 @@ pub fn estimate_run_velocity(
     let motion_grid = MotionGrid {
         resolution: grid.resolution(),
         open: projection.open_faces,
+        solids: projection.solids.clone(),
     };
     let in_data = transport_cells(&grid, config.respawn_region);
     let dt = f64::from(config.dt);
@@ -224,6 +229,8 @@ pub fn estimate_run_velocity(
             misfit_prior = format!("{:.3}", fit.misfit_prior),
             misfit_fitted = format!("{:.3}", fit.misfit_fitted),
             kept_start = fit.kept_start,
+            solver_iterations = fit.solver_iterations,
+            solver_residual = format!("{:.1e}", fit.solver_residual),
             "velocity estimated"
         );
         frames.push(FrameEstimate {
@@ -231,6 +238,8 @@ pub fn estimate_run_velocity(
             misfit_prior: fit.misfit_prior,
             misfit_fitted: fit.misfit_fitted,
             kept_start: fit.kept_start,
+            solver_iterations: fit.solver_iterations,
+            solver_residual: fit.solver_residual,
             density_fingerprints: [fingerprints[t - 1].clone(), fingerprints[t].clone()],
             seconds: start.elapsed().as_secs_f64(),
         });

@@ -891,6 +891,10 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             "velocity_estimate_mean_abs_divergence_per_frame":
                 per_frame(|f| f.velocity_estimate_mean_abs_divergence),
             "velocity_estimate_seconds": estimate_seconds,
+            "velocity_estimate_obstacle_normal_flow":
+                report.velocity_estimate_obstacle_normal_flow_mean,
+            "velocity_estimate_obstacle_normal_flow_per_frame":
+                per_frame(|f| f.velocity_estimate_obstacle_normal_flow),
             "obstacle_density_fraction": report.obstacle_density_fraction_mean,
             "obstacle_normal_flow": report.obstacle_normal_flow_mean,
             "obstacle_density_fraction_per_frame": per_frame(|f| f.obstacle_density_fraction),
