@@ -17,9 +17,9 @@
 //! the current `d` and solving for the update by conjugate gradients, preconditioned by the
 //! inverse of `c I + B D^T D` (exact for the box without obstacles, [`Preconditioner`]): the
 //! weight B makes the system stiff, and without it 400 iterations stopped far short. The
-//! densities are smoothed by 2, 1, 0.5 cells and then not at all (two passes each, four at the end), so the
-//! linearisation holds for moves of a cell or more. Unlike the script, a step is halved while
-//! it raises the objective, and the start is kept if the passes end above it.
+//! densities are smoothed by 2, 1, 0.5 cells and then not at all (two passes each, four at
+//! the end), so the linearisation holds for moves of a cell or more. Unlike the script, a step
+//! is halved while it raises the objective, and the start is kept if the passes end above it.
 //!
 //! It is `xtask/reference/velocity_from_density.py`'s tracked fit in the trainer: on the long
 //! plume that fit, run on a preset run's own density grids, was 0.07-0.13 truer than the run's

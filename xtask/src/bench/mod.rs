@@ -1,5 +1,6 @@
-//! `cargo xtask bench render|physics|train`: the renderer next to the torch reference, the
-//! physics ops, and a whole training iteration ([`train`]).
+//! `cargo xtask bench render|physics|train|estimate`: the renderer next to the torch
+//! reference, the physics ops, a whole training iteration ([`train`]), and the velocity
+//! estimate after training ([`estimate`]).
 //!
 //! Scenes: `procedural::smoke_plume` inside the ScalarReal smoke box, seen from the ScalarReal
 //! held-out camera `train02` (pose and field of view from its info.json) at the paper's
@@ -21,6 +22,7 @@ use gausmoke_render::procedural::smoke_plume;
 use gausmoke_render::{Camera, GradientSums, Intrinsics, RasterOptions, backends, render_volume};
 use safetensors::{Dtype, tensor::TensorView};
 
+mod estimate;
 mod train;
 
 #[derive(Debug, Subcommand)]
@@ -31,6 +33,8 @@ pub enum Which {
     Physics(PhysicsArgs),
     /// A training iteration phase by phase, optionally against another build.
     Train(train::TrainArgs),
+    /// `gausmoke-train velocity` per frame on a trained run, optionally against another build.
+    Estimate(estimate::EstimateArgs),
 }
 
 #[derive(Debug, Args)]
@@ -101,6 +105,7 @@ pub fn run(which: Which) -> Result<()> {
         Which::Render(args) => render(args),
         Which::Physics(args) => physics(args),
         Which::Train(args) => train::train(args),
+        Which::Estimate(args) => estimate::estimate(args),
     }
 }
 
