@@ -640,6 +640,18 @@ mod tests {
             .collect()
     }
 
+    /// The relative error of `moves` against a uniform `shift` where `after` holds smoke.
+    fn shift_error(moves: &[f64], shift: [f64; 3], after: &[f32]) -> f64 {
+        let (mut error, mut norm) = (0.0, 0.0);
+        for cell in (0..after.len()).filter(|&c| after[c] > 0.1) {
+            for (a, s) in shift.iter().enumerate() {
+                error += (moves[3 * cell + a] - s).powi(2);
+                norm += s * s;
+            }
+        }
+        (error / norm).sqrt()
+    }
+
     fn dot(a: &[f64], b: &[f64]) -> f64 {
         a.iter().zip(b).map(|(x, y)| x * y).sum()
     }
@@ -763,14 +775,7 @@ mod tests {
             assert!(free[i] || *m == 0.0, "component {i}: {m}");
         }
         assert!(fit.misfit_fitted < 0.1, "{}", fit.misfit_fitted);
-        let (mut error, mut norm) = (0.0, 0.0);
-        for cell in (0..grid.cells()).filter(|&c| after[c] > 0.1) {
-            for (a, s) in shift.iter().enumerate() {
-                error += (fit.moves[3 * cell + a] - s).powi(2);
-                norm += s * s;
-            }
-        }
-        let relative = (error / norm).sqrt();
+        let relative = shift_error(&fit.moves, shift, &after);
         assert!(relative < 0.15, "relative error {relative}");
     }
 
@@ -929,14 +934,7 @@ mod tests {
             "{}",
             fit.solver_iterations
         );
-        let (mut error, mut norm) = (0.0, 0.0);
-        for cell in (0..grid.cells()).filter(|&c| after[c] > 0.1) {
-            for (a, s) in shift.iter().enumerate() {
-                error += (fit.moves[3 * cell + a] - s).powi(2);
-                norm += s * s;
-            }
-        }
-        let relative = (error / norm).sqrt();
+        let relative = shift_error(&fit.moves, shift, &after);
         assert!(relative < 0.1, "relative error {relative}");
     }
 
