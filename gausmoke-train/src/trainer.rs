@@ -2066,11 +2066,9 @@ impl Trainer {
                 self.config.density_motion_inertia as f64
             },
         };
-        let projection = self.projection();
         let grid = MotionGrid {
             resolution: self.grid.resolution(),
-            open: projection.open_faces,
-            solids: projection.solids,
+            open: self.projection().open_faces,
         };
         let fit = fit_density_motion(
             &grid,

@@ -57,10 +57,11 @@ pub struct EstimateOptions {
 impl Default for EstimateOptions {
     /// The weights that erred least on the long plume: the divergence and the tie on the
     /// scene's exact density (`xtask/reference/velocity_from_density.py`), the smoothness on
-    /// the preset runs' own densities (0.0003 against 0.001, three seeds; docs/RESULTS.md).
+    /// the preset runs' own densities (0.0001 against 0.00003, 0.0003 and 0.001 with the
+    /// converged solves, three seeds; docs/RESULTS.md).
     fn default() -> Self {
         Self {
-            smoothness: 0.0003,
+            smoothness: 0.0001,
             divergence: 1000.0,
             inertia: 0.01,
         }
@@ -173,7 +174,6 @@ pub fn estimate_run_velocity(
     let motion_grid = MotionGrid {
         resolution: grid.resolution(),
         open: projection.open_faces,
-        solids: projection.solids.clone(),
     };
     let in_data = transport_cells(&grid, config.respawn_region);
     let dt = f64::from(config.dt);
