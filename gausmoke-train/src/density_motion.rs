@@ -318,10 +318,9 @@ pub(crate) fn fit_density_motion(
     let (before_unit, after_unit) = (normalised(before), normalised(after));
     let as_f64 = |field: &[f32]| -> Vec<f64> { field.iter().map(|&v| f64::from(v)).collect() };
     let (source_plain, target_plain) = (as_f64(&before_unit), as_f64(&after_unit));
-    let start = prior.to_vec();
     let operator = grid.divergence();
     let spectral = SpectralSolver::for_grid(&operator);
-    let mut moves = start.clone();
+    let mut moves = prior.to_vec();
     let mut operator_out = vec![0.0; 3 * cells];
     let mut rejected_steps = 0;
     let (mut solver_iterations, mut solver_residual) = (0, 0.0f64);
@@ -363,9 +362,11 @@ pub(crate) fn fit_density_motion(
         let preconditioner = Preconditioner {
             operator: &operator,
             solver: &spectral,
-            scale: priors.inertia
+            // Positive even with no tie, smoothness or slope (all weights may be 0).
+            scale: (priors.inertia
                 + 6.0 * priors.smoothness
-                + jacobian.iter().map(|j| j * j).sum::<f64>() / cells as f64,
+                + jacobian.iter().map(|j| j * j).sum::<f64>() / cells as f64)
+                .max(1e-12),
             divergence: priors.divergence,
         };
         let apply = |x: &[f64], out: &mut [f64]| {
@@ -405,9 +406,9 @@ pub(crate) fn fit_density_motion(
     // start: then the start is kept.
     let (source, target) = (&source_plain, &target_plain);
     let kept_start = objective(&problem, source, target, &moves, &mut operator_out)
-        >= objective(&problem, source, target, &start, &mut operator_out);
+        >= objective(&problem, source, target, prior, &mut operator_out);
     if kept_start {
-        moves = start;
+        moves = prior.to_vec();
     }
     // No move carries each cell's own value: the misfit's yardstick.
     let still = data_term(&problem, source, target, &vec![0.0; 3 * cells]);
