@@ -65,6 +65,10 @@ enum Command {
         /// Weight of its tie to the frame before's estimate carried along itself.
         #[arg(long, default_value_t = EstimateOptions::default().inertia)]
         inertia: f64,
+        /// Do not lift that carried estimate along y in proportion to the density by what the
+        /// frame before's fit showed (a buoyancy read off the data).
+        #[arg(long)]
+        no_buoyancy: bool,
         /// No progress bar.
         #[arg(long)]
         quiet: bool,
@@ -258,6 +262,7 @@ fn run_command(cli: Cli) -> Result<()> {
             smoothness,
             divergence,
             inertia,
+            no_buoyancy,
             quiet,
             device,
         }) => {
@@ -265,6 +270,7 @@ fn run_command(cli: Cli) -> Result<()> {
                 smoothness,
                 divergence,
                 inertia,
+                buoyancy: !no_buoyancy,
             };
             let device = backends::device_by_name(&device).map_err(anyhow::Error::msg)?;
             estimate_velocity(&run, &options, &device, quiet)

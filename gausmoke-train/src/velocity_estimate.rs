@@ -46,12 +46,16 @@ pub fn estimate_path(run: &Path, t: usize) -> PathBuf {
 }
 
 /// The fit's weights (see [`crate::density_motion`]): the smoothness `A`, the divergence `B`
-/// and the tie `G` to the previous frame's estimate carried along itself.
+/// and the tie `G` to the previous frame's estimate carried along itself; and whether that
+/// carried estimate is also lifted along y in proportion to the density (`buoyancy`, see
+/// [`buoyancy_coefficient`]).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct EstimateOptions {
     pub smoothness: f64,
     pub divergence: f64,
     pub inertia: f64,
+    #[serde(default)]
+    pub buoyancy: bool,
 }
 
 impl Default for EstimateOptions {
@@ -64,6 +68,7 @@ impl Default for EstimateOptions {
             smoothness: 0.0001,
             divergence: 1000.0,
             inertia: 0.01,
+            buoyancy: true,
         }
     }
 }
@@ -96,6 +101,11 @@ pub struct FrameEstimate {
     pub misfit_fitted: f64,
     /// Whether the fit ended worse than its start, which was kept.
     pub kept_start: bool,
+    /// The lift the start was given along y, per unit density (cells per frame per frame,
+    /// densities divided by frame t-1's largest): what frame t-1's fit showed (0 without
+    /// `buoyancy`, and for frames 1 and 2).
+    #[serde(default)]
+    pub buoyancy: f64,
     /// The fit's conjugate-gradient iterations, and the largest residual one of its linear
     /// solves ended on, relative to its right-hand side (1e-6 when all converged).
     #[serde(default)]
@@ -115,6 +125,30 @@ pub struct EstimateSummary {
     /// source sets the density, not transport.
     pub inflow_cells: usize,
     pub frames: Vec<FrameEstimate>,
+}
+
+/// How strongly a fit's moves rose where there was smoke, beyond where they started: the
+/// least-squares `b` in `moves_y - start_y ~ b density` over all cells (`[cells, 3]` moves,
+/// `[cells]` density). A buoyant plume accelerates upward in proportion to its density; the
+/// next frame's start is lifted by it ([`EstimateOptions::buoyancy`]), so the lift is read
+/// off the data, with either sign, not assumed.
+pub fn buoyancy_coefficient(moves: &[f64], start: &[f64], density: &[f64]) -> f64 {
+    let (mut along, mut squared) = (0.0, 0.0);
+    for (c, rho) in density.iter().enumerate() {
+        along += (moves[3 * c + 1] - start[3 * c + 1]) * rho;
+        squared += rho * rho;
+    }
+    if squared > 0.0 { along / squared } else { 0.0 }
+}
+
+/// `density` divided by its largest value (all zeros for an empty grid).
+fn unit_density(density: &[f32]) -> Vec<f64> {
+    let largest = density.iter().fold(0.0f32, |m, &v| m.max(v));
+    if largest > 0.0 && largest.is_finite() {
+        density.iter().map(|&v| f64::from(v / largest)).collect()
+    } else {
+        vec![0.0; density.len()]
+    }
 }
 
 /// A fingerprint of a density grid's values.
@@ -198,10 +232,22 @@ pub fn estimate_run_velocity(
     let total = densities.len() - 1;
     let mut frames = Vec::new();
     let mut previous: Option<Vec<f64>> = None;
+    let mut lift = 0.0;
     for t in 1..densities.len() {
         let start = Instant::now();
-        let (prior, inertia) = match &previous {
-            Some(moves) => (motion_grid.self_carried(moves), options.inertia),
+        let carried = previous
+            .as_ref()
+            .map(|moves| motion_grid.self_carried(moves));
+        let density = unit_density(&densities[t - 1]);
+        let lift_now = if options.buoyancy { lift } else { 0.0 };
+        let (prior, inertia) = match &carried {
+            Some(carried) => {
+                let mut prior = carried.clone();
+                for (c, rho) in density.iter().enumerate() {
+                    prior[3 * c + 1] += lift_now * rho;
+                }
+                (prior, options.inertia)
+            }
             None => (vec![0.0; 3 * motion_grid.cells()], 0.0),
         };
         let priors = MotionPriors {
@@ -238,11 +284,15 @@ pub fn estimate_run_velocity(
             misfit_prior: fit.misfit_prior,
             misfit_fitted: fit.misfit_fitted,
             kept_start: fit.kept_start,
+            buoyancy: lift_now,
             solver_iterations: fit.solver_iterations,
             solver_residual: fit.solver_residual,
             density_fingerprints: [fingerprints[t - 1].clone(), fingerprints[t].clone()],
             seconds: start.elapsed().as_secs_f64(),
         });
+        if let Some(carried) = &carried {
+            lift = buoyancy_coefficient(&fit.moves, carried, &density);
+        }
         previous = Some(fit.moves);
         on_frame(t, total);
     }
@@ -342,7 +392,12 @@ mod tests {
     /// A run folder (beside the tiny synthetic scene, its data set) whose frames hold a smooth
     /// blob moving by `shift` (world units) a frame, on a 16^3 grid over the unit box; frame 0
     /// is at rest.
-    fn moving_blob_run(dir: &Path, shift: Vec3, frames: usize) -> (RunFolder, TrainConfig) {
+    /// A run folder of `frames` frames whose density is a blob centred at `centre(t)`.
+    fn blob_run(
+        dir: &Path,
+        centre: impl Fn(f32) -> Vec3,
+        frames: usize,
+    ) -> (RunFolder, TrainConfig) {
         let data = dir.join("data");
         gausmoke_data::synth::generate(&gausmoke_data::synth::SynthConfig::tiny(), &data).unwrap();
         let folder = RunFolder::at(&dir.join("run"));
@@ -367,7 +422,7 @@ mod tests {
             .unwrap();
         let grid = config.grid(lo.into(), hi.into()).unwrap();
         for t in 0..frames {
-            let centre = Vec3::new(0.4, 0.35, 0.45) + shift * t as f32;
+            let centre = centre(t as f32);
             let density = grid
                 .cell_centres()
                 .chunks(3)
@@ -382,6 +437,47 @@ mod tests {
             folder.write_frame_state(t, &grid, &state).unwrap();
         }
         (folder, config)
+    }
+
+    /// A blob moving by `shift` each frame.
+    fn moving_blob_run(dir: &Path, shift: Vec3, frames: usize) -> (RunFolder, TrainConfig) {
+        blob_run(dir, |t| Vec3::new(0.4, 0.35, 0.45) + shift * t, frames)
+    }
+
+    /// The lift is the least-squares coefficient of the vertical increment on the density.
+    #[test]
+    fn the_buoyancy_coefficient_is_the_increments_slope_on_the_density() {
+        let density = [0.0, 0.5, 1.0, 0.25];
+        let start = [0.1, -0.2, 0.3, 0.0, 0.4, 0.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0];
+        let mut moves = start;
+        for (c, rho) in density.iter().enumerate() {
+            moves[3 * c + 1] += 0.3 * rho;
+            moves[3 * c] += 5.0 * rho;
+        }
+        let b = buoyancy_coefficient(&moves, &start, &density);
+        assert!((b - 0.3).abs() < 1e-12, "{b}");
+        assert_eq!(buoyancy_coefficient(&moves, &start, &[0.0; 4]), 0.0);
+    }
+
+    /// A blob rising faster each frame: its estimate's start is lifted from frame 3 on, by
+    /// an upward coefficient; without `buoyancy` it never is.
+    #[test]
+    fn an_accelerating_blob_lifts_the_start() {
+        let dir = tempfile::tempdir().unwrap();
+        let (folder, _) = blob_run(dir.path(), |t| Vec3::new(0.45, 0.3 + 0.02 * t * t, 0.5), 5);
+        let lifts = |buoyancy| -> Vec<f64> {
+            let options = EstimateOptions {
+                buoyancy,
+                ..EstimateOptions::default()
+            };
+            let summary =
+                estimate_run_velocity(folder.root(), &options, &device(), |_, _| {}).unwrap();
+            summary.frames.iter().map(|f| f.buoyancy).collect()
+        };
+        let with = lifts(true);
+        assert_eq!(&with[..2], &[0.0, 0.0], "{with:?}");
+        assert!(with[2..].iter().all(|&b| b > 0.0), "{with:?}");
+        assert!(lifts(false).iter().all(|&b| b == 0.0));
     }
 
     /// A blob moving a known distance each frame: the estimate, read back through the files
