@@ -2,7 +2,8 @@
 //! velocity --run DIR`, ours): for each frame t, the velocity whose semi-Lagrangian step
 //! carries frame t-1's density grid onto frame t's ([`crate::density_motion`]), tracked
 //! through the frames: frame t's fit starts from, and is tied to, frame t-1's estimate carried
-//! along itself. Frame 1 starts from no motion, untied.
+//! along itself, lifted along y where there is smoke by as much as frame t-1's fit rose there
+//! ([`buoyancy_coefficient`]). Frame 1 starts from no motion, untied.
 //!
 //! The run's own velocity is what carried its Gaussians; it is left as it is. On the long
 //! plume this estimate, read off the same run's densities, is truer than the run's velocity,
