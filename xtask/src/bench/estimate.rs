@@ -100,11 +100,6 @@ fn measure(binary: &Path, args: &EstimateArgs, folder: &Path) -> Result<Measurem
     })
 }
 
-fn median(mut values: Vec<f64>) -> f64 {
-    values.sort_by(f64::total_cmp);
-    values[values.len() / 2]
-}
-
 pub fn estimate(args: EstimateArgs) -> Result<()> {
     if cfg!(debug_assertions) {
         eprintln!(
@@ -129,21 +124,21 @@ pub fn estimate(args: EstimateArgs) -> Result<()> {
         builds.push((other.display().to_string(), other.clone()));
     }
     let scratch = tempfile::tempdir()?;
-    let mut results: Vec<Vec<Measurement>> = vec![Vec::new(); builds.len()];
-    for round in 0..args.rounds {
-        for (b, (name, binary)) in builds.iter().enumerate() {
-            let folder = scratch.path().join(format!("run-{b}"));
-            let m = measure(binary, &args, &folder)?;
-            eprintln!(
-                "round {round}: {name}: {:.2} s per frame",
-                m.seconds_per_frame
-            );
-            results[b].push(m);
-        }
-    }
+    let results = super::in_alternation(
+        &builds,
+        args.rounds,
+        |b, _| {
+            measure(
+                &builds[b].1,
+                &args,
+                &scratch.path().join(format!("run-{b}")),
+            )
+        },
+        |m| format!("{:.2} s per frame", m.seconds_per_frame),
+    )?;
     let medians: Vec<f64> = results
         .iter()
-        .map(|runs| median(runs.iter().map(|m| m.seconds_per_frame).collect()))
+        .map(|runs| super::median(runs.iter().map(|m| m.seconds_per_frame).collect()))
         .collect();
     println!(
         "Velocity estimate of {}, frames 1-{}, {} rounds:",

@@ -127,9 +127,33 @@ pub fn scalar_real_test_camera(width: u32, height: u32) -> Camera {
 pub const SCALAR_REAL_BOX: (Vec3, Vec3) =
     (Vec3::new(0.08, -0.04, -0.50), Vec3::new(0.57, 0.69, 0.00));
 
-fn median_ms(mut samples: Vec<f64>) -> f64 {
-    samples.sort_by(f64::total_cmp);
-    samples[samples.len() / 2] * 1e3
+/// The middle value (the upper one of an even count).
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values[values.len() / 2]
+}
+
+fn median_ms(samples: Vec<f64>) -> f64 {
+    median(samples) * 1e3
+}
+
+/// `measure(build, round)` for every build in turn, `rounds` times, so that drifts in the
+/// machine's load hit every build; each measurement is reported with `describe`.
+fn in_alternation<M>(
+    builds: &[(String, PathBuf)],
+    rounds: usize,
+    mut measure: impl FnMut(usize, usize) -> Result<M>,
+    describe: impl Fn(&M) -> String,
+) -> Result<Vec<Vec<M>>> {
+    let mut results: Vec<Vec<M>> = builds.iter().map(|_| Vec::new()).collect();
+    for round in 0..rounds {
+        for (b, (name, _)) in builds.iter().enumerate() {
+            let m = measure(b, round)?;
+            eprintln!("round {round}: {name}: {}", describe(&m));
+            results[b].push(m);
+        }
+    }
+    Ok(results)
 }
 
 /// Median forward and forward+backward times of our renderer. The scene is uploaded once;

@@ -156,11 +156,6 @@ fn measure(binary: &Path, args: &TrainArgs, scratch: &Path, label: &str) -> Resu
     })
 }
 
-fn median(mut values: Vec<f64>) -> f64 {
-    values.sort_by(f64::total_cmp);
-    values[values.len() / 2]
-}
-
 pub fn train(args: TrainArgs) -> Result<()> {
     if cfg!(debug_assertions) {
         eprintln!(
@@ -173,20 +168,15 @@ pub fn train(args: TrainArgs) -> Result<()> {
         builds.push((format!("{}", other.display()), other.clone()));
     }
     let scratch = tempfile::tempdir()?;
-    let mut results: Vec<Vec<Measurement>> = vec![Vec::new(); builds.len()];
-    for round in 0..args.rounds {
-        for (b, (name, binary)) in builds.iter().enumerate() {
-            let m = measure(binary, &args, scratch.path(), &format!("{b}-{round}"))?;
-            eprintln!(
-                "round {round}: {name}: {:.3} s per iteration",
-                m.seconds_per_iteration
-            );
-            results[b].push(m);
-        }
-    }
+    let results = super::in_alternation(
+        &builds,
+        args.rounds,
+        |b, round| measure(&builds[b].1, &args, scratch.path(), &format!("{b}-{round}")),
+        |m| format!("{:.3} s per iteration", m.seconds_per_iteration),
+    )?;
     let medians: Vec<f64> = results
         .iter()
-        .map(|runs| median(runs.iter().map(|m| m.seconds_per_iteration).collect()))
+        .map(|runs| super::median(runs.iter().map(|m| m.seconds_per_iteration).collect()))
         .collect();
     let workload = if args.paper {
         "paper-sized (30k Gaussians, 64^3, 270x480, 16 channels)"
