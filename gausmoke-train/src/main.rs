@@ -65,8 +65,9 @@ enum Command {
         /// Weight of its tie to the frame before's estimate carried along itself.
         #[arg(long, default_value_t = EstimateOptions::default().inertia)]
         inertia: f64,
-        /// Do not lift that carried estimate along y in proportion to the density by what the
-        /// frame before's fit showed (a buoyancy read off the data).
+        /// Do not lift that carried estimate along +y in proportion to the density by what the
+        /// frame before's fit showed (a buoyancy read off the data, upward only: for rising
+        /// smoke, not for sinking fog).
         #[arg(long)]
         no_buoyancy: bool,
         /// No progress bar.

@@ -2,8 +2,8 @@
 //! velocity --run DIR`, ours): for each frame t, the velocity whose semi-Lagrangian step
 //! carries frame t-1's density grid onto frame t's ([`crate::density_motion`]), tracked
 //! through the frames: frame t's fit starts from, and is tied to, frame t-1's estimate carried
-//! along itself, lifted along y where there is smoke by as much as frame t-1's fit rose there
-//! ([`buoyancy_coefficient`]). Frame 1 starts from no motion, untied.
+//! along itself, lifted along +y where there is smoke by as much as frame t-1's fit rose there
+//! beyond its own start ([`buoyancy_coefficient`]). Frame 1 starts from no motion, untied.
 //!
 //! The run's own velocity is what carried its Gaussians; it is left as it is. On the long
 //! plume this estimate, read off the same run's densities, is truer than the run's velocity,
@@ -48,8 +48,8 @@ pub fn estimate_path(run: &Path, t: usize) -> PathBuf {
 
 /// The fit's weights (see [`crate::density_motion`]): the smoothness `A`, the divergence `B`
 /// and the tie `G` to the previous frame's estimate carried along itself; and whether that
-/// carried estimate is also lifted along y in proportion to the density (`buoyancy`, see
-/// [`buoyancy_coefficient`]).
+/// carried estimate is also lifted along +y (the world's up) in proportion to the density
+/// (`buoyancy`, see [`buoyancy_coefficient`]; for rising smoke, not for sinking fog).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct EstimateOptions {
     pub smoothness: f64,
@@ -102,9 +102,9 @@ pub struct FrameEstimate {
     pub misfit_fitted: f64,
     /// Whether the fit ended worse than its start, which was kept.
     pub kept_start: bool,
-    /// The lift the start was given along y, per unit density (cells per frame per frame,
-    /// densities divided by frame t-1's largest): what frame t-1's fit showed (0 without
-    /// `buoyancy`, and for frames 1 and 2).
+    /// The lift the start was given along +y, per unit density (cells per frame per frame,
+    /// densities divided by frame t-1's largest): what frame t-1's fit showed, if upward (0
+    /// without `buoyancy`, and for frames 1 and 2).
     #[serde(default)]
     pub buoyancy: f64,
     /// The fit's conjugate-gradient iterations, and the largest residual one of its linear
@@ -131,8 +131,8 @@ pub struct EstimateSummary {
 /// How strongly a fit's moves rose where there was smoke, beyond where they started: the
 /// least-squares `b` in `moves_y - start_y ~ b density` over all cells (`[cells, 3]` moves,
 /// `[cells]` density). A buoyant plume accelerates upward in proportion to its density; the
-/// next frame's start is lifted by it ([`EstimateOptions::buoyancy`]), so the lift is read
-/// off the data, with either sign, not assumed.
+/// next frame's start is lifted by it where it is positive ([`EstimateOptions::buoyancy`]),
+/// so the lift is read off the data, not assumed.
 pub fn buoyancy_coefficient(moves: &[f64], start: &[f64], density: &[f64]) -> f64 {
     let (mut along, mut squared) = (0.0, 0.0);
     for (c, rho) in density.iter().enumerate() {
@@ -292,7 +292,9 @@ pub fn estimate_run_velocity(
             seconds: start.elapsed().as_secs_f64(),
         });
         if let Some(carried) = &carried {
-            lift = buoyancy_coefficient(&fit.moves, carried, &density);
+            // Upward only: where the smoke slows (a cap meeting the top), the slowing is not
+            // in proportion to its density, and carrying it on erred more.
+            lift = buoyancy_coefficient(&fit.moves, carried, &density).max(0.0);
         }
         previous = Some(fit.moves);
         on_frame(t, total);
@@ -461,7 +463,7 @@ mod tests {
     }
 
     /// A blob rising faster each frame: its estimate's start is lifted from frame 3 on, by
-    /// an upward coefficient; without `buoyancy` it never is.
+    /// an upward coefficient; without `buoyancy` it never is, nor when the blob slows.
     #[test]
     fn an_accelerating_blob_lifts_the_start() {
         let dir = tempfile::tempdir().unwrap();
@@ -479,6 +481,20 @@ mod tests {
         assert_eq!(&with[..2], &[0.0, 0.0], "{with:?}");
         assert!(with[2..].iter().all(|&b| b > 0.0), "{with:?}");
         assert!(lifts(false).iter().all(|&b| b == 0.0));
+        let slowing = tempfile::tempdir().unwrap();
+        let (folder, _) = blob_run(
+            slowing.path(),
+            |t| Vec3::new(0.45, 0.3 + 0.1 * t - 0.02 * t * t, 0.5),
+            5,
+        );
+        let summary = estimate_run_velocity(
+            folder.root(),
+            &EstimateOptions::default(),
+            &device(),
+            |_, _| {},
+        )
+        .unwrap();
+        assert!(summary.frames.iter().all(|f| f.buoyancy == 0.0));
     }
 
     /// A blob moving a known distance each frame: the estimate, read back through the files
