@@ -564,6 +564,13 @@ mod tests {
         flow: 1.0,
     };
 
+    /// The top face open, the others walls.
+    const OPEN_TOP: OpenFaces = OpenFaces {
+        low: [false; 3],
+        high: [false, true, false],
+        flow: 1.0,
+    };
+
     fn grid(n: usize, open: OpenFaces) -> MotionGrid {
         MotionGrid {
             resolution: [n, n + 2, n + 1],
@@ -694,12 +701,7 @@ mod tests {
     /// Past an open face there is clear air; past a wall the outermost cells are read.
     #[test]
     fn a_departure_past_an_open_face_brings_clear_air() {
-        let open_top = OpenFaces {
-            low: [false; 3],
-            high: [false, true, false],
-            flow: 1.0,
-        };
-        let grid = grid(4, open_top);
+        let grid = grid(4, OPEN_TOP);
         let density = vec![1.0; grid.cells()];
         let down =
             |dy: f64| -> Vec<f64> { (0..grid.cells()).flat_map(|_| [0.0, dy, 0.0]).collect() };
@@ -742,12 +744,7 @@ mod tests {
     /// The preconditioner inverts `c I + B D^T D` exactly.
     #[test]
     fn the_preconditioner_inverts_the_divergence_part() {
-        let open_top = OpenFaces {
-            low: [false; 3],
-            high: [false, true, false],
-            flow: 1.0,
-        };
-        let grid = grid(5, open_top);
+        let grid = grid(5, OPEN_TOP);
         let operator = grid.divergence();
         let solver = SpectralSolver::for_grid(&operator);
         let preconditioner = Preconditioner {
