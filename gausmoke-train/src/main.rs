@@ -619,11 +619,10 @@ fn estimate_velocity(
         mean(|f| f.misfit_prior),
         mean(|f| f.misfit_fitted),
     );
-    // A solve stopped by its iteration cap is a different estimate from the fit's minimum.
     let unconverged: Vec<_> = summary
         .frames
         .iter()
-        .filter(|f| f.solver_residual > 1e-3)
+        .filter(|f| f.stopped_short())
         .collect();
     if let Some(worst) = unconverged
         .iter()

@@ -118,6 +118,18 @@ pub struct FrameEstimate {
     pub seconds: f64,
 }
 
+/// A solve that ends above this residual (relative to its right-hand side; the fit asks for
+/// 1e-6) stopped at its iteration cap far from the fit's minimum.
+const UNCONVERGED_RESIDUAL: f64 = 1e-3;
+
+impl FrameEstimate {
+    /// Whether one of the fit's linear solves stopped short of convergence, so that this
+    /// frame's estimate is not the fit's minimum.
+    pub fn stopped_short(&self) -> bool {
+        self.solver_residual > UNCONVERGED_RESIDUAL
+    }
+}
+
 /// `estimate.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EstimateSummary {
@@ -239,13 +251,13 @@ pub fn estimate_run_velocity(
         let carried = previous
             .as_ref()
             .map(|moves| motion_grid.self_carried(moves));
-        let density = unit_density(&densities[t - 1]);
-        let lift_now = if options.buoyancy { lift } else { 0.0 };
+        // The density the lift is in proportion to, and regressed on after the fit.
+        let lift_density = options.buoyancy.then(|| unit_density(&densities[t - 1]));
         let (prior, inertia) = match &carried {
             Some(carried) => {
                 let mut prior = carried.clone();
-                for (c, rho) in density.iter().enumerate() {
-                    prior[3 * c + 1] += lift_now * rho;
+                for (c, rho) in lift_density.iter().flatten().enumerate() {
+                    prior[3 * c + 1] += lift * rho;
                 }
                 (prior, options.inertia)
             }
@@ -285,16 +297,16 @@ pub fn estimate_run_velocity(
             misfit_prior: fit.misfit_prior,
             misfit_fitted: fit.misfit_fitted,
             kept_start: fit.kept_start,
-            buoyancy: lift_now,
+            buoyancy: lift,
             solver_iterations: fit.solver_iterations,
             solver_residual: fit.solver_residual,
             density_fingerprints: [fingerprints[t - 1].clone(), fingerprints[t].clone()],
             seconds: start.elapsed().as_secs_f64(),
         });
-        if let Some(carried) = &carried {
+        if let (Some(carried), Some(density)) = (&carried, &lift_density) {
             // Upward only: where the smoke slows (a cap meeting the top), the slowing is not
             // in proportion to its density, and carrying it on erred more.
-            lift = buoyancy_coefficient(&fit.moves, carried, &density).max(0.0);
+            lift = buoyancy_coefficient(&fit.moves, carried, density).max(0.0);
         }
         previous = Some(fit.moves);
         on_frame(t, total);
