@@ -197,46 +197,68 @@ fn ground_truth_errors(
     }))
 }
 
-/// Leakage into the data set's obstacles (see [`FrameEval::obstacle_density_fraction`] and
-/// [`FrameEval::obstacle_normal_flow`]) of one frame's density `[cells]` and velocity
-/// `[cells, 3]` on `grid`; `None` without obstacles.
-fn obstacle_leakage(
-    obstacles: &[Obstacle],
+/// A cell centre of the run's grid, the data set's obstacle nearest to it, and its signed
+/// distance from that obstacle (negative inside).
+struct NearestObstacle<'a> {
+    centre: Vec3,
+    obstacle: &'a Obstacle,
+    distance: f32,
+}
+
+/// [`NearestObstacle`] of every cell of `grid`, `None` without obstacles: the same for every
+/// frame.
+fn nearest_obstacles<'a>(
+    obstacles: &'a [Obstacle],
     grid: &GridSpec,
-    density: &[f32],
-    velocity: &[f32],
-) -> Option<(f64, f64)> {
+) -> Option<Vec<NearestObstacle<'a>>> {
     if obstacles.is_empty() {
         return None;
     }
-    let shell = grid.cell_size().max_element();
     let centres = grid.cell_centres();
-    let (mut inside, mut total) = (0.0f64, 0.0f64);
-    let (mut normal2, mut speed2) = (0.0f64, 0.0f64);
-    for (c, centre) in centres.chunks(3).enumerate() {
+    let cells = centres.chunks(3).map(|centre| {
         let p = Vec3::from_slice(centre);
-        let sigma = density[c].max(0.0) as f64;
-        total += sigma;
         let nearest = obstacles
             .iter()
             .min_by(|a, b| a.signed_distance(p).total_cmp(&b.signed_distance(p)))
             .expect("at least one obstacle");
-        let distance = nearest.signed_distance(p);
-        if distance <= 0.0 {
+        NearestObstacle {
+            centre: p,
+            obstacle: nearest,
+            distance: nearest.signed_distance(p),
+        }
+    });
+    Some(cells.collect())
+}
+
+/// [`FrameEval::obstacle_density_fraction`] of one frame's density `[cells]`.
+fn obstacle_density_fraction(nearest: &[NearestObstacle], density: &[f32]) -> f64 {
+    let (mut inside, mut total) = (0.0f64, 0.0f64);
+    for (cell, &sigma) in nearest.iter().zip(density) {
+        let sigma = sigma.max(0.0) as f64;
+        total += sigma;
+        if cell.distance <= 0.0 {
             inside += sigma;
-        } else if distance <= shell {
-            let u = Vec3::from_slice(&velocity[3 * c..3 * c + 3]);
-            normal2 += u.dot(nearest.outward_normal(p)).powi(2) as f64;
+        }
+    }
+    if total > 0.0 { inside / total } else { 0.0 }
+}
+
+/// [`FrameEval::obstacle_normal_flow`] of a velocity `[cells, 3]` over the fluid cells within
+/// `shell` of an obstacle.
+fn obstacle_normal_flow(nearest: &[NearestObstacle], shell: f32, velocity: &[f32]) -> f64 {
+    let (mut normal2, mut speed2) = (0.0f64, 0.0f64);
+    for (cell, u) in nearest.iter().zip(velocity.chunks(3)) {
+        if cell.distance > 0.0 && cell.distance <= shell {
+            let u = Vec3::from_slice(u);
+            normal2 += u.dot(cell.obstacle.outward_normal(cell.centre)).powi(2) as f64;
             speed2 += u.length_squared() as f64;
         }
     }
-    let fraction = if total > 0.0 { inside / total } else { 0.0 };
-    let normal = if speed2 > 0.0 {
+    if speed2 > 0.0 {
         (normal2 / speed2).sqrt()
     } else {
         0.0
-    };
-    Some((fraction, normal))
+    }
 }
 
 /// Evaluates the run folder `run` (written by [`crate::Trainer`]) on `device`.
@@ -269,6 +291,9 @@ pub fn evaluate(
         device,
     );
     let stored_estimate = crate::velocity_estimate::StoredEstimate::open(run)?;
+    let nearest = nearest_obstacles(&scene.obstacles, &grid);
+    // The shell of fluid cells beside an obstacle whose flow is scored.
+    let shell = grid.cell_size().max_element();
     let mut frames = Vec::new();
     let mut previous_density: Option<Vec<f32>> = None;
     for t in 0..scene.frames() {
@@ -307,10 +332,6 @@ pub fn evaluate(
         }
         let average = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
         let truth = ground_truth_errors(&scene, &grid, t, density, velocity)?;
-        let leakage = obstacle_leakage(&scene.obstacles, &grid, density, velocity);
-        let estimate_leakage = estimate
-            .as_ref()
-            .and_then(|estimated| obstacle_leakage(&scene.obstacles, &grid, density, estimated));
         let estimate_truth = match &estimate {
             Some(estimated) => ground_truth_errors(&scene, &grid, t, density, estimated)?,
             None => None,
@@ -333,15 +354,23 @@ pub fn evaluate(
             velocity_cosine: velocity_truth.map(|e| e.velocity_cosine),
             density_relative_error: truth.map(|e| e.density_relative_error),
             density_correlation: truth.map(|e| e.density_correlation),
-            obstacle_density_fraction: leakage.map(|(fraction, _)| fraction),
+            obstacle_density_fraction: nearest
+                .as_deref()
+                .map(|nearest| obstacle_density_fraction(nearest, density)),
             // u^0 is zero by construction.
-            obstacle_normal_flow: leakage.filter(|_| t > 0).map(|(_, normal)| normal),
+            obstacle_normal_flow: nearest
+                .as_deref()
+                .filter(|_| t > 0)
+                .map(|nearest| obstacle_normal_flow(nearest, shell, velocity)),
             velocity_estimate_mean_abs_divergence: estimate.as_ref().map(|estimated| {
                 metrics::mean_abs_divergence(&grid, open_faces, solids.as_ref(), estimated)
             }),
             velocity_estimate_relative_error: estimate_truth.map(|e| e.velocity_relative_error),
             velocity_estimate_cosine: estimate_truth.map(|e| e.velocity_cosine),
-            velocity_estimate_obstacle_normal_flow: estimate_leakage.map(|(_, normal)| normal),
+            velocity_estimate_obstacle_normal_flow: nearest
+                .as_deref()
+                .zip(estimate.as_ref())
+                .map(|(nearest, estimated)| obstacle_normal_flow(nearest, shell, estimated)),
         });
         previous_density = Some(state.density);
     }
