@@ -136,10 +136,7 @@ pub fn estimate(args: EstimateArgs) -> Result<()> {
         },
         |m| format!("{:.2} s per frame", m.seconds_per_frame),
     )?;
-    let medians: Vec<f64> = results
-        .iter()
-        .map(|runs| super::median(runs.iter().map(|m| m.seconds_per_frame).collect()))
-        .collect();
+    let medians = super::medians(&results, |m| m.seconds_per_frame);
     println!(
         "Velocity estimate of {}, frames 1-{}, {} rounds:",
         args.run.display(),

@@ -137,6 +137,14 @@ fn median_ms(samples: Vec<f64>) -> f64 {
     median(samples) * 1e3
 }
 
+/// The median of `value` over each build's measurements.
+fn medians<M>(results: &[Vec<M>], value: impl Fn(&M) -> f64) -> Vec<f64> {
+    results
+        .iter()
+        .map(|runs| median(runs.iter().map(&value).collect()))
+        .collect()
+}
+
 /// `measure(build, round)` for every build in turn, `rounds` times, so that drifts in the
 /// machine's load hit every build; each measurement is reported with `describe`.
 fn in_alternation<M>(

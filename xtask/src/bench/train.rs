@@ -174,10 +174,7 @@ pub fn train(args: TrainArgs) -> Result<()> {
         |b, round| measure(&builds[b].1, &args, scratch.path(), &format!("{b}-{round}")),
         |m| format!("{:.3} s per iteration", m.seconds_per_iteration),
     )?;
-    let medians: Vec<f64> = results
-        .iter()
-        .map(|runs| super::median(runs.iter().map(|m| m.seconds_per_iteration).collect()))
-        .collect();
+    let medians = super::medians(&results, |m| m.seconds_per_iteration);
     let workload = if args.paper {
         "paper-sized (30k Gaussians, 64^3, 270x480, 16 channels)"
     } else {
