@@ -529,8 +529,9 @@ pub struct TrainConfig {
     /// fit starts from, and is tied to, `density_motion_prior` (by default the previous
     /// frame's velocity carried along itself); cells in the inflow box (`respawn_region`) are
     /// left out of its data term. The result is projected by `Pi` (which also holds solid
-    /// obstacles; the fit itself does not model them). Phi is not changed. On the long plume it makes the velocity truer and costs
-    /// the pictures and the 3D density (docs/RESULTS.md, "Why we fall short", item 1).
+    /// obstacles; the fit itself does not model them). Phi is not changed. On the long plume
+    /// it makes the velocity truer and costs the pictures and the 3D density (docs/RESULTS.md,
+    /// "Why we fall short", item 1).
     pub velocity_from_density_motion: bool,
     /// Weight of that fit's smoothness prior (`|grad u|^2`, u in cells per step, densities
     /// divided by their largest value).
