@@ -12,7 +12,9 @@
 //!
 //! `d` is the move per step in cells, `d_prior` where the fit starts: the previous frame's
 //! velocity carried along itself, or the frame's own velocity from the joint iterations
-//! (`density_motion_prior`). The densities are divided by frame t's largest value.
+//! (`density_motion_prior`). The densities are divided by frame t's largest value. With
+//! [`Smoothed::Change`] the smoothness is `A |grad (d - d_prior)|^2` instead: what the densities
+//! do not see is then carried on as it is, not smoothed again at every frame.
 //! Solved by Gauss-Newton with warping: ten passes, each linearising the step's residual about
 //! the current `d` and solving for the update by conjugate gradients, preconditioned by the
 //! inverse of `c I + B D^T D` ([`Preconditioner`], one direct solve): the
@@ -47,12 +49,22 @@ const STEP_HALVINGS: usize = 6;
 const CG_TOLERANCE: f64 = 1e-6;
 
 /// The weights of the fit's priors (`A`, `B`, `G` above), for densities divided by their
-/// largest value and moves in cells per step.
+/// largest value and moves in cells per step, and what the smoothness acts on.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct MotionPriors {
     pub smoothness: f64,
     pub divergence: f64,
     pub inertia: f64,
+    pub smoothed: Smoothed,
+}
+
+/// What the smoothness `A` is charged on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Smoothed {
+    /// The move itself, `|grad d|^2`.
+    Move,
+    /// Its change from the prior, `|grad (d - d_prior)|^2`.
+    Change,
 }
 
 /// The grid the densities live on and where the smoke may leave it: a departure point past an
@@ -324,11 +336,12 @@ pub(crate) fn fit_density_motion(
     let mut operator_out = vec![0.0; 3 * cells];
     let mut rejected_steps = 0;
     let (mut solver_iterations, mut solver_residual) = (0, 0.0f64);
+    let pull = pull_of(grid, &priors, prior);
     let problem = Problem {
         grid,
         priors: &priors,
         in_data,
-        prior,
+        pull: &pull,
     };
     for &sigma in &SMOOTHING_PASSES {
         let blurred =
@@ -347,8 +360,7 @@ pub(crate) fn fit_density_motion(
         grid.regularise(&priors, &moves, &mut operator_out);
         for cell in 0..cells {
             for c in 0..3 {
-                rhs[3 * cell + c] =
-                    priors.inertia * prior[3 * cell + c] - operator_out[3 * cell + c];
+                rhs[3 * cell + c] = pull[3 * cell + c] - operator_out[3 * cell + c];
             }
             if !in_data[cell] {
                 continue;
@@ -457,12 +469,32 @@ impl Preconditioner<'_> {
     }
 }
 
+/// The linear term the quadratic priors pull the move towards: the objective's quadratic part
+/// is `d . R d - 2 d . pull` (`R` as [`MotionGrid::regularise`] applies it), with `pull = G
+/// d_prior`, and `+ A L d_prior` when the smoothness is on the change from the prior.
+fn pull_of(grid: &MotionGrid, priors: &MotionPriors, prior: &[f64]) -> Vec<f64> {
+    let mut pull: Vec<f64> = prior.iter().map(|p| priors.inertia * p).collect();
+    if priors.smoothed == Smoothed::Change {
+        let smoothness_only = MotionPriors {
+            divergence: 0.0,
+            inertia: 0.0,
+            ..*priors
+        };
+        let mut smoothed_prior = vec![0.0; prior.len()];
+        grid.regularise(&smoothness_only, prior, &mut smoothed_prior);
+        pull.iter_mut()
+            .zip(&smoothed_prior)
+            .for_each(|(p, s)| *p += s);
+    }
+    pull
+}
+
 /// What stays fixed through the passes.
 struct Problem<'a> {
     grid: &'a MotionGrid,
     priors: &'a MotionPriors,
     in_data: &'a [bool],
-    prior: &'a [f64],
+    pull: &'a [f64],
 }
 
 /// The fit's objective (up to a constant) for `moves` between `source` and `target`; `out` is
@@ -477,7 +509,7 @@ fn objective(
     let data = data_term(problem, source, target, moves);
     problem.grid.regularise(problem.priors, moves, out);
     let quadratic: f64 = (0..moves.len())
-        .map(|i| moves[i] * out[i] - 2.0 * problem.priors.inertia * moves[i] * problem.prior[i])
+        .map(|i| moves[i] * out[i] - 2.0 * moves[i] * problem.pull[i])
         .sum();
     data + quadratic
 }
@@ -627,6 +659,7 @@ mod tests {
             smoothness: 0.3,
             divergence: 7.0,
             inertia: 0.1,
+            smoothed: Smoothed::Move,
         };
         let (x, y) = (noise(3 * grid.cells(), 1), noise(3 * grid.cells(), 2));
         let (mut rx, mut ry) = (vec![0.0; x.len()], vec![0.0; y.len()]);
@@ -641,6 +674,7 @@ mod tests {
             smoothness: 0.0,
             divergence: 1.0,
             inertia: 0.0,
+            smoothed: Smoothed::Move,
         };
         let uniform: Vec<f64> = (0..grid.cells()).flat_map(|_| [0.4, -1.1, 0.7]).collect();
         let mut out = vec![0.0; uniform.len()];
@@ -786,6 +820,7 @@ mod tests {
                 smoothness: 0.001,
                 divergence: 1000.0,
                 inertia: 0.0,
+                smoothed: Smoothed::Move,
             },
             400,
         );
@@ -846,6 +881,7 @@ mod tests {
                 smoothness: 1.0,
                 divergence: 1.0,
                 inertia: 1.0,
+                smoothed: Smoothed::Move,
             },
             10,
         );
@@ -869,6 +905,7 @@ mod tests {
                     smoothness: 0.001,
                     divergence: 1000.0,
                     inertia,
+                    smoothed: Smoothed::Move,
                 },
                 400,
             )
@@ -879,5 +916,42 @@ mod tests {
         for (a, b) in tied.moves.iter().zip(&prior) {
             assert!((a - b).abs() < 1e-6, "{a} vs {b}");
         }
+    }
+
+    /// Where the densities say nothing, a smoothness on the move smooths a rough prior, while
+    /// one on the change from the prior carries it on as it is.
+    #[test]
+    fn a_smoothness_on_the_change_keeps_a_rough_prior() {
+        let grid = grid(5, WALLS);
+        // A uniform density: every move carries it onto itself, so there is no data term.
+        let uniform = vec![1.0; grid.cells()];
+        let prior = noise(3 * grid.cells(), 7);
+        let fit = |smoothed| {
+            fit_density_motion(
+                &grid,
+                &uniform,
+                &uniform,
+                &vec![true; grid.cells()],
+                &prior,
+                MotionPriors {
+                    smoothness: 0.1,
+                    divergence: 0.0,
+                    inertia: 0.01,
+                    smoothed,
+                },
+                400,
+            )
+        };
+        let largest_change = |moves: &[f64]| {
+            moves
+                .iter()
+                .zip(&prior)
+                .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()))
+        };
+        let on_change = fit(Smoothed::Change);
+        assert!(largest_change(&on_change.moves) < 1e-6);
+        let on_move = fit(Smoothed::Move);
+        assert!(!on_move.kept_start);
+        assert!(largest_change(&on_move.moves) > 0.1);
     }
 }

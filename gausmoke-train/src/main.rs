@@ -56,7 +56,9 @@ enum Command {
         /// The run folder written by `train`.
         #[arg(long)]
         run: PathBuf,
-        /// Weight of the estimate's smoothness (|grad u|^2, u in cells per frame).
+        /// Weight of the smoothness of each frame's change from the frame before's estimate
+        /// carried along itself (|grad (u - u_carried)|^2, u in cells per frame; frame 1's
+        /// from rest).
         #[arg(long, default_value_t = EstimateOptions::default().smoothness)]
         smoothness: f64,
         /// Weight of its divergence (|div u|^2).

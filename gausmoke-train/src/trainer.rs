@@ -62,7 +62,7 @@ use crate::config::{
     ProjectionKind, TrainConfig,
 };
 use crate::density_motion::{
-    MotionGrid, MotionPriors, fit_density_motion, moves_of_velocity, transport_cells,
+    MotionGrid, MotionPriors, Smoothed, fit_density_motion, moves_of_velocity, transport_cells,
     velocity_of_moves,
 };
 use crate::emission::{EmissionOptions, EmissionReport, emit};
@@ -2065,6 +2065,7 @@ impl Trainer {
             } else {
                 self.config.density_motion_inertia as f64
             },
+            smoothed: Smoothed::Move,
         };
         let grid = MotionGrid {
             resolution: self.grid.resolution(),
