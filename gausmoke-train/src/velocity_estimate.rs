@@ -54,7 +54,7 @@ pub fn estimate_path(run: &Path, t: usize) -> PathBuf {
 /// [`buoyancy_coefficient`]; for rising smoke, not for sinking fog).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct EstimateOptions {
-    /// Summaries written before 2026-11-30 charged it on the whole estimate.
+    /// Charged on each frame's change from its start, not on the estimate itself.
     pub smoothness: f64,
     pub divergence: f64,
     pub inertia: f64,
