@@ -16,27 +16,10 @@ import shutil
 import sys
 
 import numpy as np
+from scipy.ndimage import gaussian_filter
 
 from safetensors_f32 import read_safetensors, write_safetensors
 from scene_truth import read_truth
-
-
-def blurred(field, cells):
-    """`field` convolved with a Gaussian of standard deviation `cells` along each axis, the
-    grid's edges reflected (numpy only)."""
-    if cells <= 0:
-        return field
-    radius = int(np.ceil(4 * cells))
-    offsets = np.arange(-radius, radius + 1)
-    kernel = np.exp(-0.5 * (offsets / cells) ** 2)
-    kernel /= kernel.sum()
-    out = field
-    for axis in range(field.ndim):
-        padded = np.pad(out, [(radius, radius) if a == axis else (0, 0) for a in range(out.ndim)],
-                        mode="symmetric")
-        out = np.apply_along_axis(lambda line: np.convolve(line, kernel, mode="valid"), axis,
-                                  padded)
-    return out
 
 
 def main():
@@ -63,7 +46,10 @@ def main():
         if density.shape != tensors["density"].shape:
             sys.exit(f"frame {t}: the run's grid {tensors['density'].shape} is not the "
                      f"scene's {density.shape}")
-        tensors["density"] = blurred(density.astype(np.float64), args.blur).astype(np.float32)
+        density = density.astype(np.float64)
+        if args.blur > 0:
+            density = gaussian_filter(density, args.blur)
+        tensors["density"] = density.astype(np.float32)
         write_safetensors(os.path.join(args.out, "frames", name), tensors, {})
     print(f"wrote {len(frames)} frames to {args.out}")
 
