@@ -371,16 +371,16 @@ pub(crate) fn fit_density_motion(
                 rhs[3 * cell + c] -= jacobian[3 * cell + c] * residual;
             }
         }
-        let preconditioner = Preconditioner {
-            operator: &operator,
-            solver: &spectral,
+        let mut preconditioner = Preconditioner::new(
+            &operator,
+            &spectral,
             // Positive even with no tie, smoothness or slope (all weights may be 0).
-            scale: (priors.inertia
+            (priors.inertia
                 + 6.0 * priors.smoothness
                 + jacobian.iter().map(|j| j * j).sum::<f64>() / cells as f64)
                 .max(1e-12),
-            divergence: priors.divergence,
-        };
+            priors.divergence,
+        );
         let apply = |x: &[f64], out: &mut [f64]| {
             grid.regularise(&priors, x, out);
             for cell in 0..cells {
@@ -446,24 +446,43 @@ pub(crate) fn fit_density_motion(
 /// data and smoothness terms as one scale `c` (their mean diagonal), whose large divergence
 /// part it inverts exactly. By Woodbury's identity it is
 /// `(I - D^T (D D^T + c/B I)^-1 D) / c`, one shifted direct solve.
+/// It is applied at every conjugate-gradient iteration, so it keeps its two scratch fields.
 struct Preconditioner<'a> {
     operator: &'a Divergence,
     solver: &'a SpectralSolver,
     scale: f64,
     divergence: f64,
+    pressure: Vec<f64>,
+    gradient: Vec<f64>,
 }
 
-impl Preconditioner<'_> {
-    fn apply(&self, r: &[f64], z: &mut [f64]) {
+impl<'a> Preconditioner<'a> {
+    fn new(
+        operator: &'a Divergence,
+        solver: &'a SpectralSolver,
+        scale: f64,
+        divergence: f64,
+    ) -> Self {
+        let cells: usize = operator.resolution.iter().product();
+        Self {
+            operator,
+            solver,
+            scale,
+            divergence,
+            pressure: vec![0.0; cells],
+            gradient: vec![0.0; 3 * cells],
+        }
+    }
+
+    fn apply(&mut self, r: &[f64], z: &mut [f64]) {
         z.copy_from_slice(r);
         if self.divergence > 0.0 {
-            let mut pressure = vec![0.0; r.len() / 3];
-            self.operator.apply(r, &mut pressure);
+            self.operator.apply(r, &mut self.pressure);
             self.solver
-                .solve_shifted(&mut pressure, self.scale / self.divergence);
-            let mut gradient = vec![0.0; r.len()];
-            self.operator.apply_transpose(&pressure, &mut gradient);
-            z.iter_mut().zip(&gradient).for_each(|(z, g)| *z -= g);
+                .solve_shifted(&mut self.pressure, self.scale / self.divergence);
+            self.operator
+                .apply_transpose(&self.pressure, &mut self.gradient);
+            z.iter_mut().zip(&self.gradient).for_each(|(z, g)| *z -= g);
         }
         z.iter_mut().for_each(|z| *z /= self.scale);
     }
@@ -528,7 +547,7 @@ fn data_term(problem: &Problem, source: &[f64], target: &[f64], moves: &[f64]) -
 /// is [`CG_TOLERANCE`] of `rhs` or after `iterations`.
 fn conjugate_gradients(
     apply: impl Fn(&[f64], &mut [f64]),
-    precondition: impl Fn(&[f64], &mut [f64]),
+    mut precondition: impl FnMut(&[f64], &mut [f64]),
     rhs: &[f64],
     iterations: usize,
 ) -> Solve {
@@ -781,12 +800,7 @@ mod tests {
         let grid = grid(5, OPEN_TOP);
         let operator = grid.divergence();
         let solver = SpectralSolver::for_grid(&operator);
-        let preconditioner = Preconditioner {
-            operator: &operator,
-            solver: &solver,
-            scale: 0.02,
-            divergence: 1000.0,
-        };
+        let mut preconditioner = Preconditioner::new(&operator, &solver, 0.02, 1000.0);
         let r = noise(3 * grid.cells(), 7);
         let mut z = vec![0.0; r.len()];
         preconditioner.apply(&r, &mut z);
