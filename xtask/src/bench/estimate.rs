@@ -148,14 +148,11 @@ pub fn estimate(args: EstimateArgs) -> Result<()> {
     println!("|---|---:|---:|---:|");
     for ((name, _), (median, runs)) in builds.iter().zip(medians.iter().zip(&results)) {
         let last = runs.last().expect("at least one round");
-        let show = |v: Option<f64>, digits: usize| {
-            v.map_or("not recorded".to_string(), |v| format!("{v:.digits$e}"))
-        };
+        let recorded = |shown: Option<String>| shown.unwrap_or_else(|| "not recorded".into());
         println!(
             "| {name} | {median:.2} | {} | {} |",
-            last.solver_iterations_per_frame
-                .map_or("not recorded".to_string(), |v| format!("{v:.0}")),
-            show(last.worst_solver_residual, 1)
+            recorded(last.solver_iterations_per_frame.map(|v| format!("{v:.0}"))),
+            recorded(last.worst_solver_residual.map(|v| format!("{v:.1e}")))
         );
     }
     if medians.len() == 2 {
