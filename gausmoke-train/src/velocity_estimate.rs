@@ -3,8 +3,8 @@
 //! carries frame t-1's density grid onto frame t's ([`crate::density_motion`]), tracked
 //! through the frames: frame t's fit starts from, and is tied to, frame t-1's estimate carried
 //! along itself, lifted along +y where there is smoke by as much as frame t-1's fit rose there
-//! beyond its own start ([`buoyancy_coefficient`]), and its smoothness is charged on the
-//! change from that start. Frame 1 starts from no motion, untied.
+//! beyond frame t-2's estimate carried along itself ([`buoyancy_coefficient`]), and its
+//! smoothness is charged on the change from that start. Frame 1 starts from no motion, untied.
 //!
 //! The run's own velocity is what carried its Gaussians; it is left as it is. On the long
 //! plume this estimate, read off the same run's densities, is truer than the run's velocity,
@@ -143,9 +143,9 @@ pub struct EstimateSummary {
     pub frames: Vec<FrameEstimate>,
 }
 
-/// How strongly a fit's moves rose where there was smoke, beyond where they started: the
-/// least-squares `b` in `moves_y - start_y ~ b density` over all cells (`[cells, 3]` moves,
-/// `[cells]` density). A buoyant plume accelerates upward in proportion to its density; the
+/// How strongly a fit's moves rose where there was smoke, beyond `start` (the previous
+/// estimate carried along itself, without the lift): the least-squares `b` in `moves_y -
+/// start_y ~ b density` over all cells (`[cells, 3]` moves, `[cells]` density). A buoyant plume accelerates upward in proportion to its density; the
 /// next frame's start is lifted by it where it is positive ([`EstimateOptions::buoyancy`]),
 /// so the lift is read off the data, not assumed.
 pub fn buoyancy_coefficient(moves: &[f64], start: &[f64], density: &[f64]) -> f64 {
@@ -409,10 +409,9 @@ mod tests {
         gausmoke_render::backends::device_by_name("flex").unwrap()
     }
 
-    /// A run folder (beside the tiny synthetic scene, its data set) whose frames hold a smooth
-    /// blob moving by `shift` (world units) a frame, on a 16^3 grid over the unit box; frame 0
-    /// is at rest.
-    /// A run folder of `frames` frames whose density is a blob centred at `centre(t)`.
+    /// A run folder (beside the tiny synthetic scene, its data set) of `frames` frames whose
+    /// density is a smooth blob centred at `centre(t)` (world units), on a 16^3 grid over the
+    /// unit box.
     fn blob_run(
         dir: &Path,
         centre: impl Fn(f32) -> Vec3,
@@ -459,7 +458,7 @@ mod tests {
         (folder, config)
     }
 
-    /// A blob moving by `shift` each frame.
+    /// A blob moving by `shift` (world units) a frame.
     fn moving_blob_run(dir: &Path, shift: Vec3, frames: usize) -> (RunFolder, TrainConfig) {
         blob_run(dir, |t| Vec3::new(0.4, 0.35, 0.45) + shift * t, frames)
     }
