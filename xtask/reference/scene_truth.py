@@ -23,10 +23,11 @@ def read_truth(data, t):
     return density, velocity
 
 
-def read_run_and_truth(run, data, t):
-    """The run's velocity at frame `t` with the truth's density and velocity; exits when the
-    grids differ."""
-    ours = read(f"{run}/frames/frame_{t:03}.safetensors")["velocity"].astype(np.float64)
+def read_run_and_truth(run, data, t, folder="frames"):
+    """The run's velocity at frame `t` (from `RUN/folder`: `velocity_estimate` for the
+    estimate of `gausmoke-train velocity`, in the same layout) with the truth's density and
+    velocity; exits when the grids differ."""
+    ours = read(f"{run}/{folder}/frame_{t:03}.safetensors")["velocity"].astype(np.float64)
     density, velocity = read_truth(data, t)
     if ours.shape != velocity.shape:
         sys.exit(f"frame {t}: run grid {ours.shape[:3]} vs truth {velocity.shape[:3]}")

@@ -1,14 +1,18 @@
 """Where a run's velocity goes wrong on a synthetic scene with ground truth (issue 18).
 
-  python velocity_diagnosis.py RUN_DIR DATA_DIR [FRAMES...]     (needs numpy and scipy)
+  python velocity_diagnosis.py RUN_DIR DATA_DIR [FRAMES...] [--estimate]
+      (needs numpy and scipy)
 
 For each frame, inside the true smoke (density above 1% of its maximum), prints the
 relative error of the run's velocity (and the same in denser smoke, above 10% and 30%),
-the mean cosine between it and the truth, the ratio of their mean speeds and the
-correlation of each component; and two yardsticks computed from the
-truth alone: the best uniform velocity (the smoke's mean flow) and the truth blurred by a
-Gaussian of 1, 2 and 4 cells (how well a field that smooth could do). Also the truth's rms
-displacement per frame in cells. A second line splits the error by height (bands of grid
+the mean cosine between it and the truth, the ratio of their mean speeds, its scale (the
+least-squares factor that brings it nearest the truth) and the correlation of each
+component; and two yardsticks computed from the truth alone: the best uniform velocity (the
+smoke's mean flow) and the truth blurred by a Gaussian of 1, 2 and 4 cells (how well a field
+that smooth could do; with their speed ratios and scales, since a smoothed field is slower
+inside the smoke by its smoothness alone). Also the truth's rms displacement per frame in
+cells. `--estimate` reads the run's `velocity_estimate/` (`gausmoke-train velocity`) instead
+of its own velocity. A second line splits the error by height (bands of grid
 rows, bottom to top): each band's relative error and its share of the error's energy. A
 third takes the part of the flow that pictures can see, `grad rho . u` (transport along a
 surface of equal density changes nothing): ours' and the blurred truth's relative error,
@@ -69,9 +73,16 @@ def along_gradient(ours, truth, blurred, density, smoke):
     return compare(seen(ours)), compare(seen(blurred)), share, flat
 
 
-def main(run, data, frames):
+def speed_and_scale(field, truth):
+    """The ratio of `field`'s mean speed to `truth`'s, and the least-squares factor on `field`
+    that brings it nearest `truth` (both [cells, 3])."""
+    norm = lambda v: np.linalg.norm(v, axis=1)
+    return norm(field).mean() / norm(truth).mean(), (field * truth).sum() / (field**2).sum()
+
+
+def main(run, data, frames, folder):
     for t in frames:
-        ours, density, velocity = read_run_and_truth(run, data, t)
+        ours, density, velocity = read_run_and_truth(run, data, t, folder)
         smoke = density > 0.01 * density.max()
         a, b = ours[smoke], velocity[smoke]
         norm = lambda v: np.linalg.norm(v, axis=1)
@@ -81,6 +92,7 @@ def main(run, data, frames):
         smooth = {sigma: np.stack([gaussian_filter(velocity[..., c], sigma) for c in range(3)], -1)
                   for sigma in (1.0, 2.0, 4.0)}
         blurred = [relative(field[smoke], b) for field in smooth.values()]
+        speeds = [speed_and_scale(field[smoke], b) for field in smooth.values()]
         components = [np.corrcoef(a[:, c], b[:, c])[0, 1] for c in range(3)]
         cells = np.sqrt((b ** 2).sum(1).mean()) * density.shape[0]
         # the same error in denser smoke only: how much of it sits in the thin edges
@@ -88,10 +100,12 @@ def main(run, data, frames):
                  for m in (density > share * density.max() for share in (0.1, 0.3))]
         print(f"frame {t:3d}: rel. error {rel:.2f} (above 10/30% of the max density "
               + "/".join(f"{v:.2f}" for v in dense) + f"), mean cosine {cosine:.2f}, speed ratio "
-              f"{norm(a).mean() / norm(b).mean():.2f}, component corr. "
+              + "{:.2f}, scale {:.2f}".format(*speed_and_scale(a, b)) + ", component corr. "
               + " ".join(f"{c:.2f}" for c in components)
               + f" | truth: uniform mean flow {uniform:.2f}, blurred 1/2/4 cells "
-              + "/".join(f"{v:.2f}" for v in blurred)
+              + "/".join(f"{v:.2f}" for v in blurred) + " (speed ratio "
+              + "/".join(f"{v[0]:.2f}" for v in speeds) + ", scale "
+              + "/".join(f"{v[1]:.2f}" for v in speeds) + ")"
               + f", rms displacement {cells:.2f} cells/frame")
         print("           by height " + by_height(ours, velocity, smoke))
         seen, seen_blurred, share, flat = along_gradient(ours, velocity, smooth[2.0], density,
@@ -103,7 +117,9 @@ def main(run, data, frames):
 
 
 if __name__ == "__main__":
-    if len(sys.argv) < 3:
+    arguments = [a for a in sys.argv[1:] if a != "--estimate"]
+    if len(arguments) < 2:
         sys.exit(__doc__)
-    frames = [int(f) for f in sys.argv[3:]] or [6, 12, 24, 36, 48, 60, 71]
-    main(sys.argv[1], sys.argv[2], frames)
+    frames = [int(f) for f in arguments[2:]] or [6, 12, 24, 36, 48, 60, 71]
+    folder = "velocity_estimate" if "--estimate" in sys.argv else "frames"
+    main(arguments[0], arguments[1], frames, folder)
