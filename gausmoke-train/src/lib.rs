@@ -24,6 +24,7 @@ pub mod checkpoint;
 pub mod config;
 mod density_motion;
 pub mod emission;
+mod estimate_outputs;
 pub mod eval;
 pub mod export;
 mod hash;

@@ -338,7 +338,7 @@ pub fn render_run(
         let state = folder
             .read_frame_state(t, &grid)?
             .expect("frames before `finished` exist");
-        let (picture, _) = visuals::grid_slices(&grid, &state.density, &state.velocity, scale);
+        let (picture, _) = visuals::grid_slices(&grid, &state.density, &[&state.velocity], scale);
         let writer = match &mut writer {
             Some(w) => w,
             None => writer.insert(VideoWriter::create(

@@ -302,7 +302,7 @@ impl RunFolder {
         let dir = self.root.join("slices");
         Self::create_dir(&dir)?;
         let scale = (256 / nx.max(ny)).max(1) as u32;
-        visuals::grid_slices(grid, &state.density, &state.velocity, scale)
+        visuals::grid_slices(grid, &state.density, &[&state.velocity], scale)
             .0
             .save_png(&dir.join(frame_file(t, "png")))?;
         let dir = self.root.join("exports");
@@ -521,4 +521,13 @@ exports/           per frame: gaussians_TTT.ply (3DGS layout; world axes, or y d
 frames/            per frame: Gaussians, velocity and density grids (safetensors), read by
                    `gausmoke-train eval`
 checkpoints/       the two newest complete frames; `--resume` continues from the newest
+velocity_estimate/ written by `gausmoke-train velocity --run RUN` (ours), not by training: the
+                   velocity estimated from these density grids, beside the run's own, which
+                   it leaves as it is. Per frame frame_TTT.safetensors (read by eval);
+                   estimate.json (settings; per frame the fit's residuals, solver
+                   iterations, lift, and its speed and the run's where the smoke is);
+                   speed.png and misfit.png chart them; at the cadence above,
+                   exports/grid_TTT.vti and .npz (density, velocity = the estimate,
+                   run_velocity; grid.pvd plays them) and slices/ (density | the run's
+                   speed | the estimate's speed, one colour scale), slices.mp4
 ";

@@ -14,8 +14,10 @@
 //!
 //! Written to `RUN/velocity_estimate/`: `frame_TTT.safetensors` (`velocity`, `[nx, ny, nz,
 //! 3]`, world units per frame as the frame files keep theirs) and `estimate.json` (the
-//! settings, and per frame the fit's misfits and a fingerprint of the two densities it was
-//! fitted to, so that an estimate of a run trained again is not read as this one's).
+//! settings, and per frame the fit's misfits, its speed and the run's where the smoke is, and
+//! a fingerprint of the two densities it was fitted to, so that an estimate of a run trained
+//! again is not read as this one's); and grids, slices and charts to look at
+//! ([`crate::estimate_outputs`]).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -29,6 +31,7 @@ use crate::arrays::{HostArrays, read_arrays, take_array, write_arrays};
 use crate::density_motion::{
     MotionGrid, MotionPriors, Smoothed, fit_density_motion, transport_cells, velocity_of_moves,
 };
+use crate::estimate_outputs::{EstimateOutputs, FrameFigures, smoke_speed};
 use crate::export::write_atomic;
 use crate::hash::Fnv1a;
 use crate::run_folder::RunFolder;
@@ -116,6 +119,12 @@ pub struct FrameEstimate {
     pub solver_iterations: usize,
     #[serde(default)]
     pub solver_residual: f64,
+    /// The density-weighted mean speed (world units per frame) of the estimate and of the
+    /// run's own velocity: their speeds where the smoke is.
+    #[serde(default)]
+    pub smoke_speed: f64,
+    #[serde(default)]
+    pub run_smoke_speed: f64,
     /// Fingerprints of frames t-1 and t's density grids as fitted.
     pub density_fingerprints: [String; 2],
     pub seconds: f64,
@@ -208,8 +217,9 @@ pub fn estimate_run_velocity(
         solids: crate::trainer::solid_cells(&obstacles, &config, &grid)?,
         ..ProjectionOptions::default()
     };
-    let mut densities = Vec::new();
+    let (mut densities, mut run_speeds) = (Vec::new(), Vec::new());
     while let Some(state) = folder.read_frame_state(densities.len(), &grid)? {
+        run_speeds.push(smoke_speed(&state.density, &state.velocity));
         densities.push(state.density);
     }
     if densities.len() < 2 {
@@ -246,6 +256,7 @@ pub fn estimate_run_velocity(
     }
     let [nx, ny, nz] = grid.resolution();
     let total = densities.len() - 1;
+    let mut outputs = EstimateOutputs::new(&dir, &grid, config.output_every, total);
     let mut frames = Vec::new();
     let mut previous: Option<Vec<f64>> = None;
     let mut lift = 0.0;
@@ -285,6 +296,17 @@ pub fn estimate_run_velocity(
         let world = velocity_of_moves(&fit.moves, cell, dt);
         let world = Tensor::from_data(TensorData::new(world, [nx, ny, nz, 3]), device);
         let velocity = read_floats(project_velocity(&grid, world, projection.clone()));
+        let speed = smoke_speed(&densities[t], &velocity);
+        if outputs.wants(t) {
+            let run_velocity = folder
+                .read_frame_state(t, &grid)?
+                .ok_or_else(|| TrainError::Dataset {
+                    path: run.to_path_buf(),
+                    reason: format!("frame {t}'s state vanished from frames/ while estimating"),
+                })?
+                .velocity;
+            outputs.frame(t, &densities[t], &run_velocity, &velocity)?;
+        }
         let mut arrays = HostArrays::new();
         arrays.insert("velocity".into(), (vec![nx, ny, nz, 3], velocity));
         write_arrays(&estimate_path(run, t), &arrays)?;
@@ -305,6 +327,8 @@ pub fn estimate_run_velocity(
             buoyancy: lift,
             solver_iterations: fit.solver_iterations,
             solver_residual: fit.solver_residual,
+            smoke_speed: speed,
+            run_smoke_speed: run_speeds[t],
             density_fingerprints: [fingerprints[t - 1].clone(), fingerprints[t].clone()],
             seconds: start.elapsed().as_secs_f64(),
         });
@@ -316,6 +340,17 @@ pub fn estimate_run_velocity(
         previous = Some(fit.moves);
         on_frame(t, total);
     }
+    let figures: Vec<FrameFigures> = frames
+        .iter()
+        .map(|f| FrameFigures {
+            frame: f.frame,
+            misfit_start: f.misfit_prior,
+            misfit_fitted: f.misfit_fitted,
+            speed: f.smoke_speed,
+            run_speed: f.run_smoke_speed,
+        })
+        .collect();
+    outputs.finish(&figures)?;
     let summary = EstimateSummary {
         options: *options,
         inflow_cells: in_data.iter().filter(|&&inside| !inside).count(),
@@ -529,6 +564,38 @@ mod tests {
         .unwrap();
         assert_eq!(reported, [(1, 2), (2, 2)]);
         assert_eq!(summary.frames.len(), 2);
+        // What a person looks at: frame 2 is the last (the default cadence writes all), the
+        // charts span both frames, and the run's velocity (zero here) is slower than the blob.
+        let dir = estimate_dir(run);
+        for t in 1..3 {
+            for file in [
+                format!("exports/grid_{t:03}.vti"),
+                format!("exports/grid_{t:03}.npz"),
+                format!("slices/frame_{t:03}.png"),
+            ] {
+                assert!(dir.join(&file).is_file(), "{file}");
+            }
+        }
+        for file in ["exports/grid.pvd", "slices.mp4", "speed.png", "misfit.png"] {
+            assert!(dir.join(file).is_file(), "{file}");
+        }
+        let pvd = std::fs::read_to_string(dir.join("exports/grid.pvd")).unwrap();
+        assert!(
+            pvd.contains("grid_001.vti") && pvd.contains("grid_002.vti"),
+            "{pvd}"
+        );
+        let slice = crate::visuals::Picture::open_png(&dir.join("slices/frame_002.png")).unwrap();
+        // Three 256-pixel panels (density and two speeds) and the gaps between them.
+        assert!((768..800).contains(&slice.width) && slice.height == 256);
+        for frame in &summary.frames {
+            assert_eq!(frame.run_smoke_speed, 0.0);
+            let speed = frame.smoke_speed / shift.length() as f64;
+            assert!(
+                (0.7..1.3).contains(&speed),
+                "frame {}: {speed}",
+                frame.frame
+            );
+        }
         let grid = config.grid(Vec3::ZERO, Vec3::ONE).unwrap();
         let state = |t| folder.read_frame_state(t, &grid).unwrap().unwrap().density;
         let stored = StoredEstimate::open(run).unwrap().expect("an estimate");

@@ -89,18 +89,20 @@ impl Picture {
     }
 }
 
-/// The middle z-slice of the density (grey, left) and of the speed |u| (viridis, right),
-/// +y up, each cell `scale` pixels wide. Returns the picture and the slice's largest speed.
+/// The middle z-slice of the density (grey, left) and of the speed |u| of each of
+/// `velocities` (viridis, to its right, in order, all on one colour scale: the largest speed in
+/// any of them), +y up, each cell `scale` pixels wide. Returns the picture and that largest
+/// speed.
 pub fn grid_slices(
     grid: &GridSpec,
     density: &[f32],
-    velocity: &[f32],
+    velocities: &[&[f32]],
     scale: u32,
 ) -> (Picture, f32) {
     let [nx, ny, nz] = grid.resolution();
     let k = nz / 2;
     let cell = |i: usize, j: usize| (i * ny + j) * nz + k;
-    let speed = |i: usize, j: usize| {
+    let speed = |velocity: &[f32], i: usize, j: usize| {
         let c = cell(i, j);
         (velocity[3 * c].powi(2) + velocity[3 * c + 1].powi(2) + velocity[3 * c + 2].powi(2)).sqrt()
     };
@@ -109,25 +111,28 @@ pub fn grid_slices(
     for i in 0..nx {
         for j in 0..ny {
             max_density = max_density.max(density[cell(i, j)]);
-            max_speed = max_speed.max(speed(i, j));
+            for velocity in velocities {
+                max_speed = max_speed.max(speed(velocity, i, j));
+            }
         }
     }
     let (w, h) = (nx as u32 * scale, ny as u32 * scale);
-    let mut left = Picture::blank(w, h, [0, 0, 0]);
-    let mut right = Picture::blank(w, h, [0, 0, 0]);
+    let mut panels: Vec<Picture> = (0..=velocities.len())
+        .map(|_| Picture::blank(w, h, [0, 0, 0]))
+        .collect();
     for y in 0..h {
         for x in 0..w {
             let (i, j) = ((x / scale) as usize, ny - 1 - (y / scale) as usize);
             let d = to_u8(density[cell(i, j)] / max_density);
-            left.put(x as i64, y as i64, [d, d, d]);
-            right.put(
-                x as i64,
-                y as i64,
-                crate::viridis::viridis(speed(i, j) / max_speed),
-            );
+            panels[0].put(x as i64, y as i64, [d, d, d]);
+            for (panel, velocity) in panels[1..].iter_mut().zip(velocities) {
+                let colour = crate::viridis::viridis(speed(velocity, i, j) / max_speed);
+                panel.put(x as i64, y as i64, colour);
+            }
         }
     }
-    (Picture::side_by_side(&[&left, &right]), max_speed)
+    let parts: Vec<&Picture> = panels.iter().collect();
+    (Picture::side_by_side(&parts), max_speed)
 }
 
 /// An H.264 MP4 of equally sized pictures at `fps` per second (see
