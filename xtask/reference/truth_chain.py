@@ -2,7 +2,7 @@
 (issue 18).
 
   python truth_chain.py TRAIN CONFIG DATA T0 T1 OUT [--carrier particles|grid]
-      [--velocity truth|RUN] [--scale S] [--integrator euler|midpoint|implicit]
+      [--velocity truth|RUN] [--estimate] [--scale S] [--integrator euler|midpoint|implicit]
       [--substeps K] [--steps N] [--refit every|last] [--source truth|none] [--grow V]
       [--dense-first] [--velocity-blur CELLS] [--seed S]    (numpy; scipy for --velocity-blur)
 
@@ -13,7 +13,8 @@ T0's training views. Then, for each frame t up to T1:
 
 1. It carries the state one frame by S times a velocity (S is 0.65 for particles and 1 on
    the grid unless `--scale` says otherwise): the truth's velocity of frame t, or
-   a run's (`RUN/frames/frame_TTT.safetensors`, saved at every frame). `--velocity-blur`
+   a run's (`RUN/frames/frame_TTT.safetensors`, saved at every frame; with `--estimate`
+   the run's `gausmoke-train velocity` estimate, `RUN/velocity_estimate/`). `--velocity-blur`
    blurs each of its components by a Gaussian of that many cells first, for a velocity
    with the truth's direction but a field's smoothness.
    - `--carrier particles` (the default) moves the smoke Gaussians' centres
@@ -119,6 +120,8 @@ def main():
     parser.add_argument("t1", type=int)
     parser.add_argument("out")
     parser.add_argument("--velocity", default="truth", help="truth, or a run's folder")
+    parser.add_argument("--estimate", action="store_true",
+                        help="the run's velocity_estimate/ instead of its own velocity")
     parser.add_argument("--scale", type=float, help="0.65 for particles, 1 on the grid")
     parser.add_argument("--integrator", default="euler",
                         choices=["euler", "midpoint", "implicit"])
@@ -133,6 +136,8 @@ def main():
     parser.add_argument("--refit", default="every", choices=["every", "last"])
     parser.add_argument("--velocity-blur", type=float, default=0.0, help="cells")
     args = parser.parse_args()
+    if args.estimate and args.velocity == "truth":
+        sys.exit("--estimate reads a run's estimate: pass the run with --velocity RUN")
     if args.carrier == "grid" and (args.grow > 0 or args.integrator != "euler"):
         sys.exit("--grow and --integrator move particles; the grid carrier has neither")
     if args.scale is None:
@@ -161,7 +166,8 @@ def main():
         if args.velocity == "truth":
             velocity = read_truth(args.data, t)[1]
         else:
-            frame = os.path.join(args.velocity, "frames", f"frame_{t:03}.safetensors")
+            folder = "velocity_estimate" if args.estimate else "frames"
+            frame = os.path.join(args.velocity, folder, f"frame_{t:03}.safetensors")
             velocity = read_safetensors(frame)["velocity"].astype(np.float64)
         if args.velocity_blur > 0:
             from scipy.ndimage import gaussian_filter
