@@ -67,11 +67,15 @@ enum Command {
         /// Weight of its tie to the frame before's estimate carried along itself.
         #[arg(long, default_value_t = EstimateOptions::default().inertia)]
         inertia: f64,
-        /// Do not lift that carried estimate along +y in proportion to the density by what the
-        /// frame before's fit showed (a buoyancy read off the data, upward only: for rising
-        /// smoke, not for sinking fog).
+        /// Do not lift that carried estimate along y in proportion to the density by what the
+        /// frame before's fit showed (a buoyancy read off the data; upward only unless
+        /// --sinking).
         #[arg(long)]
         no_buoyancy: bool,
+        /// The smoke is heavier than the air and sinks (fog, dry ice): the lift is read
+        /// downward only, where by default it is read upward only (rising smoke).
+        #[arg(long, conflicts_with = "no_buoyancy")]
+        sinking: bool,
         /// No progress bar.
         #[arg(long)]
         quiet: bool,
@@ -266,6 +270,7 @@ fn run_command(cli: Cli) -> Result<()> {
             divergence,
             inertia,
             no_buoyancy,
+            sinking,
             quiet,
             device,
         }) => {
@@ -274,6 +279,7 @@ fn run_command(cli: Cli) -> Result<()> {
                 divergence,
                 inertia,
                 buoyancy: !no_buoyancy,
+                sinking,
             };
             let device = backends::device_by_name(&device).map_err(anyhow::Error::msg)?;
             estimate_velocity(&run, &options, &device, quiet)

@@ -3,7 +3,8 @@
 //! carries frame t-1's density grid onto frame t's ([`crate::density_motion`]), tracked
 //! through the frames: frame t's fit starts from, and is tied to, frame t-1's estimate carried
 //! along itself, lifted along +y where there is smoke by as much as frame t-1's fit rose there
-//! beyond frame t-2's estimate carried along itself ([`buoyancy_coefficient`]), and its
+//! beyond frame t-2's estimate carried along itself ([`buoyancy_coefficient`]; downward only
+//! instead for sinking smoke, [`EstimateOptions::sinking`]), and its
 //! smoothness is charged on the change from that start. Frame 1 starts from no motion, untied.
 //!
 //! The run's own velocity is what carried its Gaussians; it is left as it is. On the long
@@ -53,8 +54,9 @@ pub fn estimate_path(run: &Path, t: usize) -> PathBuf {
 /// The fit's weights (see [`crate::density_motion`]): the smoothness `A` of each frame's
 /// change from its start (the previous frame's estimate carried along itself; no motion for
 /// frame 1), the divergence `B` and the tie `G` to that start; and whether the start is also
-/// lifted along +y (the world's up) in proportion to the density (`buoyancy`, see
-/// [`buoyancy_coefficient`]; for rising smoke, not for sinking fog).
+/// lifted along y (the world's up) in proportion to the density (`buoyancy`, see
+/// [`buoyancy_coefficient`]), upward only for rising smoke or, with `sinking`, downward only
+/// for smoke heavier than the air (fog).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct EstimateOptions {
     /// Charged on each frame's change from its start, not on the estimate itself.
@@ -63,6 +65,8 @@ pub struct EstimateOptions {
     pub inertia: f64,
     #[serde(default)]
     pub buoyancy: bool,
+    #[serde(default)]
+    pub sinking: bool,
 }
 
 impl Default for EstimateOptions {
@@ -76,6 +80,7 @@ impl Default for EstimateOptions {
             divergence: 1000.0,
             inertia: 0.01,
             buoyancy: true,
+            sinking: false,
         }
     }
 }
@@ -154,9 +159,11 @@ pub struct EstimateSummary {
 
 /// How strongly a fit's moves rose where there was smoke, beyond `start` (the previous
 /// estimate carried along itself, without the lift): the least-squares `b` in `moves_y -
-/// start_y ~ b density` over all cells (`[cells, 3]` moves, `[cells]` density). A buoyant plume accelerates upward in proportion to its density; the
-/// next frame's start is lifted by it where it is positive ([`EstimateOptions::buoyancy`]),
-/// so the lift is read off the data, not assumed.
+/// start_y ~ b density` over all cells (`[cells, 3]` moves, `[cells]` density). A buoyant
+/// plume accelerates upward in proportion to its density, and smoke heavier than the air
+/// downward; the next frame's start is lifted by it where it has the expected sign
+/// ([`EstimateOptions::buoyancy`], [`EstimateOptions::sinking`]), so the lift is read off the
+/// data, not assumed.
 pub fn buoyancy_coefficient(moves: &[f64], start: &[f64], density: &[f64]) -> f64 {
     let (mut along, mut squared) = (0.0, 0.0);
     for (c, rho) in density.iter().enumerate() {
@@ -333,9 +340,14 @@ pub fn estimate_run_velocity(
             seconds: start.elapsed().as_secs_f64(),
         });
         if let (Some(carried), Some(density)) = (&carried, &lift_density) {
-            // Upward only: where the smoke slows (a cap meeting the top), the slowing is not
-            // in proportion to its density, and carrying it on erred more.
-            lift = buoyancy_coefficient(&fit.moves, carried, density).max(0.0);
+            // One way only: where the smoke slows (a rising cap meeting the top), the slowing
+            // is not in proportion to its density, and carrying it on erred more.
+            let coefficient = buoyancy_coefficient(&fit.moves, carried, density);
+            lift = if options.sinking {
+                coefficient.min(0.0)
+            } else {
+                coefficient.max(0.0)
+            };
         }
         previous = Some(fit.moves);
         on_frame(t, total);
@@ -514,7 +526,8 @@ mod tests {
     }
 
     /// A blob rising faster each frame: its estimate's start is lifted from frame 3 on, by
-    /// an upward coefficient; without `buoyancy` it never is, nor when the blob slows.
+    /// an upward coefficient; without `buoyancy` it never is, nor when the blob slows. A
+    /// blob sinking faster each frame is lifted downward with `sinking`, and not without.
     #[test]
     fn an_accelerating_blob_lifts_the_start() {
         let dir = tempfile::tempdir().unwrap();
@@ -546,6 +559,27 @@ mod tests {
         )
         .unwrap();
         assert!(summary.frames.iter().all(|f| f.buoyancy == 0.0));
+        // Sinking faster each frame (fog): with `sinking` the lift is downward from frame 3
+        // on; read upward only, as for rising smoke, it never is.
+        let sinking = tempfile::tempdir().unwrap();
+        let (folder, _) = blob_run(
+            sinking.path(),
+            |t| Vec3::new(0.45, 0.7 - 0.02 * t * t, 0.5),
+            5,
+        );
+        let lifts = |sinking| -> Vec<f64> {
+            let options = EstimateOptions {
+                sinking,
+                ..EstimateOptions::default()
+            };
+            let summary =
+                estimate_run_velocity(folder.root(), &options, &device(), |_, _| {}).unwrap();
+            summary.frames.iter().map(|f| f.buoyancy).collect()
+        };
+        let down = lifts(true);
+        assert_eq!(&down[..2], &[0.0, 0.0], "{down:?}");
+        assert!(down[2..].iter().all(|&b| b < 0.0), "{down:?}");
+        assert!(lifts(false).iter().all(|&b| b == 0.0));
     }
 
     /// A blob moving a known distance each frame: the estimate, read back through the files
