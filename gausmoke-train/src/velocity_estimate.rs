@@ -99,6 +99,14 @@ impl EstimateOptions {
                 });
             }
         }
+        if self.sinking && !self.buoyancy {
+            return Err(TrainError::Config {
+                origin: "velocity estimate --sinking".into(),
+                reason: "it sets which way the lift is read, and --no-buoyancy leaves the lift \
+                         out: give one of them"
+                    .into(),
+            });
+        }
         Ok(())
     }
 }
@@ -690,6 +698,15 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(error.contains("--inertia"), "{error}");
+        let contradictory = EstimateOptions {
+            buoyancy: false,
+            sinking: true,
+            ..EstimateOptions::default()
+        };
+        let error = estimate_run_velocity(run, &contradictory, &device(), |_, _| {})
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("--sinking"), "{error}");
         let error = estimate_run_velocity(run, &EstimateOptions::default(), &device(), |_, _| {})
             .unwrap_err()
             .to_string();
