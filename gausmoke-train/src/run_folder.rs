@@ -99,9 +99,27 @@ fn take_gaussians(
         .map(|attribute, values| (attribute, values))
         .into_array()
     {
-        *values = take_array(arrays, &name(attribute.name), &attribute.shape(n), path)?;
+        let key = name(attribute.name);
+        *values = take_array(arrays, &key, &attribute.shape(n), path)?;
+        refuse_non_finite(&key, values, path)?;
     }
     Ok(gaussians)
+}
+
+/// A frame file's array must be finite: training stops before it writes a non-finite value,
+/// so one in a file is corruption, refused here rather than read into every figure after it.
+fn refuse_non_finite(name: &str, values: &[f32], path: &Path) -> Result<(), TrainError> {
+    match values.iter().position(|v| !v.is_finite()) {
+        None => Ok(()),
+        Some(first) => Err(TrainError::Arrays {
+            path: path.to_path_buf(),
+            reason: format!(
+                "`{name}` holds {} non-finite value(s) (the first at index {first}): the \
+                 file is corrupt and is not read",
+                values.iter().filter(|v| !v.is_finite()).count()
+            ),
+        }),
+    }
 }
 
 /// The smoke Gaussians of a frame file a run wrote (`RUN/frames/frame_TTT.safetensors`),
@@ -263,11 +281,15 @@ impl RunFolder {
         } else {
             None
         };
+        let velocity = take_array(&mut arrays, "velocity", &[nx, ny, nz, 3], &path)?;
+        let density = take_array(&mut arrays, "density", &[nx, ny, nz], &path)?;
+        refuse_non_finite("velocity", &velocity, &path)?;
+        refuse_non_finite("density", &density, &path)?;
         Ok(Some(FrameState {
             gaussians,
             statics,
-            velocity: take_array(&mut arrays, "velocity", &[nx, ny, nz, 3], &path)?,
-            density: take_array(&mut arrays, "density", &[nx, ny, nz], &path)?,
+            velocity,
+            density,
         }))
     }
 
@@ -531,3 +553,66 @@ velocity_estimate/ written by `gausmoke-train velocity --run RUN` (ours), not by
                    run_velocity; grid.pvd plays them) and slices/ (density | the run's
                    speed | the estimate's speed, one colour scale), slices.mp4
 ";
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A frame file with a non-finite value is refused by name, wherever it sits.
+    #[test]
+    fn a_frame_file_with_a_non_finite_value_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let folder = RunFolder::at(dir.path());
+        folder.create().unwrap();
+        let grid = TrainConfig {
+            grid_resolution: 4,
+            ..TrainConfig::default()
+        }
+        .grid([0.0; 3].into(), [1.0; 3].into())
+        .unwrap();
+        let cells = grid.num_cells();
+        let gaussians = HostGaussians {
+            means: vec![0.5; 6],
+            rotations: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+            log_scales: vec![-3.0; 6],
+            raw_densities: vec![0.0; 2],
+            colors: vec![0.8; 6],
+        };
+        let state = FrameState {
+            gaussians,
+            statics: None,
+            velocity: vec![0.1; 3 * cells],
+            density: vec![0.2; cells],
+        };
+        folder.write_frame_state(0, &grid, &state).unwrap();
+        assert!(folder.read_frame_state(0, &grid).unwrap().is_some());
+        let spoilt = |name: &str, value: f32| {
+            let mut bad = FrameState {
+                gaussians: state.gaussians.clone(),
+                statics: None,
+                velocity: state.velocity.clone(),
+                density: state.density.clone(),
+            };
+            match name {
+                "density" => bad.density[5] = value,
+                "velocity" => bad.velocity[7] = value,
+                _ => bad.gaussians.means[1] = value,
+            }
+            folder.write_frame_state(1, &grid, &bad).unwrap();
+            folder.read_frame_state(1, &grid).unwrap_err().to_string()
+        };
+        for (name, value, index) in [
+            ("density", f32::NAN, 5),
+            ("velocity", f32::INFINITY, 7),
+            ("means", f32::NEG_INFINITY, 1),
+        ] {
+            let error = spoilt(name, value);
+            assert!(
+                error.contains(&format!("`{name}`"))
+                    && error.contains(&format!("index {index}"))
+                    && error.contains("frame_001"),
+                "{error}"
+            );
+        }
+    }
+}
