@@ -296,7 +296,7 @@ pub fn evaluate(
     let shell = grid.cell_size().max_element();
     let mut frames = Vec::new();
     let mut previous_density: Option<Vec<f32>> = None;
-    for t in 0..scene.frames() {
+    for t in 0..scene.frames().min(folder.finished_frames()) {
         let Some(state) = folder.read_frame_state(t, &grid)? else {
             break;
         };

@@ -85,13 +85,6 @@ fn config_error(origin: &str, reason: impl Into<String>) -> TrainError {
     }
 }
 
-/// Frames `0..n` whose state the run has written (`frames/frame_TTT.safetensors`).
-fn finished_frames(folder: &RunFolder) -> usize {
-    (0..)
-        .take_while(|&t| folder.frame_state_path(t).is_file())
-        .count()
-}
-
 /// The orbit described in the module docs.
 pub fn orbit_cameras(
     reference: &Camera,
@@ -163,7 +156,7 @@ pub fn render_run(
     }
     let mut config = folder.read_config()?;
     let info = folder.read_run_info()?;
-    let finished = finished_frames(&folder);
+    let finished = folder.finished_frames();
     if finished == 0 {
         return Err(TrainError::Dataset {
             path: run.to_path_buf(),

@@ -170,6 +170,35 @@ impl RunFolder {
         self.root.join("frames").join(frame_file(t, "safetensors"))
     }
 
+    /// Frames `0..n` whose state the run has written without a gap: what eval, render and
+    /// the velocity estimate read. Frame files past a missing one (deleted, or copied in
+    /// part) are not read, and a warning names the gap.
+    pub fn finished_frames(&self) -> usize {
+        let finished = (0..)
+            .take_while(|&t| self.frame_state_path(t).is_file())
+            .count();
+        let later: Vec<usize> = std::fs::read_dir(self.root.join("frames"))
+            .into_iter()
+            .flatten()
+            .flatten()
+            .filter_map(|entry| {
+                let name = entry.file_name().into_string().ok()?;
+                let t = name.strip_prefix("frame_")?.strip_suffix(".safetensors")?;
+                t.parse::<usize>().ok().filter(|&t| t > finished)
+            })
+            .collect();
+        if let Some(last) = later.iter().max() {
+            tracing::warn!(
+                "{}: frame_{finished:03}.safetensors is missing, so only frames 0-{} are read; \
+                 {} frame file(s) after it (up to frame {last}) are left out",
+                self.root.join("frames").display(),
+                finished.saturating_sub(1),
+                later.len()
+            );
+        }
+        finished
+    }
+
     pub fn checkpoints(&self) -> PathBuf {
         checkpoint::checkpoint_root(&self.root)
     }
@@ -558,9 +587,10 @@ velocity_estimate/ written by `gausmoke-train velocity --run RUN` (ours), not by
 mod tests {
     use super::*;
 
-    /// A frame file with a non-finite value is refused by name, wherever it sits.
+    /// A frame file with a non-finite value is refused by name, wherever it sits; frames
+    /// after a gap are not counted as finished.
     #[test]
-    fn a_frame_file_with_a_non_finite_value_is_refused() {
+    fn a_frame_file_with_a_non_finite_value_or_after_a_gap_is_not_read() {
         let dir = tempfile::tempdir().unwrap();
         let folder = RunFolder::at(dir.path());
         folder.create().unwrap();
@@ -586,6 +616,10 @@ mod tests {
         };
         folder.write_frame_state(0, &grid, &state).unwrap();
         assert!(folder.read_frame_state(0, &grid).unwrap().is_some());
+        // A gap: frames 0 and 2 written, 1 missing, so only frame 0 counts as finished.
+        folder.write_frame_state(2, &grid, &state).unwrap();
+        assert_eq!(folder.finished_frames(), 1);
+        std::fs::remove_file(folder.frame_state_path(2)).unwrap();
         let spoilt = |name: &str, value: f32| {
             let mut bad = FrameState {
                 gaussians: state.gaussians.clone(),

@@ -233,7 +233,10 @@ pub fn estimate_run_velocity(
         ..ProjectionOptions::default()
     };
     let (mut densities, mut run_speeds) = (Vec::new(), Vec::new());
-    while let Some(state) = folder.read_frame_state(densities.len(), &grid)? {
+    for t in 0..folder.finished_frames() {
+        let Some(state) = folder.read_frame_state(t, &grid)? else {
+            break;
+        };
         run_speeds.push(smoke_speed(&state.density, &state.velocity));
         densities.push(state.density);
     }
