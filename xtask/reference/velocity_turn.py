@@ -1,13 +1,15 @@
 """How fast a run's velocity turns the smoke about the source's vertical axis (issue 18).
 
-  python velocity_turn.py RUN_DIR DATA_DIR FRAMES      (FRAMES: comma list; needs numpy)
+  python velocity_turn.py RUN_DIR DATA_DIR FRAMES [--estimate]
+      (FRAMES: comma list; needs numpy)
 
 For each frame, over the true smoke (density above 1% of its maximum, cells at least two
 from the axis through the box's centre), prints the density-weighted mean angular velocity
 about that axis of the run's velocity and of the truth's, in degrees per frame
 (counter-clockwise seen from above, as the generator's `swirl_degrees`), and the correlation
 of their tangential components. On the turning plume (`reproduce turning`) the truth turns
-about 3 degrees per frame; a velocity that carries the turn reads the same.
+about 3 degrees per frame; a velocity that carries the turn reads the same. `--estimate`
+reads the run's `velocity_estimate/` (`gausmoke-train velocity`) instead of its own velocity.
 """
 
 import sys
@@ -18,11 +20,13 @@ from scene_truth import read_run_and_truth
 
 
 def main():
-    if len(sys.argv) != 4:
+    arguments = [a for a in sys.argv[1:] if a != "--estimate"]
+    if len(arguments) != 3:
         sys.exit(__doc__)
-    run, data = sys.argv[1], sys.argv[2]
-    for t in [int(f) for f in sys.argv[3].split(",")]:
-        ours, density, truth = read_run_and_truth(run, data, t)
+    run, data = arguments[0], arguments[1]
+    folder = "velocity_estimate" if "--estimate" in sys.argv else "frames"
+    for t in [int(f) for f in arguments[2].split(",")]:
+        ours, density, truth = read_run_and_truth(run, data, t, folder)
         n = density.shape[0]
         centre = (np.arange(n) + 0.5) / n - 0.5
         x, _, z = np.meshgrid(centre, centre, centre, indexing="ij")
