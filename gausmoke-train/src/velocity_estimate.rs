@@ -541,56 +541,51 @@ mod tests {
     /// blob sinking faster each frame is lifted downward with `sinking`, and not without.
     #[test]
     fn an_accelerating_blob_lifts_the_start() {
-        let dir = tempfile::tempdir().unwrap();
-        let (folder, _) = blob_run(dir.path(), |t| Vec3::new(0.45, 0.3 + 0.02 * t * t, 0.5), 5);
-        let lifts = |buoyancy| -> Vec<f64> {
-            let options = EstimateOptions {
-                buoyancy,
-                ..EstimateOptions::default()
-            };
-            let summary =
-                estimate_run_velocity(folder.root(), &options, &device(), |_, _| {}).unwrap();
-            summary.frames.iter().map(|f| f.buoyancy).collect()
+        // Each frame's lift for a blob centred at `centre(t)`, under `options`.
+        let lifts = |centre: fn(f32) -> Vec3, options: &[EstimateOptions]| -> Vec<Vec<f64>> {
+            let dir = tempfile::tempdir().unwrap();
+            let (folder, _) = blob_run(dir.path(), centre, 5);
+            options
+                .iter()
+                .map(|options| {
+                    let summary =
+                        estimate_run_velocity(folder.root(), options, &device(), |_, _| {})
+                            .unwrap();
+                    summary.frames.iter().map(|f| f.buoyancy).collect()
+                })
+                .collect()
         };
-        let with = lifts(true);
-        assert_eq!(&with[..2], &[0.0, 0.0], "{with:?}");
-        assert!(with[2..].iter().all(|&b| b > 0.0), "{with:?}");
-        assert!(lifts(false).iter().all(|&b| b == 0.0));
-        let slowing = tempfile::tempdir().unwrap();
-        let (folder, _) = blob_run(
-            slowing.path(),
-            |t| Vec3::new(0.45, 0.3 + 0.1 * t - 0.02 * t * t, 0.5),
-            5,
+        let rising = EstimateOptions::default();
+        let sinking = EstimateOptions {
+            sinking: true,
+            ..rising
+        };
+        let none = EstimateOptions {
+            buoyancy: false,
+            ..rising
+        };
+        let zero = |lifts: &[f64]| lifts.iter().all(|&b| b == 0.0);
+        let up = lifts(
+            |t| Vec3::new(0.45, 0.3 + 0.02 * t * t, 0.5),
+            &[rising, none],
         );
-        let summary = estimate_run_velocity(
-            folder.root(),
-            &EstimateOptions::default(),
-            &device(),
-            |_, _| {},
-        )
-        .unwrap();
-        assert!(summary.frames.iter().all(|f| f.buoyancy == 0.0));
+        assert_eq!(&up[0][..2], &[0.0, 0.0], "{up:?}");
+        assert!(up[0][2..].iter().all(|&b| b > 0.0), "{up:?}");
+        assert!(zero(&up[1]));
+        let slowing = lifts(
+            |t| Vec3::new(0.45, 0.3 + 0.1 * t - 0.02 * t * t, 0.5),
+            &[rising],
+        );
+        assert!(zero(&slowing[0]), "{slowing:?}");
         // Sinking faster each frame (fog): with `sinking` the lift is downward from frame 3
         // on; read upward only, as for rising smoke, it never is.
-        let sinking = tempfile::tempdir().unwrap();
-        let (folder, _) = blob_run(
-            sinking.path(),
+        let down = lifts(
             |t| Vec3::new(0.45, 0.7 - 0.02 * t * t, 0.5),
-            5,
+            &[sinking, rising],
         );
-        let lifts = |sinking| -> Vec<f64> {
-            let options = EstimateOptions {
-                sinking,
-                ..EstimateOptions::default()
-            };
-            let summary =
-                estimate_run_velocity(folder.root(), &options, &device(), |_, _| {}).unwrap();
-            summary.frames.iter().map(|f| f.buoyancy).collect()
-        };
-        let down = lifts(true);
-        assert_eq!(&down[..2], &[0.0, 0.0], "{down:?}");
-        assert!(down[2..].iter().all(|&b| b < 0.0), "{down:?}");
-        assert!(lifts(false).iter().all(|&b| b == 0.0));
+        assert_eq!(&down[0][..2], &[0.0, 0.0], "{down:?}");
+        assert!(down[0][2..].iter().all(|&b| b < 0.0), "{down:?}");
+        assert!(zero(&down[1]), "{down:?}");
     }
 
     /// A blob moving a known distance each frame: the estimate, read back through the files
