@@ -645,6 +645,19 @@ fn estimate_velocity(
             worst.solver_residual
         );
     }
+    if let Some(readings) = summary.lift_against_data() {
+        let (kept, other, flag) = if summary.options.sinking {
+            ("downward", "upward", "without --sinking")
+        } else {
+            ("upward", "downward", "with --sinking")
+        };
+        eprintln!(
+            "warning: the lift is read {kept} only, but the fits accelerated the smoke mostly \
+             {other} (their coefficients summed {:.3} {other} against {:.3} {kept}): if the \
+             smoke moves {other}, run it again {flag}",
+            readings.against, readings.along
+        );
+    }
     println!(
         "wrote {}; `gausmoke-train eval --run {}` scores it",
         estimate_dir(run).display(),

@@ -126,6 +126,11 @@ pub struct FrameEstimate {
     /// without `buoyancy`, and for frames 1 and 2).
     #[serde(default)]
     pub buoyancy: f64,
+    /// The coefficient this frame's fit showed ([`buoyancy_coefficient`]), of either sign,
+    /// before the one-way rule makes it the next frame's lift (`None` without `buoyancy`,
+    /// and for frame 1, which has no carried start).
+    #[serde(default)]
+    pub buoyancy_read: Option<f64>,
     /// The fit's conjugate-gradient iterations, and the largest residual one of its linear
     /// solves ended on, relative to its right-hand side (1e-6 when all converged).
     #[serde(default)]
@@ -163,6 +168,37 @@ pub struct EstimateSummary {
     /// source sets the density, not transport.
     pub inflow_cells: usize,
     pub frames: Vec<FrameEstimate>,
+}
+
+/// The coefficients the fits read, summed by sign: how much of the lift went the way it is
+/// kept ([`EstimateOptions::sinking`]: down, else up) and how much the other way.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LiftReadings {
+    pub along: f64,
+    pub against: f64,
+}
+
+impl EstimateSummary {
+    /// The lift's readings when the fits mostly accelerated the smoke against the way the
+    /// lift is kept (rising smoke estimated with `sinking`, or sinking smoke without): the
+    /// one-way lift then drops most of what the data shows, and on the long plume turned
+    /// upside down that erred more than no lift at all (docs/RESULTS.md). `None` otherwise,
+    /// and without the lift.
+    pub fn lift_against_data(&self) -> Option<LiftReadings> {
+        let sign = if self.options.sinking { -1.0 } else { 1.0 };
+        let mut readings = LiftReadings {
+            along: 0.0,
+            against: 0.0,
+        };
+        for read in self.frames.iter().filter_map(|f| f.buoyancy_read) {
+            if sign * read > 0.0 {
+                readings.along += read.abs();
+            } else {
+                readings.against += read.abs();
+            }
+        }
+        (readings.against > readings.along).then_some(readings)
+    }
 }
 
 /// How strongly a fit's moves rose where there was smoke, beyond `start` (the previous
@@ -315,6 +351,12 @@ pub fn estimate_run_velocity(
         let world = Tensor::from_data(TensorData::new(world, [nx, ny, nz, 3]), device);
         let velocity = read_floats(project_velocity(&grid, world, projection.clone()));
         let speed = smoke_speed(&densities[t], &velocity);
+        let read = match (&carried, &lift_density) {
+            (Some(carried), Some(density)) => {
+                Some(buoyancy_coefficient(&fit.moves, carried, density))
+            }
+            _ => None,
+        };
         if outputs.wants(t) {
             let run_velocity = folder
                 .read_frame_state(t, &grid)?
@@ -343,6 +385,7 @@ pub fn estimate_run_velocity(
             misfit_fitted: fit.misfit_fitted,
             kept_start: fit.kept_start,
             buoyancy: lift,
+            buoyancy_read: read,
             solver_iterations: fit.solver_iterations,
             solver_residual: fit.solver_residual,
             smoke_speed: speed,
@@ -350,10 +393,9 @@ pub fn estimate_run_velocity(
             density_fingerprints: [fingerprints[t - 1].clone(), fingerprints[t].clone()],
             seconds: start.elapsed().as_secs_f64(),
         });
-        if let (Some(carried), Some(density)) = (&carried, &lift_density) {
+        if let Some(coefficient) = read {
             // One way only: where the smoke slows (a rising cap meeting the top), the slowing
             // is not in proportion to its density, and carrying it on erred more.
-            let coefficient = buoyancy_coefficient(&fit.moves, carried, density);
             lift = if options.sinking {
                 coefficient.min(0.0)
             } else {
@@ -541,8 +583,9 @@ mod tests {
     /// blob sinking faster each frame is lifted downward with `sinking`, and not without.
     #[test]
     fn an_accelerating_blob_lifts_the_start() {
-        // Each frame's lift for a blob centred at `centre(t)`, under `options`.
-        let lifts = |centre: fn(f32) -> Vec3, options: &[EstimateOptions]| -> Vec<Vec<f64>> {
+        // Each frame's lift for a blob centred at `centre(t)`, under `options`, and whether
+        // the summary finds the fits against the way the lift is kept.
+        let lifts = |centre: fn(f32) -> Vec3, options: &[EstimateOptions]| {
             let dir = tempfile::tempdir().unwrap();
             let (folder, _) = blob_run(dir.path(), centre, 5);
             options
@@ -551,9 +594,10 @@ mod tests {
                     let summary =
                         estimate_run_velocity(folder.root(), options, &device(), |_, _| {})
                             .unwrap();
-                    summary.frames.iter().map(|f| f.buoyancy).collect()
+                    let lifts: Vec<f64> = summary.frames.iter().map(|f| f.buoyancy).collect();
+                    (lifts, summary.lift_against_data().is_some())
                 })
-                .collect()
+                .collect::<Vec<_>>()
         };
         let rising = EstimateOptions::default();
         let sinking = EstimateOptions {
@@ -569,23 +613,26 @@ mod tests {
             |t| Vec3::new(0.45, 0.3 + 0.02 * t * t, 0.5),
             &[rising, none],
         );
-        assert_eq!(&up[0][..2], &[0.0, 0.0], "{up:?}");
-        assert!(up[0][2..].iter().all(|&b| b > 0.0), "{up:?}");
-        assert!(zero(&up[1]));
+        assert_eq!(&up[0].0[..2], &[0.0, 0.0], "{up:?}");
+        assert!(up[0].0[2..].iter().all(|&b| b > 0.0), "{up:?}");
+        assert!(zero(&up[1].0));
+        assert!(!up[0].1 && !up[1].1, "{up:?}");
         let slowing = lifts(
             |t| Vec3::new(0.45, 0.3 + 0.1 * t - 0.02 * t * t, 0.5),
             &[rising],
         );
-        assert!(zero(&slowing[0]), "{slowing:?}");
+        assert!(zero(&slowing[0].0), "{slowing:?}");
         // Sinking faster each frame (fog): with `sinking` the lift is downward from frame 3
-        // on; read upward only, as for rising smoke, it never is.
+        // on; read upward only, as for rising smoke, it never is, and the summary says the
+        // fits went the other way.
         let down = lifts(
             |t| Vec3::new(0.45, 0.7 - 0.02 * t * t, 0.5),
             &[sinking, rising],
         );
-        assert_eq!(&down[0][..2], &[0.0, 0.0], "{down:?}");
-        assert!(down[0][2..].iter().all(|&b| b < 0.0), "{down:?}");
-        assert!(zero(&down[1]), "{down:?}");
+        assert_eq!(&down[0].0[..2], &[0.0, 0.0], "{down:?}");
+        assert!(down[0].0[2..].iter().all(|&b| b < 0.0), "{down:?}");
+        assert!(!down[0].1, "{down:?}");
+        assert!(zero(&down[1].0) && down[1].1, "{down:?}");
     }
 
     /// A blob moving a known distance each frame: the estimate, read back through the files
