@@ -358,6 +358,8 @@ pub fn estimate_run_velocity(
             _ => None,
         };
         if outputs.wants(t) {
+            // Read again rather than kept from the first pass: that holds one velocity grid
+            // at a time, not one per output frame.
             let run_velocity = folder
                 .read_frame_state(t, &grid)?
                 .ok_or_else(|| TrainError::Dataset {
