@@ -4,12 +4,15 @@
   python truth_chain.py TRAIN CONFIG DATA T0 T1 OUT [--carrier particles|grid]
       [--velocity truth|RUN] [--estimate] [--scale S] [--integrator euler|midpoint|implicit]
       [--substeps K] [--steps N] [--refit every|last] [--source truth|none] [--grow V]
-      [--dense-first] [--velocity-blur CELLS] [--seed S]    (numpy; scipy for --velocity-blur)
+      [--dense-first] [--velocity-blur CELLS] [--seed S] [--start-from RUN]
+      (numpy; scipy for --velocity-blur)
 
 A chain outside the trainer, so that its carrier and its fit can each be chosen freely. It
 starts from the truth's density at frame T0, drawn as `gaussians_from_truth.py` draws it
 (`--dense-first` as there) with `gaussians` from CONFIG, and fits it for N steps to frame
-T0's training views. Then, for each frame t up to T1:
+T0's training views; with `--start-from RUN`, it starts from that run's own Gaussians at
+frame T0 (`RUN/frames/frame_T0.safetensors`) instead, so that the chain is one a second pass
+over a trained run could make. Then, for each frame t up to T1:
 
 1. It carries the state one frame by S times a velocity (S is 0.65 for particles and 1 on
    the grid unless `--scale` says otherwise): the truth's velocity of frame t, or
@@ -135,6 +138,8 @@ def main():
     parser.add_argument("--dense-first", action="store_true")
     parser.add_argument("--refit", default="every", choices=["every", "last"])
     parser.add_argument("--velocity-blur", type=float, default=0.0, help="cells")
+    parser.add_argument("--start-from", metavar="RUN",
+                        help="start from the run's Gaussians at T0 instead of the truth")
     args = parser.parse_args()
     if args.estimate and args.velocity == "truth":
         sys.exit("--estimate reads a run's estimate: pass the run with --velocity RUN")
@@ -154,10 +159,18 @@ def main():
 
     start = os.path.join(args.out, "start.safetensors")
     truth = read_truth(args.data, args.t0)[0]
-    write_safetensors(start, drawn(truth), {})
+    if args.start_from:
+        if args.refit != "every":
+            sys.exit("--start-from starts a fitted chain: it needs --refit every")
+        own = read_safetensors(os.path.join(args.start_from, "frames",
+                                            f"frame_{args.t0:03}.safetensors"))
+        write_safetensors(start, {k: own[k] for k in GAUSSIAN_KEYS}, {})
+    else:
+        write_safetensors(start, drawn(truth), {})
     if args.refit == "every":
         state, scores = fit(args, args.t0, start)
-        report(args.t0, scores, " (the truth, fitted)")
+        report(args.t0, scores, " (the run's state, fitted)" if args.start_from
+               else " (the truth, fitted)")
     else:
         state = {k: np.array(v) for k, v in read_safetensors(start).items()}
         state["density"] = scale * truth.astype(np.float64)
