@@ -252,7 +252,7 @@ def main():
         frames = [read(f"{args.run}/frames/frame_{t:03}.safetensors") for t in range(last + 1)]
         densities = [f["density"].astype(np.float64) for f in frames]
         # The run's density is in its own units: the source's floor in those units is its
-        # mean inside the source disc over frames 1-36 (no truth read).
+        # mean inside the source over frames 1-36 (no truth read).
         disc = source_region(n, args)
         args.density_unit = float(np.mean([d[disc].mean() for d in densities[1:37]]))
     else:
