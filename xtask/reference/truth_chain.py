@@ -31,7 +31,9 @@ over a trained run could make. Then, for each frame t up to T1:
 2. With `--source truth` (the default), it renews the source below 0.2 of the box's height
    from the truth: the particles' smoke Gaussians there are replaced by the truth's own, in
    free rows, and the grid's rows there by the truth's density. The chain then measures what
-   carrying loses, not what a missing emission loses.
+   carrying loses, not what a missing emission loses. With `--source run` (the grid carrier
+   and `--start-from` only) the grid's rows there come from that run's own density grid of
+   frame t instead, as a second pass over the run could take them.
 3. With `--refit every` (the default) it fits frame t for N steps with `TRAIN train --config
    CONFIG --set first_frame=t --set frames=1 --set init_iterations=N --set
    init_gaussians=...`: a frame-0 fit from the carried state. CONFIG is a frame fitted
@@ -129,7 +131,7 @@ def main():
     parser.add_argument("--integrator", default="euler",
                         choices=["euler", "midpoint", "implicit"])
     parser.add_argument("--steps", type=int, default=25)
-    parser.add_argument("--source", default="truth", choices=["truth", "none"])
+    parser.add_argument("--source", default="truth", choices=["truth", "none", "run"])
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--grow", type=float, default=0.0,
                         help="variance (cells^2) added to each smoke Gaussian per frame carried")
@@ -141,6 +143,8 @@ def main():
     parser.add_argument("--start-from", metavar="RUN",
                         help="start from the run's Gaussians at T0 instead of the truth")
     args = parser.parse_args()
+    if args.source == "run" and (not args.start_from or args.carrier != "grid"):
+        sys.exit("--source run renews the grid's source rows from the run of --start-from")
     if args.estimate and args.velocity == "truth":
         sys.exit("--estimate reads a run's estimate: pass the run with --velocity RUN")
     if args.carrier == "grid" and (args.grow > 0 or args.integrator != "euler"):
@@ -195,9 +199,13 @@ def main():
             if density.shape != velocity.shape[:3]:
                 sys.exit(f"the fit's density grid {density.shape} is not the velocity's")
             density = carried_on_grid(density, args.scale * velocity / cell, args.substeps)
+            rows = int(SOURCE_TOP * density.shape[1])
             if args.source == "truth":
-                rows = int(SOURCE_TOP * density.shape[1])
                 density[:, :rows, :] = read_truth(args.data, t)[0][:, :rows, :]
+            elif args.source == "run":
+                own = read_safetensors(os.path.join(args.start_from, "frames",
+                                                    f"frame_{t:03}.safetensors"))["density"]
+                density[:, :rows, :] = own[:, :rows, :].astype(np.float64) / scale
             arrays = drawn(density)
         else:
             smoke = state["raw_densities"] > SPARE_RAW_DENSITY + 1.0
