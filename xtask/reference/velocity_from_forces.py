@@ -43,6 +43,7 @@ from scipy.ndimage import map_coordinates
 
 from safetensors_f32 import read_safetensors as read, write_safetensors
 from scene_truth import read_truth
+from velocity_diagnosis import relative
 
 
 def advect(field, vel, dt):
@@ -77,10 +78,16 @@ def source_disc(n):
     return mask
 
 
+def central(f, axis):
+    """Central difference along `axis`; wrapped at the box's faces, so only interior cells
+    are right (the callers zero the outer layer)."""
+    return 0.5 * (np.roll(f, -1, axis) - np.roll(f, 1, axis))
+
+
 def curl(vel):
     """Central-difference curl on interior cells, zero on the box's outer layer."""
     u, v, w = vel[..., 0], vel[..., 1], vel[..., 2]
-    d = lambda f, axis: 0.5 * (np.roll(f, -1, axis) - np.roll(f, 1, axis))
+    d = central
     omega = np.stack([d(w, 1) - d(v, 2), d(u, 2) - d(w, 0), d(v, 0) - d(u, 1)], axis=-1)
     omega[[0, -1], :, :] = 0
     omega[:, [0, -1], :] = 0
@@ -92,8 +99,7 @@ def confine(vel, eps, dt):
     """Vorticity confinement `eps dt (N x omega)` on interior cells."""
     omega = curl(vel)
     size = np.linalg.norm(omega, axis=-1)
-    d = lambda f, axis: 0.5 * (np.roll(f, -1, axis) - np.roll(f, 1, axis))
-    grad = np.stack([d(size, 0), d(size, 1), d(size, 2)], axis=-1)
+    grad = np.stack([central(size, axis) for axis in range(3)], axis=-1)
     length = np.linalg.norm(grad, axis=-1, keepdims=True)
     push = eps * dt * np.cross(grad / np.maximum(length, 1e-30), omega)
     push[length[..., 0] < 1e-8] = 0
@@ -180,10 +186,6 @@ def source_region(n, args):
     if args.source_box:
         return source_box(n, [float(v) for v in args.source_box.split(",")])
     return source_disc(n)
-
-
-def relative(x, truth):
-    return np.sqrt(((x - truth) ** 2).sum() / (truth**2).sum())
 
 
 def chain(densities, args, buoyancy, disc, start=None, assimilate=0.0):
