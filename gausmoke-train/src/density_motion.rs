@@ -133,12 +133,12 @@ impl MotionGrid {
         self.resolution.iter().product()
     }
 
-    fn index(&self, [i, j, k]: [usize; 3]) -> usize {
+    pub(crate) fn index(&self, [i, j, k]: [usize; 3]) -> usize {
         let [_, ny, nz] = self.resolution;
         (i * ny + j) * nz + k
     }
 
-    fn coordinates(&self, cell: usize) -> [usize; 3] {
+    pub(crate) fn coordinates(&self, cell: usize) -> [usize; 3] {
         let [_, ny, nz] = self.resolution;
         [cell / (ny * nz), (cell / nz) % ny, cell % nz]
     }
@@ -194,6 +194,23 @@ impl MotionGrid {
         }
     }
 
+    /// Where cell `cell` came from over `fraction` of its move (cell-index coordinates,
+    /// clamped to the outermost cell centres), and whether that lies past an open face, where
+    /// clear air comes in.
+    fn departure(&self, cell: usize, moves: &[f64], fraction: f64) -> ([f64; 3], bool) {
+        let at = self.coordinates(cell);
+        let mut departure = [0.0; 3];
+        let mut from_outside = false;
+        for axis in 0..3 {
+            let n = self.resolution[axis] as f64;
+            let x = at[axis] as f64 - fraction * moves[3 * cell + axis];
+            from_outside |=
+                (self.open.low[axis] && x < -0.5) || (self.open.high[axis] && x > n - 0.5);
+            departure[axis] = x.clamp(0.0, n - 1.0);
+        }
+        (departure, from_outside)
+    }
+
     /// One semi-Lagrangian step of `density` by `moves`: each cell's value at its departure
     /// point, and the density's gradient there (`d value / d move = -gradient`).
     fn carried(&self, density: &[f64], moves: &[f64]) -> (Vec<f64>, Vec<f64>) {
@@ -202,16 +219,7 @@ impl MotionGrid {
         let mut slope = vec![0.0; 3 * density.len()];
         let mut one = [0.0];
         for cell in 0..density.len() {
-            let at = self.coordinates(cell);
-            let mut departure = [0.0; 3];
-            let mut from_outside = false;
-            for axis in 0..3 {
-                let n = self.resolution[axis] as f64;
-                let x = at[axis] as f64 - moves[3 * cell + axis];
-                from_outside |=
-                    (self.open.low[axis] && x < -0.5) || (self.open.high[axis] && x > n - 0.5);
-                departure[axis] = x.clamp(0.0, n - 1.0);
-            }
+            let (departure, from_outside) = self.departure(cell, moves, 1.0);
             if from_outside {
                 continue;
             }
@@ -227,18 +235,33 @@ impl MotionGrid {
         (value, slope)
     }
 
+    /// `values` (`channels` per cell) carried by `fraction` of `moves` in one semi-Lagrangian
+    /// step: each cell takes the value at its departure point, zero from past an open face.
+    pub(crate) fn advected(
+        &self,
+        values: &[f64],
+        channels: usize,
+        moves: &[f64],
+        fraction: f64,
+    ) -> Vec<f64> {
+        let mut out = vec![0.0; values.len()];
+        for cell in 0..self.cells() {
+            let (departure, from_outside) = self.departure(cell, moves, fraction);
+            if !from_outside {
+                let range = channels * cell..channels * (cell + 1);
+                self.sample(values, channels, departure, &mut out[range]);
+            }
+        }
+        out
+    }
+
     /// `moves` carried along themselves by one semi-Lagrangian step, as a velocity is carried
     /// from one frame to the next: each cell takes the move found at its departure point,
     /// clamped to the outermost cell centres.
     pub(crate) fn self_carried(&self, moves: &[f64]) -> Vec<f64> {
         let mut out = vec![0.0; moves.len()];
         for cell in 0..self.cells() {
-            let at = self.coordinates(cell);
-            let mut departure = [0.0; 3];
-            for axis in 0..3 {
-                let n = self.resolution[axis] as f64;
-                departure[axis] = (at[axis] as f64 - moves[3 * cell + axis]).clamp(0.0, n - 1.0);
-            }
+            let (departure, _) = self.departure(cell, moves, 1.0);
             self.sample(moves, 3, departure, &mut out[3 * cell..3 * cell + 3]);
         }
         out

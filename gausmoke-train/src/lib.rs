@@ -43,6 +43,7 @@ pub mod run;
 pub mod run_folder;
 pub mod run_lock;
 pub mod sequence;
+pub mod smoke_step;
 pub mod split;
 pub mod state;
 mod step_log;

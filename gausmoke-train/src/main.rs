@@ -58,24 +58,55 @@ enum Command {
         run: PathBuf,
         /// Weight of the smoothness of each frame's change from the frame before's estimate
         /// carried along itself (|grad (u - u_carried)|^2, u in cells per frame; frame 1's
-        /// from rest).
-        #[arg(long, default_value_t = EstimateOptions::default().smoothness)]
-        smoothness: f64,
+        /// from rest); with --forces, of the velocity itself. Default 0.003; 0.001 with
+        /// --forces.
+        #[arg(long)]
+        smoothness: Option<f64>,
         /// Weight of its divergence (|div u|^2).
         #[arg(long, default_value_t = EstimateOptions::default().divergence)]
         divergence: f64,
-        /// Weight of its tie to the frame before's estimate carried along itself.
-        #[arg(long, default_value_t = EstimateOptions::default().inertia)]
-        inertia: f64,
+        /// Weight of its tie to the frame before's estimate carried along itself (with
+        /// --forces, to the smoke step's velocity). Default 0.01; 0.03 with --forces.
+        #[arg(long)]
+        inertia: Option<f64>,
         /// Do not lift that carried estimate along y in proportion to the density by what the
         /// frame before's fit showed (a buoyancy read off the data; upward only unless
-        /// --sinking).
+        /// --sinking); with --forces, the smoke step has no buoyancy force.
         #[arg(long)]
         no_buoyancy: bool,
         /// The smoke is heavier than the air and sinks (fog, dry ice): the lift is read
-        /// downward only, where by default it is read upward only (rising smoke).
-        #[arg(long, conflicts_with = "no_buoyancy")]
+        /// downward only, where by default it is read upward only (rising smoke); with
+        /// --forces, the buoyancy and the inflow act downward.
+        #[arg(long)]
         sinking: bool,
+        /// Start each frame's fit from a smoke solver's step of the frame before's velocity
+        /// (inflow in the source, buoyancy, vorticity confinement, self-advection, the exact
+        /// projection), driven by the run's own densities, instead of from that velocity
+        /// carried along itself; the step's forces are chosen by how well it carries the
+        /// density over the first frames.
+        #[arg(long)]
+        forces: bool,
+        /// With --forces: the source's exit speed in cells per frame (default: chosen among
+        /// 0.25 to 1.5).
+        #[arg(long, requires = "forces")]
+        inflow: Option<f64>,
+        /// With --forces: the buoyancy in cells per frame per frame at the source's density
+        /// (default: chosen).
+        #[arg(long, requires = "forces")]
+        force_buoyancy: Option<f64>,
+        /// With --forces: the vorticity confinement's strength (0: none).
+        #[arg(long, requires = "forces", default_value_t = gausmoke_train::velocity_estimate::ForceOptions::default().vorticity)]
+        vorticity: f64,
+        /// With --forces: the step's substeps per frame.
+        #[arg(long, requires = "forces", default_value_t = gausmoke_train::velocity_estimate::ForceOptions::default().substeps)]
+        substeps: usize,
+        /// With --forces: the frames (1 to N) whose density misfit chooses the forces.
+        #[arg(long, requires = "forces", default_value_t = gausmoke_train::velocity_estimate::ForceOptions::default().fit_frames)]
+        fit_frames: usize,
+        /// With --forces: the smoke's source as x0,y0,z0,x1,y1,z1, fractions of the box
+        /// (default: the run's inflow box, respawn_region).
+        #[arg(long, requires = "forces", value_parser = parse_box_fractions)]
+        source_box: Option<BoxFractions>,
         /// No progress bar.
         #[arg(long)]
         quiet: bool,
@@ -271,15 +302,35 @@ fn run_command(cli: Cli) -> Result<()> {
             inertia,
             no_buoyancy,
             sinking,
+            forces,
+            inflow,
+            force_buoyancy,
+            vorticity,
+            substeps,
+            fit_frames,
+            source_box,
             quiet,
             device,
         }) => {
+            let defaults = if forces {
+                EstimateOptions::forced()
+            } else {
+                EstimateOptions::default()
+            };
             let options = EstimateOptions {
-                smoothness,
+                smoothness: smoothness.unwrap_or(defaults.smoothness),
                 divergence,
-                inertia,
+                inertia: inertia.unwrap_or(defaults.inertia),
                 buoyancy: !no_buoyancy,
                 sinking,
+                forces: forces.then(|| gausmoke_train::velocity_estimate::ForceOptions {
+                    inflow,
+                    buoyancy: force_buoyancy,
+                    vorticity,
+                    substeps,
+                    fit_frames,
+                    source_box: source_box.map(|b| b.0),
+                }),
             };
             let device = backends::device_by_name(&device).map_err(anyhow::Error::msg)?;
             estimate_velocity(&run, &options, &device, quiet)
@@ -559,6 +610,23 @@ fn inspect_dataset(dataset: &Path, out: &Path, size: Option<String>) -> Result<(
     sheet.save_png(out)?;
     println!("contact sheet: {}", out.display());
     Ok(())
+}
+
+/// A box as six fractions of the run's box, x0,y0,z0,x1,y1,z1 (checked by the estimate).
+#[derive(Debug, Clone, Copy)]
+struct BoxFractions([f32; 6]);
+
+/// `--source-box x0,y0,z0,x1,y1,z1`.
+fn parse_box_fractions(text: &str) -> Result<BoxFractions, String> {
+    let values: Vec<f32> = text
+        .split(',')
+        .map(|v| v.trim().parse::<f32>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("`{text}`: {e}"))?;
+    let values: [f32; 6] = values.try_into().map_err(|v: Vec<f32>| {
+        format!("`{text}`: six numbers x0,y0,z0,x1,y1,z1, not {}", v.len())
+    })?;
+    Ok(BoxFractions(values))
 }
 
 /// `--size WIDTHxHEIGHT`, as everywhere on the command line.

@@ -24,7 +24,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use burn::tensor::{Device, Tensor, TensorData};
-use gausmoke_model::{ProjectionOptions, project_velocity};
+use gausmoke_model::{GridSpec, ProjectionOptions, project_velocity};
 use gausmoke_render::device_traffic::read_floats;
 use serde::{Deserialize, Serialize};
 
@@ -36,6 +36,7 @@ use crate::estimate_outputs::{EstimateOutputs, FrameFigures, smoke_speed};
 use crate::export::write_atomic;
 use crate::hash::Fnv1a;
 use crate::run_folder::RunFolder;
+use crate::smoke_step::{Forces, INFLOW_CHOICES, SmokeStep, TriedForces, choose_forces};
 use crate::{TrainConfig, TrainError};
 
 /// Conjugate-gradient iterations per Gauss-Newton pass, as the trainer's fit takes.
@@ -57,7 +58,7 @@ pub fn estimate_path(run: &Path, t: usize) -> PathBuf {
 /// lifted along y (the world's up) in proportion to the density (`buoyancy`, see
 /// [`buoyancy_coefficient`]), upward only for rising smoke or, with `sinking`, downward only
 /// for smoke heavier than the air (fog).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EstimateOptions {
     /// Charged on each frame's change from its start, not on the estimate itself.
     pub smoothness: f64,
@@ -67,6 +68,44 @@ pub struct EstimateOptions {
     pub buoyancy: bool,
     #[serde(default)]
     pub sinking: bool,
+    /// Start each frame's fit from a smoke solver's step of the frame before's fit instead of
+    /// from that fit carried along itself ([`crate::smoke_step`]); `buoyancy` then says
+    /// whether the step has a buoyancy force, and `sinking` which way it and the inflow act.
+    #[serde(default)]
+    pub forces: Option<ForceOptions>,
+}
+
+/// The smoke step of [`EstimateOptions::forces`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ForceOptions {
+    /// The source's exit speed (cells per frame); `None`: chosen by the density's motion
+    /// among [`INFLOW_CHOICES`].
+    pub inflow: Option<f64>,
+    /// The buoyancy (cells per frame per frame at the source's density); `None`: chosen by
+    /// the density's motion.
+    pub buoyancy: Option<f64>,
+    pub vorticity: f64,
+    pub substeps: usize,
+    /// The frames (1 to this) whose misfit chooses the forces.
+    pub fit_frames: usize,
+    /// The source, as fractions of the box (x0, y0, z0, x1, y1, z1); `None`: the run's inflow
+    /// box (`respawn_region`).
+    pub source_box: Option<[f32; 6]>,
+}
+
+impl Default for ForceOptions {
+    /// As the long plume's generator steps (two substeps, confinement 0.3); the forces
+    /// chosen over its first 36 frames.
+    fn default() -> Self {
+        Self {
+            inflow: None,
+            buoyancy: None,
+            vorticity: 0.3,
+            substeps: 2,
+            fit_frames: 36,
+            source_box: None,
+        }
+    }
 }
 
 impl Default for EstimateOptions {
@@ -81,11 +120,24 @@ impl Default for EstimateOptions {
             inertia: 0.01,
             buoyancy: true,
             sinking: false,
+            forces: None,
         }
     }
 }
 
 impl EstimateOptions {
+    /// The weights that erred least on the long plume with the smoke step as each fit's
+    /// start (`xtask/reference/velocity_from_forces.py --assimilate`): a tie of 0.03 (against
+    /// 1, 0.1 and 0.01) and the smoothness on the velocity itself.
+    pub fn forced() -> Self {
+        Self {
+            smoothness: 0.001,
+            inertia: 0.03,
+            forces: Some(ForceOptions::default()),
+            ..Self::default()
+        }
+    }
+
     fn validate(&self) -> Result<(), TrainError> {
         for (name, value) in [
             ("smoothness", self.smoothness),
@@ -99,7 +151,44 @@ impl EstimateOptions {
                 });
             }
         }
-        if self.sinking && !self.buoyancy {
+        if let Some(forces) = &self.forces {
+            let bad = |name: &str, reason: String| {
+                Err(TrainError::Config {
+                    origin: format!("velocity estimate --{name}"),
+                    reason,
+                })
+            };
+            if !(1..=16).contains(&forces.substeps) {
+                return bad(
+                    "substeps",
+                    format!("{} is outside 1 to 16", forces.substeps),
+                );
+            }
+            if forces.fit_frames == 0 {
+                return bad("fit-frames", "the forces need at least one frame".into());
+            }
+            for (name, value) in [
+                ("inflow", forces.inflow),
+                ("force-buoyancy", forces.buoyancy),
+                ("vorticity", Some(forces.vorticity)),
+            ] {
+                if let Some(v) = value
+                    && !(0.0..=100.0).contains(&v)
+                {
+                    return bad(name, format!("{v} is outside [0, 100] cells per frame"));
+                }
+            }
+            if let Some(b) = forces.source_box
+                && !(0..3)
+                    .all(|a| (0.0..=1.0).contains(&b[a]) && b[a] < b[a + 3] && b[a + 3] <= 1.0)
+            {
+                return bad(
+                    "source-box",
+                    format!("{b:?} is not x0,y0,z0,x1,y1,z1 with 0 <= x0 < x1 <= 1 per axis"),
+                );
+            }
+        }
+        if self.sinking && !self.buoyancy && self.forces.is_none() {
             return Err(TrainError::Config {
                 origin: "velocity estimate --sinking".into(),
                 reason: "it sets which way the lift is read, and --no-buoyancy leaves the lift \
@@ -167,7 +256,25 @@ pub struct EstimateSummary {
     /// Cells left out of the data term: the run's inflow box (`respawn_region`), where a
     /// source sets the density, not transport.
     pub inflow_cells: usize,
+    /// The smoke step's forces as chosen, with [`EstimateOptions::forces`].
+    #[serde(default)]
+    pub forces: Option<ChosenForces>,
     pub frames: Vec<FrameEstimate>,
+}
+
+/// The smoke step's forces and what chose them.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ChosenForces {
+    pub forces: Forces,
+    /// The step's mean density misfit over frames 1 to `fit_frames` with them.
+    pub mean_misfit: f64,
+    pub fit_frames: usize,
+    /// The source's cells, and its density in the run's units (the mean of the run's density
+    /// there over those frames): the step's unit of density.
+    pub source_cells: usize,
+    pub density_unit: f64,
+    /// One pair per inflow tried, with the buoyancy that fitted it best.
+    pub tried: Vec<TriedForces>,
 }
 
 /// The coefficients the fits read, summed by sign: how much of the lift went the way it is
@@ -293,6 +400,34 @@ pub fn estimate_run_velocity(
     let dt = f64::from(config.dt);
     let cell = grid.cell_size().to_array().map(f64::from);
     let fingerprints: Vec<String> = densities.iter().map(|d| density_fingerprint(d)).collect();
+    let source = match &options.forces {
+        Some(forces) => source_cells(forces, &config, &grid)?,
+        None => Vec::new(),
+    };
+    let forced = match &options.forces {
+        Some(forces) => {
+            let step = SmokeStep {
+                grid: motion_grid,
+                spec: &grid,
+                projection: &projection,
+                cell,
+                dt,
+                source: &source,
+                substeps: forces.substeps,
+                vorticity: forces.vorticity,
+                up: if options.sinking { -1.0 } else { 1.0 },
+            };
+            let chosen = choose_run_forces(&step, forces, options.buoyancy, &densities, run)?;
+            tracing::info!(
+                inflow = chosen.forces.inflow,
+                buoyancy = format!("{:.4}", chosen.forces.buoyancy),
+                mean_misfit = format!("{:.4}", chosen.mean_misfit),
+                "smoke step's forces chosen"
+            );
+            Some((step, chosen))
+        }
+        None => None,
+    };
 
     let dir = estimate_dir(run);
     std::fs::create_dir_all(&dir).map_err(|source| TrainError::Io {
@@ -312,31 +447,48 @@ pub fn estimate_run_velocity(
     let total = densities.len() - 1;
     let mut outputs = EstimateOutputs::new(&dir, &grid, config.output_every, total);
     let mut frames = Vec::new();
-    let mut previous: Option<Vec<f64>> = None;
+    let mut previous: Option<Vec<f64>> = forced
+        .as_ref()
+        .map(|(step, chosen)| step.from_rest(chosen.forces));
     let mut lift = 0.0;
     for t in 1..densities.len() {
         let start = Instant::now();
-        let carried = previous
-            .as_ref()
-            .map(|moves| motion_grid.self_carried(moves));
+        let carried = match forced {
+            Some(_) => None,
+            None => previous
+                .as_ref()
+                .map(|moves| motion_grid.self_carried(moves)),
+        };
         // The density the lift is in proportion to, and regressed on after the fit.
-        let lift_density = options.buoyancy.then(|| unit_density(&densities[t - 1]));
-        let (prior, inertia) = match &carried {
-            Some(carried) => {
+        let lift_density =
+            (options.buoyancy && forced.is_none()).then(|| unit_density(&densities[t - 1]));
+        let (prior, inertia, smoothed) = match (&forced, &carried) {
+            (Some((step, chosen)), _) => {
+                let unit = chosen.density_unit;
+                let before: Vec<f64> = densities[t - 1]
+                    .iter()
+                    .map(|&d| f64::from(d) / unit)
+                    .collect();
+                let moves = previous.as_ref().expect("the step starts from rest");
+                let (stepped, _) = step.frame(chosen.forces, moves, &before);
+                (stepped, options.inertia, Smoothed::Move)
+            }
+            (None, Some(carried)) => {
                 let mut prior = carried.clone();
                 for (c, rho) in lift_density.iter().flatten().enumerate() {
                     prior[3 * c + 1] += lift * rho;
                 }
-                (prior, options.inertia)
+                // What the densities do not see is carried on, not smoothed away frame by
+                // frame.
+                (prior, options.inertia, Smoothed::Change)
             }
-            None => (vec![0.0; 3 * motion_grid.cells()], 0.0),
+            (None, None) => (vec![0.0; 3 * motion_grid.cells()], 0.0, Smoothed::Change),
         };
         let priors = MotionPriors {
             smoothness: options.smoothness,
             divergence: options.divergence,
             inertia,
-            // What the densities do not see is carried on, not smoothed away frame by frame.
-            smoothed: Smoothed::Change,
+            smoothed,
         };
         let fit = fit_density_motion(
             &motion_grid,
@@ -419,13 +571,98 @@ pub fn estimate_run_velocity(
         .collect();
     outputs.finish(&figures)?;
     let summary = EstimateSummary {
-        options: *options,
+        options: options.clone(),
         inflow_cells: in_data.iter().filter(|&&inside| !inside).count(),
+        forces: forced.map(|(_, chosen)| chosen),
         frames,
     };
     let text = serde_json::to_string_pretty(&summary).expect("the summary serialises");
     write_atomic(&summary_path, text.as_bytes())?;
     Ok(summary)
+}
+
+/// The smoke step's source cells: `forces`' box, else the run's inflow box.
+fn source_cells(
+    forces: &ForceOptions,
+    config: &TrainConfig,
+    grid: &GridSpec,
+) -> Result<Vec<bool>, TrainError> {
+    let region = forces
+        .source_box
+        .or(config.respawn_region)
+        .ok_or_else(|| TrainError::Config {
+            origin: "velocity --forces".into(),
+            reason: "the smoke step needs the smoke's source, and this run has no inflow box \
+                     (respawn_region): give it as --source-box x0,y0,z0,x1,y1,z1 (fractions \
+                     of the box)"
+                .into(),
+        })?;
+    let source: Vec<bool> = transport_cells(grid, Some(region))
+        .iter()
+        .map(|inside| !inside)
+        .collect();
+    if !source.contains(&true) {
+        return Err(TrainError::Config {
+            origin: "velocity --source-box".into(),
+            reason: format!("the source {region:?} holds no cell centre of the velocity grid"),
+        });
+    }
+    Ok(source)
+}
+
+/// The step's unit of density (the run's mean density in the source over the frames that
+/// choose the forces) and the forces, given or chosen ([`choose_forces`]).
+fn choose_run_forces(
+    step: &SmokeStep,
+    forces: &ForceOptions,
+    with_buoyancy: bool,
+    densities: &[Vec<f32>],
+    run: &Path,
+) -> Result<ChosenForces, TrainError> {
+    let last = forces.fit_frames.min(densities.len() - 1);
+    let source_cells = step.source.iter().filter(|&&inside| inside).count();
+    let mut total = 0.0;
+    for density in &densities[1..=last] {
+        for (d, _) in density
+            .iter()
+            .zip(step.source)
+            .filter(|(_, inside)| **inside)
+        {
+            total += f64::from(*d);
+        }
+    }
+    let density_unit = total / (source_cells * last) as f64;
+    if !(density_unit.is_finite() && density_unit > 0.0) {
+        return Err(TrainError::Dataset {
+            path: run.to_path_buf(),
+            reason: format!(
+                "the run's density is {density_unit} in the smoke step's source over frames 1 to \
+                 {last}: the step needs smoke there (check --source-box or respawn_region)"
+            ),
+        });
+    }
+    let scaled: Vec<Vec<f64>> = densities[..=last]
+        .iter()
+        .map(|d| d.iter().map(|&v| f64::from(v) / density_unit).collect())
+        .collect();
+    let inflows = match forces.inflow {
+        Some(inflow) => vec![inflow],
+        None => INFLOW_CHOICES.to_vec(),
+    };
+    let buoyancy = if with_buoyancy {
+        forces.buoyancy
+    } else {
+        Some(0.0)
+    };
+    let (best, tried) = choose_forces(step, &scaled, &inflows, buoyancy);
+    Ok(ChosenForces {
+        forces: best.forces,
+        mean_misfit: best.mean_misfit,
+        fit_frames: last,
+        source_cells,
+        density_unit,
+        tried,
+    })
 }
 
 /// A run's estimate as written by [`estimate_run_velocity`], its summary read once.
@@ -604,16 +841,16 @@ mod tests {
         let rising = EstimateOptions::default();
         let sinking = EstimateOptions {
             sinking: true,
-            ..rising
+            ..rising.clone()
         };
         let none = EstimateOptions {
             buoyancy: false,
-            ..rising
+            ..rising.clone()
         };
         let zero = |lifts: &[f64]| lifts.iter().all(|&b| b == 0.0);
         let up = lifts(
             |t| Vec3::new(0.45, 0.3 + 0.02 * t * t, 0.5),
-            &[rising, none],
+            &[rising.clone(), none],
         );
         assert_eq!(&up[0].0[..2], &[0.0, 0.0], "{up:?}");
         assert!(up[0].0[2..].iter().all(|&b| b > 0.0), "{up:?}");
@@ -621,7 +858,7 @@ mod tests {
         assert!(!up[0].1 && !up[1].1, "{up:?}");
         let slowing = lifts(
             |t| Vec3::new(0.45, 0.3 + 0.1 * t - 0.02 * t * t, 0.5),
-            &[rising],
+            &[rising.clone()],
         );
         assert!(zero(&slowing[0].0), "{slowing:?}");
         // Sinking faster each frame (fog): with `sinking` the lift is downward from frame 3
@@ -635,6 +872,62 @@ mod tests {
         assert!(down[0].0[2..].iter().all(|&b| b < 0.0), "{down:?}");
         assert!(!down[0].1, "{down:?}");
         assert!(zero(&down[1].0) && down[1].1, "{down:?}");
+    }
+
+    /// A blob rising from a source: with `forces` the estimate asks for the source when the
+    /// run has no inflow box, then chooses the buoyancy from the densities, records it, and
+    /// moves the smoke upward.
+    #[test]
+    fn the_forced_estimate_needs_a_source_and_lifts_the_smoke() {
+        let dir = tempfile::tempdir().unwrap();
+        let (folder, _) = blob_run(dir.path(), |t| Vec3::new(0.5, 0.3 + 0.04 * t, 0.5), 5);
+        let forces = ForceOptions {
+            inflow: Some(0.5),
+            ..ForceOptions::default()
+        };
+        let options = |source_box| EstimateOptions {
+            forces: Some(ForceOptions {
+                source_box,
+                ..forces.clone()
+            }),
+            ..EstimateOptions::forced()
+        };
+        let error = estimate_run_velocity(folder.root(), &options(None), &device(), |_, _| {})
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("--source-box"), "{error}");
+        let summary = estimate_run_velocity(
+            folder.root(),
+            &options(Some([0.35, 0.15, 0.35, 0.65, 0.35, 0.65])),
+            &device(),
+            |_, _| {},
+        )
+        .unwrap();
+        assert_eq!(summary.frames.len(), 4);
+        let chosen = summary.forces.as_ref().expect("the chosen forces");
+        assert_eq!(chosen.tried.len(), 1);
+        assert_eq!(chosen.forces.inflow, 0.5);
+        assert!(chosen.forces.buoyancy > 0.0, "{chosen:?}");
+        assert!(
+            chosen.source_cells > 0 && chosen.density_unit > 0.0,
+            "{chosen:?}"
+        );
+        let grid = TrainConfig {
+            grid_resolution: 16,
+            ..TrainConfig::default()
+        }
+        .grid(Vec3::ZERO, Vec3::ONE)
+        .unwrap();
+        let state = folder.read_frame_state(3, &grid).unwrap().unwrap();
+        let velocity = read_arrays(&estimate_path(folder.root(), 3)).unwrap();
+        let velocity = &velocity["velocity"].1;
+        let lift: f32 = state
+            .density
+            .iter()
+            .enumerate()
+            .map(|(c, rho)| rho * velocity[3 * c + 1])
+            .sum();
+        assert!(lift > 0.0, "the smoke's mean vertical velocity {lift}");
     }
 
     /// A blob moving a known distance each frame: the estimate, read back through the files
@@ -754,6 +1047,38 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(error.contains("--sinking"), "{error}");
+        for (forces, flag) in [
+            (
+                ForceOptions {
+                    substeps: 0,
+                    ..ForceOptions::default()
+                },
+                "--substeps",
+            ),
+            (
+                ForceOptions {
+                    inflow: Some(-1.0),
+                    ..ForceOptions::default()
+                },
+                "--inflow",
+            ),
+            (
+                ForceOptions {
+                    source_box: Some([0.6, 0.0, 0.3, 0.4, 0.2, 0.7]),
+                    ..ForceOptions::default()
+                },
+                "--source-box",
+            ),
+        ] {
+            let bad = EstimateOptions {
+                forces: Some(forces),
+                ..EstimateOptions::forced()
+            };
+            let error = estimate_run_velocity(run, &bad, &device(), |_, _| {})
+                .unwrap_err()
+                .to_string();
+            assert!(error.contains(flag), "{error}");
+        }
         let error = estimate_run_velocity(run, &EstimateOptions::default(), &device(), |_, _| {})
             .unwrap_err()
             .to_string();
