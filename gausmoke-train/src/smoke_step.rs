@@ -4,9 +4,10 @@
 //! as it was reconstructed; [`crate::velocity_estimate`] then refits it to the two frames'
 //! densities' motion, started from and tied to it.
 //!
-//! Each substep, as a stable-fluids smoke solver takes it: the source's cells get the
-//! source's density and its exit speed (`inflow`) along the lift's direction; the velocity
-//! gains `buoyancy` times the density along it; vorticity confinement; semi-Lagrangian
+//! Each substep, as a stable-fluids smoke solver takes it: the source's cells are refilled to
+//! the density the frame before shows there and given the source's exit speed (`inflow`)
+//! along the lift's direction; the velocity gains `buoyancy` times the density along it;
+//! vorticity confinement; semi-Lagrangian
 //! self-advection; the exact projection `Pi` with the run's open faces and solids; and the
 //! density is carried by the result. The density is not simulated over the frames: each frame
 //! starts again from the reconstructed density of the frame before. What the densities'
@@ -69,6 +70,7 @@ impl SmokeStep<'_> {
     ) -> (Vec<f64>, Vec<f64>) {
         let fraction = 1.0 / self.substeps as f64;
         let mut moves = moves.to_vec();
+        let given = density;
         let mut density = density.to_vec();
         for _ in 0..self.substeps {
             for (cell, _) in self
@@ -77,7 +79,9 @@ impl SmokeStep<'_> {
                 .enumerate()
                 .filter(|(_, inside)| **inside)
             {
-                density[cell] = density[cell].max(1.0);
+                // The source keeps what the reconstruction shows there, which need not fill
+                // its box evenly.
+                density[cell] = density[cell].max(given[cell]);
                 moves[3 * cell + 1] = self.up * forces.inflow;
             }
             for (cell, rho) in density.iter().enumerate() {
@@ -338,14 +342,13 @@ mod tests {
         }
     }
 
-    /// The densities the step itself makes from rest with `forces`: frame t is frame t-1
-    /// carried through a frame.
+    /// The densities the step itself makes with `forces` from a frame 0 whose smoke fills the
+    /// source: frame t is frame t-1 carried through a frame.
     fn history(step: &SmokeStep, forces: Forces, frames: usize) -> Vec<Vec<f64>> {
-        let cells = step.grid.cells();
-        let mut moves = vec![0.0; 3 * cells];
-        let mut density = vec![0.0; cells];
-        let mut out = Vec::new();
-        for _ in 0..frames {
+        let mut moves = step.from_rest(forces);
+        let mut density: Vec<f64> = step.source.iter().map(|&s| f64::from(u8::from(s))).collect();
+        let mut out = vec![density.clone()];
+        for _ in 1..frames {
             (moves, density) = step.frame(forces, &moves, &density);
             out.push(density.clone());
         }

@@ -7,6 +7,13 @@
 //! instead for sinking smoke, [`EstimateOptions::sinking`]), and its
 //! smoothness is charged on the change from that start. Frame 1 starts from no motion, untied.
 //!
+//! With [`EstimateOptions::forces`] (`--forces`) each fit starts instead from a smoke solver's
+//! step of frame t-1's fit, driven by frame t-1's density and the forces the densities'
+//! motion chooses ([`crate::smoke_step`]), is tied to it, and is smoothed as a whole. What
+//! the densities' motion does not show then comes from the forces' history: on the long plume
+//! that errs 0.42-0.43 against the default's 0.57 (docs/RESULTS.md). It needs the smoke's
+//! source, the run's inflow box or one given.
+//!
 //! The run's own velocity is what carried its Gaussians; it is left as it is. On the long
 //! plume this estimate, read off the same run's densities, is truer than the run's velocity,
 //! while the same fit used as the trainer's carrier costs the pictures (docs/RESULTS.md, "Why
