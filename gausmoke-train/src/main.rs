@@ -687,14 +687,33 @@ fn estimate_velocity(
     let mean = |f: fn(&gausmoke_train::velocity_estimate::FrameEstimate) -> f64| {
         summary.frames.iter().map(f).sum::<f64>() / summary.frames.len() as f64
     };
+    let start_name = if summary.forces.is_some() {
+        "stepped"
+    } else {
+        "carried"
+    };
     println!(
-        "{} frames in {:.1} s; misfit (relative to no motion) {:.3} carried, {:.3} fitted; \
-         {kept} frame(s) kept the carried estimate",
+        "{} frames in {:.1} s; misfit (relative to no motion) {:.3} {start_name}, {:.3} fitted; \
+         {kept} frame(s) kept the {start_name} start",
         summary.frames.len(),
         start.elapsed().as_secs_f64(),
         mean(|f| f.misfit_prior),
         mean(|f| f.misfit_fitted),
     );
+    if let Some(chosen) = &summary.forces {
+        println!(
+            "smoke step: inflow {} cells a frame, buoyancy {:.4} cells a frame per frame at the \
+             source's density ({} source cells, density {:.3}); chosen over frames 1-{} in \
+             {:.1} s, step misfit {:.3}",
+            chosen.forces.inflow,
+            chosen.forces.buoyancy,
+            chosen.source_cells,
+            chosen.density_unit,
+            chosen.fit_frames,
+            chosen.seconds,
+            chosen.mean_misfit,
+        );
+    }
     let unconverged: Vec<_> = summary
         .frames
         .iter()

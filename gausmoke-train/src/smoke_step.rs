@@ -346,7 +346,11 @@ mod tests {
     /// source: frame t is frame t-1 carried through a frame.
     fn history(step: &SmokeStep, forces: Forces, frames: usize) -> Vec<Vec<f64>> {
         let mut moves = step.from_rest(forces);
-        let mut density: Vec<f64> = step.source.iter().map(|&s| f64::from(u8::from(s))).collect();
+        let mut density: Vec<f64> = step
+            .source
+            .iter()
+            .map(|&s| f64::from(u8::from(s)))
+            .collect();
         let mut out = vec![density.clone()];
         for _ in 1..frames {
             (moves, density) = step.frame(forces, &moves, &density);

@@ -282,6 +282,8 @@ pub struct ChosenForces {
     pub density_unit: f64,
     /// One pair per inflow tried, with the buoyancy that fitted it best.
     pub tried: Vec<TriedForces>,
+    /// The choice's time (the frames' own are in each frame's `seconds`).
+    pub seconds: f64,
 }
 
 /// The coefficients the fits read, summed by sign: how much of the lift went the way it is
@@ -626,6 +628,7 @@ fn choose_run_forces(
     densities: &[Vec<f32>],
     run: &Path,
 ) -> Result<ChosenForces, TrainError> {
+    let start = Instant::now();
     let last = forces.fit_frames.min(densities.len() - 1);
     let source_cells = step.source.iter().filter(|&&inside| inside).count();
     let mut total = 0.0;
@@ -669,6 +672,7 @@ fn choose_run_forces(
         source_cells,
         density_unit,
         tried,
+        seconds: start.elapsed().as_secs_f64(),
     })
 }
 

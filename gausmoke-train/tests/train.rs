@@ -258,6 +258,27 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
         assert!(error.is_finite() && frame.velocity_estimate_cosine.unwrap().is_finite());
     }
     assert!(report.velocity_estimate_relative_error_mean.is_some());
+    // The same with a smoke solver's step as each fit's start: the source given, as a user
+    // would whose run has no inflow box, and the forces it chose printed.
+    let output = binary()
+        .args(["velocity", "--quiet", "--forces", "--inflow", "0.5"])
+        .args(["--source-box", "0.3,0,0.3,0.7,0.3,0.7", "--run"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert!(
+        stdout.contains("3 frames") && stdout.contains("smoke step: inflow 0.5"),
+        "{stdout}"
+    );
+    let report = eval::evaluate(&run, &device_by_name("flex").unwrap(), None).unwrap();
+    let error = report.velocity_estimate_relative_error_mean.unwrap();
+    assert!(error.is_finite(), "{error}");
     // A frame trained again leaves the estimate stale: eval refuses it rather than score it.
     let folder = gausmoke_train::RunFolder::at(&run);
     let info = folder.read_run_info().unwrap();
