@@ -713,6 +713,15 @@ fn estimate_velocity(
             chosen.seconds,
             chosen.mean_misfit,
         );
+        if chosen.scarcely_explains() {
+            eprintln!(
+                "warning: even the chosen smoke step carries the run's density scarcely better \
+                 than no motion (misfit {:.2} of no motion's): the run's density does not show \
+                 its source at work (is the source box right? does the run recycle Gaussians \
+                 into it?), and the estimate without --forces may be truer",
+                chosen.mean_misfit
+            );
+        }
     }
     let unconverged: Vec<_> = summary
         .frames
