@@ -98,7 +98,7 @@ impl SmokeStep<'_> {
     }
 
     /// The velocity the step gives frame 0 from still, empty air: the source's push alone.
-    pub(crate) fn from_rest(&self, forces: Forces) -> Vec<f64> {
+    pub(crate) fn velocity_at_frame_zero(&self, forces: Forces) -> Vec<f64> {
         let cells = self.cells();
         self.frame(forces, &vec![0.0; 3 * cells], &vec![0.0; cells])
             .0
@@ -165,7 +165,7 @@ impl SmokeStep<'_> {
     /// without any refit: per frame, the squared difference of the frame before's density
     /// carried through the frame from the frame's own, relative to that of no motion.
     pub(crate) fn mean_misfit(&self, forces: Forces, densities: &[Vec<f64>]) -> f64 {
-        let mut moves = self.from_rest(forces);
+        let mut moves = self.velocity_at_frame_zero(forces);
         let mut total = 0.0;
         for t in 1..densities.len() {
             let (next, carried) = self.frame(forces, &moves, &densities[t - 1]);
@@ -345,7 +345,7 @@ mod tests {
     /// The densities the step itself makes with `forces` from a frame 0 whose smoke fills the
     /// source: frame t is frame t-1 carried through a frame.
     fn history(step: &SmokeStep, forces: Forces, frames: usize) -> Vec<Vec<f64>> {
-        let mut moves = step.from_rest(forces);
+        let mut moves = step.velocity_at_frame_zero(forces);
         let mut density: Vec<f64> = step
             .source
             .iter()
@@ -367,7 +367,7 @@ mod tests {
             inflow: 0.5,
             buoyancy: 0.1,
         };
-        let moves = step.from_rest(forces);
+        let moves = step.velocity_at_frame_zero(forces);
         let source_mean = |moves: &[f64]| {
             (0..moves.len() / 3)
                 .filter(|&c| source[c])
@@ -389,7 +389,7 @@ mod tests {
         // Sinking smoke leaves the source downward (not a mirror image: the floor is a wall
         // and the top open).
         let sinking = SmokeStep { up: -1.0, ..step };
-        let down = source_mean(&sinking.from_rest(forces));
+        let down = source_mean(&sinking.velocity_at_frame_zero(forces));
         assert!(down < -0.1, "the sinking source's mean move {down}");
     }
 

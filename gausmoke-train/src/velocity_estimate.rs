@@ -288,7 +288,7 @@ pub struct ChosenForces {
 
 /// A chosen step's mean misfit at or above this fraction of no motion's explains the
 /// density's motion scarcely at all: on the obstacle preset's runs, which do not recycle
-/// Gaussians into an inflow box, it was 0.98-1.07 and the estimate 0.04-0.05 less true than
+/// Gaussians into an inflow box, it was 0.98-1.12 and the estimate 0.04-0.05 less true than
 /// without `forces`; on the plumes with a recycled inflow 0.35-0.42, and on the obstacle
 /// scene's own density 0.79 (docs/RESULTS.md).
 const STEP_MISFIT_WARNING: f64 = 0.9;
@@ -474,7 +474,7 @@ pub fn estimate_run_velocity(
     let mut frames = Vec::new();
     let mut previous: Option<Vec<f64>> = forced
         .as_ref()
-        .map(|(step, chosen)| step.from_rest(chosen.forces));
+        .map(|(step, chosen)| step.velocity_at_frame_zero(chosen.forces));
     let mut lift = 0.0;
     for t in 1..densities.len() {
         let start = Instant::now();
@@ -885,7 +885,7 @@ mod tests {
         assert!(!up[0].1 && !up[1].1, "{up:?}");
         let slowing = lifts(
             |t| Vec3::new(0.45, 0.3 + 0.1 * t - 0.02 * t * t, 0.5),
-            &[rising.clone()],
+            std::slice::from_ref(&rising),
         );
         assert!(zero(&slowing[0].0), "{slowing:?}");
         // Sinking faster each frame (fog): with `sinking` the lift is downward from frame 3
