@@ -11,7 +11,7 @@
 //! step of frame t-1's fit, driven by frame t-1's density and the forces the densities'
 //! motion chooses ([`crate::smoke_step`]), is tied to it, and is smoothed as a whole. What
 //! the densities' motion does not show then comes from the forces' history: on the long plume
-//! that errs 0.42-0.43 against the default's 0.57 (docs/RESULTS.md). It needs the smoke's
+//! that errs 0.41-0.42 against the default's 0.57 (docs/RESULTS.md). It needs the smoke's
 //! source, the run's inflow box or one given.
 //!
 //! The run's own velocity is what carried its Gaussians; it is left as it is. On the long
@@ -67,7 +67,8 @@ pub fn estimate_path(run: &Path, t: usize) -> PathBuf {
 /// for smoke heavier than the air (fog).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EstimateOptions {
-    /// Charged on each frame's change from its start, not on the estimate itself.
+    /// Charged on each frame's change from its start, not on the estimate itself (with
+    /// `forces`, on the estimate itself).
     pub smoothness: f64,
     pub divergence: f64,
     pub inertia: f64,
