@@ -128,6 +128,11 @@ pub struct ReproduceArgs {
     /// own velocity's (`velocity_estimate_*`).
     #[arg(long)]
     velocity_estimate: bool,
+    /// The same with `gausmoke-train velocity --forces` (each fit started from a smoke
+    /// solver's step; the source is the preset's inflow box, so presets without one are
+    /// refused before training).
+    #[arg(long, conflicts_with = "velocity_estimate")]
+    velocity_estimate_forces: bool,
 }
 
 fn quick_scalar_real() -> TrainConfig {
@@ -596,6 +601,9 @@ fn command_line(args: &ReproduceArgs) -> String {
     if args.velocity_estimate {
         line += " --velocity-estimate";
     }
+    if args.velocity_estimate_forces {
+        line += " --velocity-estimate-forces";
+    }
     if let Some(data) = &args.data {
         line += &format!(" --data {}", shell_quoted(&data.display().to_string()));
     }
@@ -782,6 +790,20 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
     if let Some(key) = &args.config_of {
         variants = vec![recorded_variant(variants, key, &results_dir, &args)?];
     }
+    let estimate = if args.velocity_estimate_forces {
+        if let Some(variant) = variants.iter().find(|v| v.config.respawn_region.is_none()) {
+            bail!(
+                "--velocity-estimate-forces: run {} has no inflow box (respawn_region) for the \
+                 smoke step's source; estimate it afterwards with `gausmoke-train velocity \
+                 --forces --source-box x0,y0,z0,x1,y1,z1`",
+                variant.key
+            );
+        }
+        Some(gausmoke_train::velocity_estimate::EstimateOptions::forced())
+    } else {
+        args.velocity_estimate
+            .then(gausmoke_train::velocity_estimate::EstimateOptions::default)
+    };
     for variant in variants {
         let run_dir = args.out.join(&variant.key);
         eprintln!(
@@ -808,17 +830,18 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
         let wall_seconds = start.elapsed().as_secs_f64();
         let gaussians = trainer.trainer.state.gaussians.len();
         drop(trainer);
-        let estimate_seconds = if args.velocity_estimate {
-            let start = Instant::now();
-            gausmoke_train::velocity_estimate::estimate_run_velocity(
-                &run_dir,
-                &Default::default(),
-                &device,
-                |_, _| {},
-            )?;
-            Some(start.elapsed().as_secs_f64())
-        } else {
-            None
+        let estimate_seconds = match &estimate {
+            Some(options) => {
+                let start = Instant::now();
+                gausmoke_train::velocity_estimate::estimate_run_velocity(
+                    &run_dir,
+                    options,
+                    &device,
+                    |_, _| {},
+                )?;
+                Some(start.elapsed().as_secs_f64())
+            }
+            None => None,
         };
         let report = eval::evaluate(&run_dir, &device, lpips_weights.as_deref())?;
         let metrics: Value = serde_json::from_str(
@@ -891,6 +914,7 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             "velocity_estimate_mean_abs_divergence_per_frame":
                 per_frame(|f| f.velocity_estimate_mean_abs_divergence),
             "velocity_estimate_seconds": estimate_seconds,
+            "velocity_estimate_options": estimate,
             "velocity_estimate_obstacle_normal_flow":
                 report.velocity_estimate_obstacle_normal_flow_mean,
             "velocity_estimate_obstacle_normal_flow_per_frame":
@@ -983,6 +1007,7 @@ mod tests {
             independent: Vec::new(),
             config_of: None,
             velocity_estimate: false,
+            velocity_estimate_forces: false,
         }
     }
 
