@@ -22,6 +22,7 @@
 //! to the next one's.
 
 use gausmoke_model::{GridSpec, ProjectionOptions, project_direct};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::density_motion::{MotionGrid, moves_of_velocity, velocity_of_moves};
@@ -226,25 +227,28 @@ pub(crate) fn choose_forces(
     inflows: &[f64],
     buoyancy: Option<f64>,
 ) -> (TriedForces, Vec<TriedForces>) {
-    let mut tried = Vec::new();
-    for &inflow in inflows {
-        let misfit = |buoyancy: f64| step.mean_misfit(Forces { inflow, buoyancy }, densities);
-        let (buoyancy, mean_misfit) = match buoyancy {
-            Some(b) => (b, misfit(b)),
-            None => golden_search(misfit),
-        };
-        let forces = Forces { inflow, buoyancy };
-        tracing::info!(
-            inflow,
-            buoyancy = format!("{buoyancy:.4}"),
-            mean_misfit = format!("{mean_misfit:.4}"),
-            "forces tried"
-        );
-        tried.push(TriedForces {
-            forces,
-            mean_misfit,
-        });
-    }
+    // Each inflow's search is independent: they run side by side.
+    let tried: Vec<TriedForces> = inflows
+        .par_iter()
+        .map(|&inflow| {
+            let misfit = |buoyancy: f64| step.mean_misfit(Forces { inflow, buoyancy }, densities);
+            let (buoyancy, mean_misfit) = match buoyancy {
+                Some(b) => (b, misfit(b)),
+                None => golden_search(misfit),
+            };
+            let forces = Forces { inflow, buoyancy };
+            tracing::info!(
+                inflow,
+                buoyancy = format!("{buoyancy:.4}"),
+                mean_misfit = format!("{mean_misfit:.4}"),
+                "forces tried"
+            );
+            TriedForces {
+                forces,
+                mean_misfit,
+            }
+        })
+        .collect();
     let best = *tried
         .iter()
         .min_by(|a, b| a.mean_misfit.total_cmp(&b.mean_misfit))
