@@ -234,17 +234,7 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
     );
 
     // The velocity estimated from the run's densities (the CLI), scored beside the run's own.
-    let output = binary()
-        .args(["velocity", "--quiet", "--run"])
-        .arg(&run)
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    assert!(
-        output.status.success(),
-        "{stdout}{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    let stdout = succeeded(binary().args(["velocity", "--quiet", "--run"]).arg(&run));
     assert!(stdout.contains("3 frames"), "{stdout}");
     let report = eval::evaluate(&run, &device_by_name("flex").unwrap(), None).unwrap();
     assert!(report.frames[0].velocity_estimate_relative_error.is_none());
@@ -260,17 +250,11 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
     assert!(report.velocity_estimate_relative_error_mean.is_some());
     // The same with a smoke solver's step as each fit's start: the source given, as a user
     // would whose run has no inflow box, and the forces it chose printed.
-    let output = binary()
-        .args(["velocity", "--quiet", "--forces", "--inflow", "0.5"])
-        .args(["--source-box", "0.3,0,0.3,0.7,0.3,0.7", "--run"])
-        .arg(&run)
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    assert!(
-        output.status.success(),
-        "{stdout}{}",
-        String::from_utf8_lossy(&output.stderr)
+    let stdout = succeeded(
+        binary()
+            .args(["velocity", "--quiet", "--forces", "--inflow", "0.5"])
+            .args(["--source-box", "0.3,0,0.3,0.7,0.3,0.7", "--run"])
+            .arg(&run),
     );
     assert!(
         stdout.contains("3 frames") && stdout.contains("smoke step: inflow 0.5"),
@@ -294,6 +278,18 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
 
 fn binary() -> Command {
     Command::new(env!("CARGO_BIN_EXE_gausmoke-train"))
+}
+
+/// Runs `command`, asserts that it succeeded, and returns what it printed.
+fn succeeded(command: &mut Command) -> String {
+    let output = command.output().unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
+    assert!(
+        output.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    stdout
 }
 
 fn train_command(data: &Path, out: &Path) -> Command {
