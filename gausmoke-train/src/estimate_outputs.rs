@@ -108,8 +108,9 @@ impl<'a> EstimateOutputs<'a> {
         Ok(())
     }
 
-    /// The animation, the time series and the charts over `frames`.
-    pub(crate) fn finish(self, frames: &[FrameFigures]) -> Result<(), TrainError> {
+    /// The animation, the time series and the charts over `frames`; `start` names where
+    /// each fit started (the misfit chart's legend).
+    pub(crate) fn finish(self, frames: &[FrameFigures], start: &str) -> Result<(), TrainError> {
         if !self.slices.is_empty() {
             visuals::save_mp4(&self.dir.join("slices.mp4"), &self.slices, FPS)?;
         }
@@ -142,7 +143,7 @@ impl<'a> EstimateOutputs<'a> {
                     y_label: "residual / residual with no motion".into(),
                     log_y: false,
                     series: vec![
-                        series("start (carried estimate)", |f| f.misfit_start),
+                        series(&format!("start ({start})"), |f| f.misfit_start),
                         series("fit", |f| f.misfit_fitted),
                     ],
                 },

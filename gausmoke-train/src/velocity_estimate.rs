@@ -595,7 +595,12 @@ pub fn estimate_run_velocity(
             run_speed: f.run_smoke_speed,
         })
         .collect();
-    outputs.finish(&figures)?;
+    let start_name = if forced.is_some() {
+        "smoke step"
+    } else {
+        "carried estimate"
+    };
+    outputs.finish(&figures, start_name)?;
     let summary = EstimateSummary {
         options: options.clone(),
         inflow_cells: in_data.iter().filter(|&&inside| !inside).count(),
