@@ -7,9 +7,8 @@
 //! Each substep, as a stable-fluids smoke solver takes it: the source's cells are refilled to
 //! the density the frame before shows there and given the source's exit speed (`inflow`)
 //! along the lift's direction; the velocity gains `buoyancy` times the density along it;
-//! vorticity confinement; semi-Lagrangian
-//! self-advection; the exact projection `Pi` with the run's open faces and solids; and the
-//! density is carried by the result. The density is not simulated over the frames: each frame
+//! vorticity confinement; semi-Lagrangian self-advection; the exact projection `Pi` with the
+//! run's open faces and solids; and the density is carried by the result. The density is not simulated over the frames: each frame
 //! starts again from the reconstructed density of the frame before. What the densities'
 //! motion does not show (the flow along their level sets, the inside of a pooled layer) then
 //! comes from the forces' history instead of from a carried guess (docs/RESULTS.md, the
@@ -196,8 +195,9 @@ pub struct TriedForces {
 }
 
 /// The buoyancies the search starts from: factors of two about a plume's, `0.2` cells per
-/// frame per frame at the source's density on a 32-cell grid (the long preset's, whose misfit
-/// picked 0.17-0.19 on its own density), spanning a factor of 512.
+/// frame per frame at the source's density on a 32-cell grid (the long preset generator's;
+/// with the trainer's inflow box as the source the misfit picked 0.13 on that scene's own
+/// density and 0.08-0.09 on its runs'), spanning a factor of 512.
 const BUOYANCY_LADDER: [f64; 10] = [
     0.2 / 64.0,
     0.2 / 32.0,
