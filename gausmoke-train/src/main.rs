@@ -716,9 +716,10 @@ fn estimate_velocity(
         if chosen.scarcely_explains() {
             eprintln!(
                 "warning: even the chosen smoke step carries the run's density scarcely better \
-                 than no motion (misfit {:.2} of no motion's): the run's density does not show \
-                 its source at work (is the source box right? does the run recycle Gaussians \
-                 into it?), and the estimate without --forces may be truer",
+                 than no motion (misfit {:.2} of no motion's): the run's density does not move \
+                 as a plume from that source would (is the source box right? is the run's \
+                 density close to the smoke's?), and the estimate without --forces may be \
+                 truer",
                 chosen.mean_misfit
             );
         }

@@ -288,16 +288,16 @@ pub struct ChosenForces {
 }
 
 /// A chosen step's mean misfit at or above this fraction of no motion's explains the
-/// density's motion scarcely at all: on the obstacle preset's runs, which do not recycle
-/// Gaussians into an inflow box, it was 0.98-1.12 and the estimate 0.04-0.05 less true than
-/// without `forces`; on the plumes with a recycled inflow 0.35-0.42, and on the obstacle
-/// scene's own density 0.79 (docs/RESULTS.md).
+/// density's motion scarcely at all: on the obstacle preset's runs, whose densities are far
+/// from the scene's, it was 0.98-1.12 and the estimate 0.04-0.06 less true than without
+/// `forces`; on the plumes' runs 0.35-0.42, and on the obstacle scene's own density 0.79
+/// (docs/RESULTS.md).
 const STEP_MISFIT_WARNING: f64 = 0.9;
 
 impl ChosenForces {
     /// Whether even the chosen step carried the density scarcely better than no motion: the
-    /// run's density does not show the source at work, and the estimate without `forces` may
-    /// be truer.
+    /// run's density does not move as a plume from that source would, and the estimate
+    /// without `forces` may be truer.
     pub fn scarcely_explains(&self) -> bool {
         self.mean_misfit >= STEP_MISFIT_WARNING
     }
