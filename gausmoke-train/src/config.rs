@@ -1293,10 +1293,7 @@ impl TrainConfig {
             ));
         }
         if let Some(region) = self.respawn_region {
-            let inside = region
-                .iter()
-                .all(|v| v.is_finite() && (0.0..=1.0).contains(v));
-            if !inside || (0..3).any(|axis| region[axis] >= region[axis + 3]) {
+            if !is_box_of_fractions(&region) {
                 return bad(format!(
                     "respawn_region must be [x0, y0, z0, x1, y1, z1] with 0 <= lo < hi <= 1 \
                      on each axis (fractions of the smoke box), got {region:?}"
@@ -1464,6 +1461,15 @@ impl TrainConfig {
     pub fn lr_factor(&self, frame: usize) -> f64 {
         self.lr_decay.powi((frame / self.lr_decay_every) as i32)
     }
+}
+
+/// Whether `region` is a box inside the unit box, `[x0, y0, z0, x1, y1, z1]` with `0 <= lo <
+/// hi <= 1` on each axis (fractions of a smoke box): an inflow box, or a smoke step's source.
+pub(crate) fn is_box_of_fractions(region: &[f32; 6]) -> bool {
+    region
+        .iter()
+        .all(|v| v.is_finite() && (0.0..=1.0).contains(v))
+        && (0..3).all(|axis| region[axis] < region[axis + 3])
 }
 
 #[cfg(test)]

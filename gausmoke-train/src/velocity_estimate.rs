@@ -187,8 +187,7 @@ impl EstimateOptions {
                 }
             }
             if let Some(b) = forces.source_box
-                && !(0..3)
-                    .all(|a| (0.0..=1.0).contains(&b[a]) && b[a] < b[a + 3] && b[a + 3] <= 1.0)
+                && !crate::config::is_box_of_fractions(&b)
             {
                 return bad(
                     "source-box",
