@@ -38,6 +38,19 @@ pub struct FrameEval {
     /// error it ignores the overall scale, which the images leave open (a darker smoke colour
     /// with a denser medium renders alike).
     pub density_correlation: Option<f64>,
+    /// The relative error left once `sigma` is multiplied by the one factor that brings it
+    /// closest to `s rho_true` (least squares over all cells): the error in the density's
+    /// shape, apart from the overall scale the images leave open.
+    #[serde(default)]
+    pub density_scaled_relative_error: Option<f64>,
+    /// That factor: below 1 where the run holds more density than the scene (and a darker
+    /// colour to match its pictures).
+    #[serde(default)]
+    pub density_best_scale: Option<f64>,
+    /// The share of the run's density in cells outside the true smoke (true density at or
+    /// below 1% of its maximum, the cells the velocity errors leave out): haze.
+    #[serde(default)]
+    pub density_outside_smoke_fraction: Option<f64>,
     /// Data sets with obstacles: the share of the reconstructed density (the run's grid)
     /// that sits in cells whose centre is inside an obstacle (leaked smoke; 0 is right).
     #[serde(default)]
@@ -73,6 +86,12 @@ pub struct EvalReport {
     pub density_relative_error_mean: Option<f64>,
     pub density_correlation_mean: Option<f64>,
     #[serde(default)]
+    pub density_scaled_relative_error_mean: Option<f64>,
+    #[serde(default)]
+    pub density_best_scale_mean: Option<f64>,
+    #[serde(default)]
+    pub density_outside_smoke_fraction_mean: Option<f64>,
+    #[serde(default)]
     pub obstacle_density_fraction_mean: Option<f64>,
     #[serde(default)]
     pub obstacle_normal_flow_mean: Option<f64>,
@@ -105,8 +124,62 @@ struct TruthErrors {
     velocity_rmse: f64,
     velocity_relative_error: f64,
     velocity_cosine: f64,
-    density_relative_error: f64,
-    density_correlation: f64,
+    density: DensityErrors,
+}
+
+/// The run's density against the truth's, both sampled at the truth's cells.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct DensityErrors {
+    relative_error: f64,
+    correlation: f64,
+    scaled_relative_error: f64,
+    /// `None` for an empty reconstruction, which no factor brings nearer.
+    best_scale: Option<f64>,
+    /// `None` for an empty reconstruction.
+    outside_smoke_fraction: Option<f64>,
+}
+
+/// [`DensityErrors`] of `ours` against `truth` (the same cells), `in_smoke` marking the cells
+/// of the true smoke.
+fn density_errors(ours: &[f64], truth: &[f64], in_smoke: &[bool]) -> DensityErrors {
+    // Means of ours, truth, their squares and product.
+    let mut moments = [0.0f64; 5];
+    let (mut ours_total, mut ours_outside) = (0.0f64, 0.0f64);
+    for ((&o, &r), &inside) in ours.iter().zip(truth).zip(in_smoke) {
+        for (sum, term) in moments.iter_mut().zip([o, r, o * o, r * r, o * r]) {
+            *sum += term;
+        }
+        ours_total += o;
+        if !inside {
+            ours_outside += o;
+        }
+    }
+    let count = ours.len().max(1) as f64;
+    let [o, r, oo, rr, or] = moments.map(|m| m / count);
+    let spread = ((oo - o * o) * (rr - r * r)).max(0.0).sqrt();
+    // The least-squares factor; the errors are summed directly, not from the moments, which
+    // would cancel where ours is close.
+    let best_scale = (oo > 0.0).then(|| or / oo);
+    let error_with = |factor: f64| {
+        let error2: f64 = ours
+            .iter()
+            .zip(truth)
+            .map(|(&o, &r)| (factor * o - r).powi(2))
+            .sum();
+        (error2 / (rr * count).max(1e-30)).sqrt()
+    };
+    DensityErrors {
+        relative_error: error_with(1.0),
+        // An empty (constant) reconstruction is uncorrelated.
+        correlation: if spread > 0.0 {
+            (or - o * r) / spread
+        } else {
+            0.0
+        },
+        scaled_relative_error: error_with(best_scale.unwrap_or(0.0)),
+        best_scale,
+        outside_smoke_fraction: (ours_total > 0.0).then(|| ours_outside / ours_total),
+    }
 }
 
 /// Errors against the generator's ground truth for frame `t`.
@@ -132,14 +205,13 @@ fn ground_truth_errors(
     let true_density = take_array(&mut arrays, "density", &[n, n, n], &path)?;
     let true_velocity = take_array(&mut arrays, "velocity", &[n, n, n, 3], &path)?;
     let threshold = 0.01 * true_density.iter().cloned().fold(0.0, f32::max);
+    let in_smoke: Vec<bool> = true_density.iter().map(|&d| d > threshold).collect();
     let extent = scene.hi - scene.lo;
     let (mut error2, mut truth2, mut smoke_cells) = (0.0, 0.0, 0usize);
     let mut cosine_sum = 0.0;
-    let (mut density_error2, mut density_truth2) = (0.0, 0.0);
     let mut ours = [0.0f64; 3];
     let mut ours_density = [0.0f64];
-    // Sums for the correlation: ours, truth, their squares and product.
-    let mut moments = [0.0f64; 5];
+    let mut sampled_density = Vec::with_capacity(n * n * n);
     // Ground truth layout: [z][y][x], x fastest, cell centres at (i + 0.5) / n of the box.
     for z in 0..n {
         for y in 0..n {
@@ -148,20 +220,8 @@ fn ground_truth_errors(
                 let p =
                     scene.lo + extent * (Vec3::new(x as f32, y as f32, z as f32) + 0.5) / n as f32;
                 sample_grid(grid, density, 1, p, &mut ours_density);
-                let truth = (scale * true_density[cell]) as f64;
-                density_error2 += (ours_density[0] - truth).powi(2);
-                density_truth2 += truth * truth;
-                let sampled = ours_density[0];
-                for (sum, term) in moments.iter_mut().zip([
-                    sampled,
-                    truth,
-                    sampled * sampled,
-                    truth * truth,
-                    sampled * truth,
-                ]) {
-                    *sum += term;
-                }
-                if true_density[cell] > threshold {
+                sampled_density.push(ours_density[0]);
+                if in_smoke[cell] {
                     sample_grid(grid, velocity, 3, p, &mut ours);
                     let (mut dot, mut ours2, mut true2) = (0.0, 0.0, 0.0);
                     for a in 0..3 {
@@ -179,21 +239,13 @@ fn ground_truth_errors(
             }
         }
     }
+    let scaled_truth: Vec<f64> = true_density.iter().map(|&d| (scale * d) as f64).collect();
     let cells = smoke_cells.max(1) as f64;
-    let count = (n * n * n) as f64;
-    let [o, r, oo, rr, or] = moments.map(|m| m / count);
-    let spread = ((oo - o * o) * (rr - r * r)).max(0.0).sqrt();
     Ok(Some(TruthErrors {
         velocity_rmse: (error2 / cells).sqrt(),
         velocity_relative_error: (error2 / truth2.max(1e-30)).sqrt(),
         velocity_cosine: cosine_sum / cells,
-        density_relative_error: (density_error2 / density_truth2.max(1e-30)).sqrt(),
-        // An empty (constant) reconstruction is uncorrelated.
-        density_correlation: if spread > 0.0 {
-            (or - o * r) / spread
-        } else {
-            0.0
-        },
+        density: density_errors(&sampled_density, &scaled_truth, &in_smoke),
     }))
 }
 
@@ -352,8 +404,11 @@ pub fn evaluate(
             velocity_rmse: velocity_truth.map(|e| e.velocity_rmse),
             velocity_relative_error: velocity_truth.map(|e| e.velocity_relative_error),
             velocity_cosine: velocity_truth.map(|e| e.velocity_cosine),
-            density_relative_error: truth.map(|e| e.density_relative_error),
-            density_correlation: truth.map(|e| e.density_correlation),
+            density_relative_error: truth.map(|e| e.density.relative_error),
+            density_correlation: truth.map(|e| e.density.correlation),
+            density_scaled_relative_error: truth.map(|e| e.density.scaled_relative_error),
+            density_best_scale: truth.and_then(|e| e.density.best_scale),
+            density_outside_smoke_fraction: truth.and_then(|e| e.density.outside_smoke_fraction),
             obstacle_density_fraction: nearest
                 .as_deref()
                 .map(|nearest| obstacle_density_fraction(nearest, density)),
@@ -389,6 +444,13 @@ pub fn evaluate(
         velocity_cosine_mean: mean(frames.iter().map(|f| f.velocity_cosine)),
         density_relative_error_mean: mean(frames.iter().map(|f| f.density_relative_error)),
         density_correlation_mean: mean(frames.iter().map(|f| f.density_correlation)),
+        density_scaled_relative_error_mean: mean(
+            frames.iter().map(|f| f.density_scaled_relative_error),
+        ),
+        density_best_scale_mean: mean(frames.iter().map(|f| f.density_best_scale)),
+        density_outside_smoke_fraction_mean: mean(
+            frames.iter().map(|f| f.density_outside_smoke_fraction),
+        ),
         obstacle_density_fraction_mean: mean(frames.iter().map(|f| f.obstacle_density_fraction)),
         obstacle_normal_flow_mean: mean(frames.iter().map(|f| f.obstacle_normal_flow)),
         velocity_estimate_relative_error_mean: mean(
@@ -414,4 +476,45 @@ pub fn evaluate(
     };
     folder.write_eval(&report)?;
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_density_errors_part_the_scale_from_the_shape_and_count_the_haze() {
+        let truth = [0.0, 1.0, 2.0, 3.0, 0.0, 0.0];
+        let in_smoke = [false, true, true, true, false, false];
+        // Twice the truth: the whole error is the scale.
+        let twice: Vec<f64> = truth.iter().map(|r| 2.0 * r).collect();
+        let errors = density_errors(&twice, &truth, &in_smoke);
+        assert!((errors.relative_error - 1.0).abs() < 1e-12, "{errors:?}");
+        assert!((errors.best_scale.unwrap() - 0.5).abs() < 1e-12);
+        assert!(errors.scaled_relative_error < 1e-12);
+        assert!((errors.correlation - 1.0).abs() < 1e-12);
+        assert_eq!(errors.outside_smoke_fraction, Some(0.0));
+        // A haze of 0.5 in each cell outside the smoke: a fifth of the mass (1.5 of 7.5),
+        // and an error no factor removes.
+        let hazy = [0.5, 1.0, 2.0, 3.0, 0.5, 0.5];
+        let errors = density_errors(&hazy, &truth, &in_smoke);
+        assert!((errors.outside_smoke_fraction.unwrap() - 0.2).abs() < 1e-12);
+        assert_eq!(errors.relative_error, (0.75f64 / 14.0).sqrt());
+        let scale = 14.0 / 14.75;
+        let left: f64 = hazy
+            .iter()
+            .zip(truth)
+            .map(|(o, r)| (scale * o - r).powi(2))
+            .sum();
+        assert!((errors.best_scale.unwrap() - scale).abs() < 1e-12);
+        assert!((errors.scaled_relative_error - (left / 14.0).sqrt()).abs() < 1e-12);
+        assert!(errors.scaled_relative_error < errors.relative_error);
+        // An empty reconstruction: error 1 either way, no factor, no share.
+        let errors = density_errors(&[0.0; 6], &truth, &in_smoke);
+        assert_eq!(errors.relative_error, 1.0);
+        assert_eq!(errors.scaled_relative_error, 1.0);
+        assert_eq!(errors.best_scale, None);
+        assert_eq!(errors.outside_smoke_fraction, None);
+        assert_eq!(errors.correlation, 0.0);
+    }
 }

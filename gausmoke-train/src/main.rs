@@ -361,6 +361,14 @@ fn run_command(cli: Cli) -> Result<()> {
                 "density correlation  {}",
                 show(report.density_correlation_mean)
             );
+            if report.density_scaled_relative_error_mean.is_some() {
+                println!(
+                    "density rel. error, best scale {} (x{}); share outside the smoke {}",
+                    show(report.density_scaled_relative_error_mean),
+                    show(report.density_best_scale_mean),
+                    show(report.density_outside_smoke_fraction_mean)
+                );
+            }
             if report.velocity_estimate_relative_error_mean.is_some() {
                 println!(
                     "estimate rel. error  {} (velocity_estimate/)",

@@ -225,6 +225,12 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
         correlation > 0.5,
         "frame-0 density correlation {correlation}"
     );
+    // The best factor can only bring the density nearer, and the haze is a share.
+    let scaled = first.density_scaled_relative_error.unwrap();
+    let outside = first.density_outside_smoke_fraction.unwrap();
+    assert!(scaled <= density_error, "{scaled} > {density_error}");
+    assert!(first.density_best_scale.unwrap() > 0.0);
+    assert!((0.0..=1.0).contains(&outside), "share outside {outside}");
     assert!(run.join("eval.json").is_file());
     assert!(
         report

@@ -898,6 +898,9 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             "velocity_cosine": report.velocity_cosine_mean,
             "density_relative_error": report.density_relative_error_mean,
             "density_correlation": report.density_correlation_mean,
+            "density_scaled_relative_error": report.density_scaled_relative_error_mean,
+            "density_best_scale": report.density_best_scale_mean,
+            "density_outside_smoke_fraction": report.density_outside_smoke_fraction_mean,
             "test_psnr_per_frame": per_frame(|f| f.test_psnr),
             "test_ssim_per_frame": per_frame(|f| f.test_ssim),
             "test_lpips_per_frame": per_frame(|f| f.test_lpips),
@@ -906,6 +909,11 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
             "velocity_cosine_per_frame": per_frame(|f| f.velocity_cosine),
             "density_relative_error_per_frame": per_frame(|f| f.density_relative_error),
             "density_correlation_per_frame": per_frame(|f| f.density_correlation),
+            "density_scaled_relative_error_per_frame":
+                per_frame(|f| f.density_scaled_relative_error),
+            "density_best_scale_per_frame": per_frame(|f| f.density_best_scale),
+            "density_outside_smoke_fraction_per_frame":
+                per_frame(|f| f.density_outside_smoke_fraction),
             "velocity_estimate_relative_error": report.velocity_estimate_relative_error_mean,
             "velocity_estimate_cosine": report.velocity_estimate_cosine_mean,
             "velocity_estimate_relative_error_per_frame":
