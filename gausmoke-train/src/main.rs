@@ -107,6 +107,10 @@ enum Command {
         /// (default: the run's inflow box, respawn_region).
         #[arg(long, requires = "forces", value_parser = parse_box_fractions)]
         source_box: Option<BoxFractions>,
+        /// Take the run's density below this fraction of each frame's largest as none (the
+        /// haze of Gaussians the views hardly see). Default 0 (none).
+        #[arg(long)]
+        density_floor: Option<f64>,
         /// No progress bar.
         #[arg(long)]
         quiet: bool,
@@ -309,6 +313,7 @@ fn run_command(cli: Cli) -> Result<()> {
             substeps,
             fit_frames,
             source_box,
+            density_floor,
             quiet,
             device,
         }) => {
@@ -331,6 +336,7 @@ fn run_command(cli: Cli) -> Result<()> {
                     fit_frames,
                     source_box: source_box.map(|b| b.0),
                 }),
+                density_floor: density_floor.unwrap_or(defaults.density_floor),
             };
             let device = backends::device_by_name(&device).map_err(anyhow::Error::msg)?;
             estimate_velocity(&run, &options, &device, quiet)

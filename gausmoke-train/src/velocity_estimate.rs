@@ -81,6 +81,11 @@ pub struct EstimateOptions {
     /// whether the step has a buoyancy force, and `sinking` which way it and the inflow act.
     #[serde(default)]
     pub forces: Option<ForceOptions>,
+    /// The run's density below this fraction of its frame's maximum is taken as none: the
+    /// haze of Gaussians the views hardly see, which a smoke step would lift and carry as
+    /// smoke (0: every density as it is).
+    #[serde(default)]
+    pub density_floor: f64,
 }
 
 /// The smoke step of [`EstimateOptions::forces`].
@@ -129,6 +134,7 @@ impl Default for EstimateOptions {
             buoyancy: true,
             sinking: false,
             forces: None,
+            density_floor: 0.0,
         }
     }
 }
@@ -158,6 +164,15 @@ impl EstimateOptions {
                     reason: format!("{value} is outside [0, 1e6]"),
                 });
             }
+        }
+        if !(0.0..1.0).contains(&self.density_floor) {
+            return Err(TrainError::Config {
+                origin: "velocity estimate --density-floor".into(),
+                reason: format!(
+                    "{} is not a fraction of the frame's largest density in [0, 1)",
+                    self.density_floor
+                ),
+            });
         }
         if let Some(forces) = &self.forces {
             let bad = |name: &str, reason: String| {
@@ -368,6 +383,17 @@ pub fn density_fingerprint(density: &[f32]) -> String {
     hash.hex()
 }
 
+/// Sets the cells of `density` below `fraction` of its largest value to zero.
+fn floor_density(density: &mut [f32], fraction: f64) {
+    if fraction <= 0.0 {
+        return;
+    }
+    let floor = (fraction * f64::from(density.iter().copied().fold(0.0, f32::max))) as f32;
+    for d in density.iter_mut().filter(|d| **d < floor) {
+        *d = 0.0;
+    }
+}
+
 /// Estimates the velocity of every frame of the run folder `run` from its density grids and
 /// writes it to [`estimate_dir`], each frame's fit made divergence-free by the exact `Pi` with
 /// the run's open faces and the data set's solids (on `device`); `on_frame(done, total)`
@@ -424,7 +450,11 @@ pub fn estimate_run_velocity(
     let in_data = transport_cells(&grid, config.respawn_region);
     let dt = f64::from(config.dt);
     let cell = grid.cell_size().to_array().map(f64::from);
+    // Of the densities as the run wrote them, which eval compares with the frames.
     let fingerprints: Vec<String> = densities.iter().map(|d| density_fingerprint(d)).collect();
+    for density in &mut densities {
+        floor_density(density, options.density_floor);
+    }
     let source = match &options.forces {
         Some(forces) => source_cells(forces, &config, &grid)?,
         None => Vec::new(),
@@ -1079,6 +1109,16 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(error.contains("--sinking"), "{error}");
+        for floor in [-0.1, 1.0, f64::NAN] {
+            let bad = EstimateOptions {
+                density_floor: floor,
+                ..EstimateOptions::default()
+            };
+            let error = estimate_run_velocity(run, &bad, &device(), |_, _| {})
+                .unwrap_err()
+                .to_string();
+            assert!(error.contains("--density-floor"), "{floor}: {error}");
+        }
         for (forces, flag) in [
             (
                 ForceOptions {
@@ -1125,5 +1165,15 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(error.contains("not a GauSmoke run"), "{error}");
+    }
+
+    #[test]
+    fn the_floor_clears_only_the_cells_below_its_share_of_the_largest() {
+        let mut density = vec![0.0, 0.04, 0.05, 0.5, 1.0, 2.0];
+        floor_density(&mut density, 0.025);
+        assert_eq!(density, [0.0, 0.0, 0.05, 0.5, 1.0, 2.0]);
+        let mut untouched = vec![0.001, 2.0];
+        floor_density(&mut untouched, 0.0);
+        assert_eq!(untouched, [0.001, 2.0]);
     }
 }
