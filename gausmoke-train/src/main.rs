@@ -725,7 +725,7 @@ fn estimate_velocity(
             chosen.density_unit,
             chosen.fit_frames,
             chosen.seconds,
-            chosen.mean_misfit,
+            chosen.misfit,
         );
         if chosen.scarcely_explains() {
             eprintln!(
@@ -734,7 +734,7 @@ fn estimate_velocity(
                  as a plume from that source would (is the source box right? is the run's \
                  density close to the smoke's?), and the estimate without --forces may be \
                  truer",
-                chosen.mean_misfit
+                chosen.misfit
             );
         }
     }
