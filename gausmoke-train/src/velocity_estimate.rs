@@ -307,7 +307,7 @@ pub struct ChosenForces {
 /// motion scarcely at all. On the obstacle preset's runs trained with the paper's update,
 /// whose densities are far from the scene's, it was 0.87 and the estimate 0.04 less true than
 /// without `forces`; on runs with our update 0.31-0.41 on the plumes and 0.69-0.81 on the
-/// obstacle scene, where the estimate is 0.16-0.18 truer than without (docs/RESULTS.md): a
+/// obstacle scene, where the estimate is 0.15-0.16 truer than without (docs/RESULTS.md): a
 /// thin margin, measured on few runs.
 const STEP_MISFIT_WARNING: f64 = 0.85;
 

@@ -252,9 +252,9 @@ fn synthetic_open_faces() -> Vec<String> {
 }
 
 /// The synthetic solver's top is open to pressure but its divergence reads a still cell above
-/// it: half the top cell's velocity on the face. Set for the long plume and the turning plume,
-/// which trains as it does (with and without `--paper-update`: it is the scene's boundary,
-/// not part of our update). The scene's true velocity lies closer to
+/// it: half the top cell's velocity on the face. Set for the scenes that train as the long
+/// plume does ([`trains_as_the_long_plume`]; with and without `--paper-update`: it is the
+/// scene's boundary, not part of our update). The scene's true velocity lies closer to
 /// what this projection returns than to an outflow's or a wall's, and on the long plume it
 /// gains +0.28 +- 0.32 dB held out and lowers the velocity's error by 0.029 +- 0.018 against
 /// the outflow (eight paired seeds), its sampled frames against the frames fitted alone
