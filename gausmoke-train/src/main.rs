@@ -701,11 +701,7 @@ fn estimate_velocity(
     let mean = |f: fn(&gausmoke_train::velocity_estimate::FrameEstimate) -> f64| {
         summary.frames.iter().map(f).sum::<f64>() / summary.frames.len() as f64
     };
-    let start_name = if summary.forces.is_some() {
-        "stepped"
-    } else {
-        "carried"
-    };
+    let start_name = summary.options.fits_start();
     println!(
         "{} frames in {:.1} s; misfit (relative to no motion) {:.3} {start_name}, {:.3} fitted; \
          {kept} frame(s) kept the {start_name} start",

@@ -8,11 +8,11 @@
 //! the density the frame before shows there and given the source's exit speed (`inflow`)
 //! along the lift's direction; the velocity gains `buoyancy` times the density along it;
 //! vorticity confinement; semi-Lagrangian self-advection; the exact projection `Pi` with the
-//! run's open faces and solids; and the density is carried by the result. The density is not simulated over the frames: each frame
-//! starts again from the reconstructed density of the frame before. What the densities'
-//! motion does not show (the flow along their level sets, the inside of a pooled layer) then
-//! comes from the forces' history instead of from a carried guess (docs/RESULTS.md, the
-//! bullet on a velocity driven by the density's history).
+//! run's open faces and solids; and the density is carried by the result. The density is not
+//! simulated over the frames: each frame starts again from the reconstructed density of the
+//! frame before. What the densities' motion does not show (the flow along their level sets,
+//! the inside of a pooled layer) then comes from the forces' history instead of from a
+//! carried guess (docs/RESULTS.md, the bullet on a velocity driven by the density's history).
 //!
 //! Velocities are moves in cells per frame; densities are in units of the source's own
 //! density, so that `buoyancy` is in cells per frame per frame at the source's density.

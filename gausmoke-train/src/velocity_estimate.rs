@@ -152,6 +152,15 @@ impl EstimateOptions {
         }
     }
 
+    /// Where each frame's fit starts, as the CLI and the misfit chart name it.
+    pub fn fits_start(&self) -> &'static str {
+        if self.forces.is_some() {
+            "smoke step"
+        } else {
+            "carried estimate"
+        }
+    }
+
     fn validate(&self) -> Result<(), TrainError> {
         for (name, value) in [
             ("smoothness", self.smoothness),
@@ -627,12 +636,7 @@ pub fn estimate_run_velocity(
             run_speed: f.run_smoke_speed,
         })
         .collect();
-    let start_name = if forced.is_some() {
-        "smoke step"
-    } else {
-        "carried estimate"
-    };
-    outputs.finish(&figures, start_name)?;
+    outputs.finish(&figures, options.fits_start())?;
     let summary = EstimateSummary {
         options: options.clone(),
         inflow_cells: in_data.iter().filter(|&&inside| !inside).count(),
