@@ -1098,32 +1098,31 @@ mod tests {
     fn bad_settings_and_a_one_frame_run_are_refused() {
         let dir = tempfile::tempdir().unwrap();
         let (folder, _) = moving_blob_run(dir.path(), Vec3::ZERO, 1);
+        let refusal = |run: &Path, options: &EstimateOptions| {
+            estimate_run_velocity(run, options, &device(), |_, _| {})
+                .unwrap_err()
+                .to_string()
+        };
         let run = folder.root();
         let bad = EstimateOptions {
             inertia: -1.0,
             ..EstimateOptions::default()
         };
-        let error = estimate_run_velocity(run, &bad, &device(), |_, _| {})
-            .unwrap_err()
-            .to_string();
+        let error = refusal(run, &bad);
         assert!(error.contains("--inertia"), "{error}");
         let contradictory = EstimateOptions {
             buoyancy: false,
             sinking: true,
             ..EstimateOptions::default()
         };
-        let error = estimate_run_velocity(run, &contradictory, &device(), |_, _| {})
-            .unwrap_err()
-            .to_string();
+        let error = refusal(run, &contradictory);
         assert!(error.contains("--sinking"), "{error}");
         for floor in [-0.1, 1.0, f64::NAN] {
             let bad = EstimateOptions {
                 density_floor: floor,
                 ..EstimateOptions::default()
             };
-            let error = estimate_run_velocity(run, &bad, &device(), |_, _| {})
-                .unwrap_err()
-                .to_string();
+            let error = refusal(run, &bad);
             assert!(error.contains("--density-floor"), "{floor}: {error}");
         }
         for (forces, flag) in [
@@ -1153,24 +1152,13 @@ mod tests {
                 forces: Some(forces),
                 ..EstimateOptions::forced()
             };
-            let error = estimate_run_velocity(run, &bad, &device(), |_, _| {})
-                .unwrap_err()
-                .to_string();
+            let error = refusal(run, &bad);
             assert!(error.contains(flag), "{error}");
         }
-        let error = estimate_run_velocity(run, &EstimateOptions::default(), &device(), |_, _| {})
-            .unwrap_err()
-            .to_string();
+        let error = refusal(run, &EstimateOptions::default());
         assert!(error.contains("a velocity needs two"), "{error}");
         let empty = tempfile::tempdir().unwrap();
-        let error = estimate_run_velocity(
-            empty.path(),
-            &EstimateOptions::default(),
-            &device(),
-            |_, _| {},
-        )
-        .unwrap_err()
-        .to_string();
+        let error = refusal(empty.path(), &EstimateOptions::default());
         assert!(error.contains("not a GauSmoke run"), "{error}");
     }
 
