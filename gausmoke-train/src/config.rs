@@ -303,6 +303,15 @@ pub struct TrainConfig {
     /// density and colour with the smoke at every step from frame 1 on (their centres stay).
     /// Phi and the physics see the smoke's density only.
     pub static_gaussians: usize,
+    /// Steps of the static Gaussians' fit to the per-pixel minimum over time, before frame
+    /// 0's; `None` (the default) takes `init_iterations`. What that fit leaves unexplained of
+    /// a textured solid, frame 0's smoke Gaussians explain instead, as a layer on its surface.
+    pub static_iterations: Option<usize>,
+    /// Depth under the solids' surfaces, in world units, within which the static Gaussians
+    /// start (and, their centres fixed, stay); `None` (the default) fills the solids. An
+    /// opaque solid shows only its surface: a texture painted through its depth shifts with
+    /// the view (parallax) and does not hold in a held-out one.
+    pub static_shell: Option<f32>,
     /// Cells along each axis of the velocity/density grid (paper: 64). Must be a multiple
     /// of 4 (the U-Net halves it twice).
     pub grid_resolution: usize,
@@ -751,6 +760,8 @@ impl Default for TrainConfig {
         Self {
             gaussians: 30_000,
             static_gaussians: 0,
+            static_iterations: None,
+            static_shell: None,
             grid_resolution: 64,
             image_size: None,
             frames: None,
@@ -1328,6 +1339,22 @@ impl TrainConfig {
                     .into(),
             );
         }
+        if let Some(shell) = self.static_shell
+            && !(shell.is_finite() && shell > 0.0)
+        {
+            return bad(format!(
+                "static_shell must be a positive depth in world units when set, got {shell}"
+            ));
+        }
+        if (self.static_iterations.is_some() || self.static_shell.is_some())
+            && self.static_gaussians == 0
+        {
+            return bad(
+                "static_iterations and static_shell set the static Gaussians' start and fit, and \
+                 there are none: set static_gaussians > 0 too"
+                    .into(),
+            );
+        }
         if self.lookahead_appearance && self.lambda_lookahead == 0.0 {
             return bad(
                 "lookahead_appearance lets the look-ahead train the Gaussians, and the \
@@ -1742,6 +1769,35 @@ mod tests {
             .with_overrides(&["gradient_sums=warp".into()])
             .unwrap_err();
         assert!(err.to_string().contains("warp"), "{err}");
+    }
+
+    #[test]
+    fn the_statics_settings_need_static_gaussians_and_a_positive_shell() {
+        let err = TrainConfig {
+            static_iterations: Some(1600),
+            ..TrainConfig::default()
+        }
+        .validate()
+        .unwrap_err();
+        assert!(err.to_string().contains("static_gaussians"), "{err}");
+        for shell in [0.0, -0.01, f32::NAN] {
+            let err = TrainConfig {
+                static_shell: Some(shell),
+                static_gaussians: 10,
+                ..TrainConfig::default()
+            }
+            .validate()
+            .unwrap_err();
+            assert!(err.to_string().contains("static_shell"), "{err}");
+        }
+        TrainConfig {
+            static_shell: Some(0.02),
+            static_iterations: Some(1600),
+            static_gaussians: 10,
+            ..TrainConfig::default()
+        }
+        .validate()
+        .unwrap();
     }
 
     #[test]

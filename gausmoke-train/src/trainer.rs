@@ -29,7 +29,7 @@ use std::path::Path;
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Gradients, Int, Tensor, TensorData};
 use gausmoke_core::glam::Vec3;
-use gausmoke_core::{Camera, phase};
+use gausmoke_core::{Camera, SplitMix64, phase};
 use gausmoke_data::Obstacle;
 use gausmoke_model::penalty::penalty_projection_with_report;
 use gausmoke_model::{
@@ -966,8 +966,9 @@ impl Trainer {
         self.fit_to_images(StillFit::Statics, &observations, &targets)
     }
 
-    /// `init_iterations` steps of `L_render` against the still images `targets` of
-    /// `observations`' cameras, every attribute learning at frame 0's rates.
+    /// `init_iterations` steps (`static_iterations` for the statics) of `L_render` against
+    /// the still images `targets` of `observations`' cameras, every attribute learning at
+    /// frame 0's rates.
     fn fit_to_images(
         &mut self,
         fit: StillFit,
@@ -979,7 +980,13 @@ impl Trainer {
             // Placed where the data set says the solids are: they stay there.
             learning_rates.means = 0.0;
         }
-        let iterations = self.config.init_iterations;
+        let iterations = match fit {
+            StillFit::Statics => self
+                .config
+                .static_iterations
+                .unwrap_or(self.config.init_iterations),
+            StillFit::FirstFrame => self.config.init_iterations,
+        };
         let bar = self.progress(0, iterations);
         let phase = match fit {
             StillFit::Statics => {
@@ -2656,8 +2663,12 @@ fn without_buoyancy(increment: Tensor<4>, sigma: Tensor<3>) -> Tensor<4> {
     increment - buoyancy
 }
 
+/// Points drawn to estimate the volume of the solids' surface layer (`static_shell`).
+const SHELL_VOLUME_SAMPLES: usize = 200_000;
+
 /// The static Gaussians before their fit: inside the obstacles the data set describes, if any
-/// (where the solids are), else spread through the box like the smoke's.
+/// (where the solids are; within `static_shell` of their surfaces when set), else spread
+/// through the box like the smoke's.
 fn static_gaussians_at_start(
     sequence: &Sequence,
     config: &TrainConfig,
@@ -2682,12 +2693,17 @@ fn static_gaussians_at_start(
     let softplus = |x: f32| x.exp().ln_1p();
     let depth_scale =
         softplus(INITIAL_RAW_DENSITY) * size(extent.x * extent.y * extent.z, config.gaussians);
+    let placed = |p: Vec3| in_static_region(&sequence.obstacles, config.static_shell, p);
+    if let (Some((lo, hi)), Some(_)) = (bounds, config.static_shell) {
+        let (lo, hi) = (lo.max(sequence.lo), hi.min(sequence.hi));
+        volume = static_region_volume(&sequence.obstacles, config.static_shell, (lo, hi), seed);
+    }
     match bounds {
         Some((lo, hi)) => GaussianModel::init_where(
             count,
             (lo.max(sequence.lo), hi.min(sequence.hi)),
             volume,
-            |p| sequence.obstacles.iter().any(|o| o.contains(p)),
+            placed,
             // The raw value (softplus^-1) of the density that keeps density x size.
             (depth_scale / size(volume, count)).exp_m1().ln(),
             seed,
@@ -2699,6 +2715,33 @@ fn static_gaussians_at_start(
         }),
         None => GaussianModel::init_in_box(count, sequence.lo, sequence.hi, seed, device),
     }
+}
+
+/// Whether static Gaussians start at `p`: inside one of `obstacles`, and no deeper than
+/// `shell` under its surface when that is set.
+fn in_static_region(obstacles: &[Obstacle], shell: Option<f32>, p: Vec3) -> bool {
+    obstacles.iter().any(|o| {
+        let depth = -o.signed_distance(p);
+        depth >= 0.0 && shell.is_none_or(|shell| depth <= shell)
+    })
+}
+
+/// The volume of [`in_static_region`] within `(lo, hi)`: its share of `SHELL_VOLUME_SAMPLES`
+/// points drawn there (for the Gaussians' starting size, so a few percent will do).
+fn static_region_volume(
+    obstacles: &[Obstacle],
+    shell: Option<f32>,
+    (lo, hi): (Vec3, Vec3),
+    seed: u64,
+) -> f32 {
+    let mut rng = SplitMix64::new(seed);
+    let hits = (0..SHELL_VOLUME_SAMPLES)
+        .filter(|_| {
+            let p = Vec3::from_array([0, 1, 2].map(|a| rng.range(lo[a], hi[a])));
+            in_static_region(obstacles, shell, p)
+        })
+        .count();
+    (hi - lo).max(Vec3::ZERO).element_product() * hits as f32 / SHELL_VOLUME_SAMPLES as f32
 }
 
 /// Conjugate-gradient iterations per Gauss-Newton pass of the density-motion fit, the
@@ -3502,6 +3545,43 @@ mod tests {
         assert_eq!(last_turn_l1(&rows[..3], 4, 1), 1.5);
         assert_eq!(last_turn_l1(&rows[..1], 4, 1), 9.0);
         assert!(last_turn_l1(&[], 4, 1).is_nan());
+    }
+
+    /// The statics' layer under a wall's surface: as deep as asked, and as large as the wall
+    /// less its core.
+    #[test]
+    fn static_gaussians_start_in_a_layer_under_the_solids_surfaces() {
+        let wall = Obstacle::Box {
+            min: Vec3::new(-0.5, 0.0, -0.5),
+            max: Vec3::new(0.5, 1.0, -0.42),
+        };
+        let bounds = (Vec3::new(-0.5, 0.0, -0.5), Vec3::new(0.5, 1.0, -0.42));
+        let at_depth = |depth: f32| Vec3::new(0.0, 0.5, -0.42 - depth);
+        for (depth, whole, layer) in [
+            (0.01, true, true),
+            (0.03, true, false),
+            (-0.01, false, false),
+        ] {
+            assert_eq!(
+                in_static_region(&[wall], None, at_depth(depth)),
+                whole,
+                "{depth}"
+            );
+            assert_eq!(
+                in_static_region(&[wall], Some(0.02), at_depth(depth)),
+                layer,
+                "{depth}"
+            );
+        }
+        let whole = static_region_volume(&[wall], None, bounds, 7);
+        assert!((whole - 0.08).abs() < 1e-6, "{whole}");
+        // 1 x 1 x 0.08 less its core 0.96 x 0.96 x 0.04.
+        let expected = 0.08 - 0.96 * 0.96 * 0.04;
+        let layer = static_region_volume(&[wall], Some(0.02), bounds, 7);
+        assert!(
+            (layer / expected - 1.0).abs() < 0.02,
+            "{layer} against {expected}"
+        );
     }
 
     #[test]
