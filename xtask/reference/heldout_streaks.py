@@ -31,8 +31,9 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 
 
-def read_png(path):
-    """An 8-bit, non-interlaced RGB(A) PNG as float greys in [0, 1], shape [H, W]."""
+def read_png(path, rgb=False):
+    """An 8-bit, non-interlaced RGB(A) PNG as float greys in [0, 1], shape [H, W] (with
+    `rgb`, its colours, shape [H, W, 3])."""
     data = open(path, "rb").read()
     assert data[:8] == b"\x89PNG\r\n\x1a\n", f"{path}: not a PNG"
     pos, idat, header = 8, b"", None
@@ -73,8 +74,8 @@ def read_png(path):
                 predicted = left if pa <= pb and pa <= pc else (up if pb <= pc else up_left)
             out[x] = (row[x] + predicted) & 0xFF
         rows[y], previous = out, out
-    pixels = rows.reshape(height, width, channels)[:, :, :3]
-    return pixels.mean(axis=2) / 255.0
+    pixels = rows.reshape(height, width, channels)[:, :, :3] / 255.0
+    return pixels if rgb else pixels.mean(axis=2)
 
 
 def write_png(path, grey):

@@ -4,7 +4,9 @@ For each run folder of a scene with obstacles (`obstacle`, `ball`, `blocks`), re
 `frames/frame_TTT.safetensors` (numpy only, no Rust code) and prints the mean over frames of
 the share of the smoke density in grid cells whose centre lies inside an obstacle (eval's
 `obstacle_density_fraction`), and of the share in cells more than one cell deep inside one,
-beside those cells' share of the volume. The obstacles (spheres and boxes) and the box are
+beside those cells' share of the volume; then, per obstacle, the share inside it and in the
+band of cells within two cells outside it (smoke Gaussians that paint a textured solid sit
+there: their centres are kept out of it). The obstacles (spheres and boxes) and the box are
 read from the data set the run names in `run.json` (`info.json` or `transforms_train.json`).
 
     python xtask/reference/obstacle_leakage.py RUN [RUN ...]
@@ -57,7 +59,12 @@ def leakage(run):
         distance = np.min([f(centres) for f in fields], axis=0)
         inside, deep = distance <= 0, distance <= -cell.max()
         total = density.sum()
-        rows.append((density[inside].sum() / total, density[deep].sum() / total, inside.mean(), deep.mean()))
+        row = [density[inside].sum() / total, density[deep].sum() / total, inside.mean(), deep.mean()]
+        for field in fields:
+            d = field(centres)
+            band = (d > 0) & (d <= 2 * cell.max())
+            row += [density[d <= 0].sum() / total, density[band].sum() / total]
+        rows.append(row)
     return np.array(rows)
 
 
@@ -68,3 +75,8 @@ if __name__ == "__main__":
             f"{run.rstrip('/').split('/')[-1]:28s} inside {r[:, 0].mean():.4f} "
             f"deeper than a cell {r[:, 1].mean():.4f} (volume shares {r[0, 2]:.4f}, {r[0, 3]:.4f})"
         )
+        for k in range((r.shape[1] - 4) // 2):
+            print(
+                f"{'':28s} obstacle {k}: inside {r[:, 4 + 2 * k].mean():.4f}, "
+                f"within two cells outside {r[:, 5 + 2 * k].mean():.4f}"
+            )
