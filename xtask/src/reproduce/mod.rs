@@ -98,8 +98,8 @@ pub struct ReproduceArgs {
     #[arg(long, value_name = "DEGREES")]
     swirl: Option<f32>,
     /// Train the quick presets of scalar-real, synthetic-long, turning, obstacle, ball and
-    /// blocks with the paper's update (Algorithm 1 as written, K = 20) instead of ours. Runs get `-paper`
-    /// keys.
+    /// blocks with the paper's update (Algorithm 1 as written, K = 20) instead of ours. Runs
+    /// get `-paper` keys.
     #[arg(long)]
     paper_update: bool,
     /// Override a configuration value of every variant (`gausmoke-train --set` syntax,
