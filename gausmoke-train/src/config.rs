@@ -298,10 +298,10 @@ pub struct TrainConfig {
     /// Static Gaussians for solids and background (issue 20; 0, the default, has none): the
     /// same primitives as the smoke's, rendered with them in one pass, but never advected,
     /// one set for every frame, placed inside the obstacles the data set describes (their
-    /// centres stay there) or else spread through the box, fitted first to the training views' per-pixel minimum over
-    /// time (where smoke, which only adds light, is absent at least once), then their shape,
-    /// density and colour with the smoke at every step from frame 1 on (their centres stay).
-    /// Phi and the physics see the smoke's density only.
+    /// centres stay there) or else spread through the box, fitted first to the training
+    /// views' per-pixel minimum over time (where smoke, which only adds light, is absent at
+    /// least once), then their shape, density and colour with the smoke at every step from
+    /// frame 1 on (their centres stay). Phi and the physics see the smoke's density only.
     pub static_gaussians: usize,
     /// Steps of the static Gaussians' fit to the per-pixel minimum over time, before frame
     /// 0's; `None` (the default) takes `init_iterations`. What that fit leaves unexplained of
