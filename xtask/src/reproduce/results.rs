@@ -184,6 +184,15 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
             format!("horizontal increments x{w}"),
         ));
     }
+    if let Some(steps) = config["static_iterations"].as_u64() {
+        settings.push(("static_iterations", format!("statics fitted {steps} steps")));
+    }
+    if let Some(depth) = config["static_shell"].as_f64().map(|d| d as f32) {
+        settings.push((
+            "static_shell",
+            format!("statics within {depth} of the surfaces"),
+        ));
+    }
     let faces = open_faces(record);
     if !faces.is_empty() {
         settings.push(("open_faces", format!("open faces {}", faces.join(" "))));
@@ -776,6 +785,14 @@ mod tests {
                                       "lambda_refine_grid": 0.0,
                                       "increment_horizontal_weight": 1.0}});
         assert_eq!(variant(&paper), "full method");
+        // The statics' fit and layer (the Blender preset's fit; a recorded f32 depth).
+        let statics = json!({"variant": "full method",
+                             "config": {"static_iterations": 1000,
+                                        "static_shell": 0.01600000075995922}});
+        assert_eq!(
+            variant(&statics),
+            "full method, statics fitted 1000 steps, statics within 0.016 of the surfaces"
+        );
     }
 
     #[test]
