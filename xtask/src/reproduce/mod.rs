@@ -268,17 +268,22 @@ fn scalar_real_open_faces() -> Vec<String> {
     vec!["y-".into(), "y+".into()]
 }
 
-/// Static Gaussians of the blocks scene's and the Blender set's quick presets: as many as the
-/// smoke's. With 2000, 400 steps of their fit leave the wall's checker to frame 0's smoke,
-/// which paints it (docs/RESULTS.md, "Obstacles and static solids"). Against 2000, three
-/// paired seeds each: on blocks the smoke's 3D density correlates with the truth at
-/// 0.81-0.86 against 0.65-0.68, on the Blender set at 0.83-0.87 against 0.50-0.65, the
-/// smoke inside the solids falls (blocks 14-15% to 6-8%, Blender 46-56% to 21-28%), and the
-/// held-out view does not pay (+0.08 +- 0.16 / +0.24 +- 0.39 dB; SSIM higher in 6 of 6).
-/// Fitting 2000 for longer instead makes the density about as true (Blender 0.89), but
-/// costs the held-out view 0.70 dB on blocks (four views) and 0.47 dB against this on the
-/// Blender set.
-const WALL_SCENE_STATIC_GAUSSIANS: usize = 4000;
+/// `config` with as many static Gaussians as smoke ones (4000), for the blocks scene's and
+/// the Blender set's quick presets, whose wall fills most of every view. With 2000, 400
+/// steps of their fit leave the wall's checker to frame 0's smoke, which paints it
+/// (docs/RESULTS.md, "Obstacles and static solids"). Against 2000, three paired seeds each:
+/// on blocks the smoke's 3D density correlates with the truth at 0.81-0.86 against
+/// 0.65-0.68, on the Blender set at 0.83-0.87 against 0.50-0.65, the smoke inside the
+/// solids falls (blocks 14-15% to 6-8%, Blender 46-56% to 21-28%), and the held-out view
+/// does not pay (+0.08 +- 0.16 / +0.24 +- 0.39 dB; SSIM higher in 6 of 6). Fitting 2000 for
+/// longer instead makes the density about as true (Blender 0.89), but costs the held-out
+/// view 0.70 dB on blocks (four views) and 0.47 dB against this on the Blender set.
+fn with_statics_for_a_wall(config: TrainConfig) -> TrainConfig {
+    TrainConfig {
+        static_gaussians: config.gaussians,
+        ..config
+    }
+}
 
 /// The scenes whose quick presets train as the long plume's does (our update, the one-view
 /// refinement, the solver's half-open top): the plume itself, the turning plume, the plume
@@ -330,10 +335,16 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
     };
     if args.paper_update {
         if inflow.is_none() {
+            let ours: Vec<&str> = Target::value_variants()
+                .iter()
+                .filter(|&&t| t == Target::ScalarReal || trains_as_the_long_plume(t))
+                .map(|t| t.cli_name())
+                .collect();
+            let (last, rest) = ours.split_last().expect("scalar-real uses our update");
             bail!(
-                "--paper-update: only the quick presets of scalar-real, synthetic-long, \
-                 turning, obstacle, ball and blocks use our update; this one trains with the \
-                 paper's already"
+                "--paper-update: only the quick presets of {} and {last} use our update; this \
+                 one trains with the paper's already",
+                rest.join(", ")
             );
         }
         suffix += "-paper";
@@ -371,16 +382,11 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
             static_gaussians: 7500,
             ..full_synthetic_long()
         },
-        // The wall fills most of every view.
-        (Target::Blocks, true) => TrainConfig {
-            static_gaussians: WALL_SCENE_STATIC_GAUSSIANS,
-            ..quick_synthetic_long()
-        },
+        (Target::Blocks, true) => with_statics_for_a_wall(quick_synthetic_long()),
         // Eleven training views, each loaded from 800x800 down to 100x100.
         (Target::Blender, true) => TrainConfig {
-            static_gaussians: WALL_SCENE_STATIC_GAUSSIANS,
             image_size: Some([100, 100]),
-            ..quick_synthetic_long()
+            ..with_statics_for_a_wall(quick_synthetic_long())
         },
         (Target::Blocks | Target::Blender, false) => TrainConfig {
             static_gaussians: 15000,
@@ -577,10 +583,10 @@ fn shell_quoted(value: &str) -> String {
     }
 }
 
-fn command_line(args: &ReproduceArgs) -> String {
-    let mut line = format!(
-        "cargo run --release -p xtask -- reproduce {}",
-        match args.target {
+impl Target {
+    /// The name `reproduce` takes on its command line.
+    fn cli_name(self) -> &'static str {
+        match self {
             Target::ScalarReal => "scalar-real",
             Target::Synthetic => "synthetic",
             Target::SyntheticLong => "synthetic-long",
@@ -590,6 +596,13 @@ fn command_line(args: &ReproduceArgs) -> String {
             Target::Blocks => "blocks",
             Target::Blender => "blender",
         }
+    }
+}
+
+fn command_line(args: &ReproduceArgs) -> String {
+    let mut line = format!(
+        "cargo run --release -p xtask -- reproduce {}",
+        args.target.cli_name()
     );
     if args.quick {
         line += " --quick";
@@ -1207,7 +1220,7 @@ mod tests {
         // as frame 0.
         let blocks = &variants(&quick_args(Target::Blocks)).unwrap()[0];
         for config in [&blender.config, &blocks.config] {
-            assert_eq!(config.static_gaussians, WALL_SCENE_STATIC_GAUSSIANS);
+            assert_eq!(config.static_gaussians, 4000);
             assert_eq!(config.static_gaussians, config.gaussians);
             assert_eq!(config.static_iterations, None);
         }
@@ -1235,6 +1248,12 @@ mod tests {
             .unwrap_err()
             .to_string();
             assert!(err.contains("--paper-update"), "{err}");
+            assert!(
+                err.contains(
+                    "of scalar-real, synthetic-long, turning, obstacle, ball and blocks use"
+                ),
+                "{err}"
+            );
         }
     }
 
