@@ -2694,25 +2694,28 @@ fn static_gaussians_at_start(
     let depth_scale =
         softplus(INITIAL_RAW_DENSITY) * size(extent.x * extent.y * extent.z, config.gaussians);
     let placed = |p: Vec3| in_static_region(&sequence.obstacles, config.static_shell, p);
-    if let (Some((lo, hi)), Some(_)) = (bounds, config.static_shell) {
-        let (lo, hi) = (lo.max(sequence.lo), hi.min(sequence.hi));
-        volume = static_region_volume(&sequence.obstacles, config.static_shell, (lo, hi), seed);
-    }
     match bounds {
-        Some((lo, hi)) => GaussianModel::init_where(
-            count,
-            (lo.max(sequence.lo), hi.min(sequence.hi)),
-            volume,
-            placed,
-            // The raw value (softplus^-1) of the density that keeps density x size.
-            (depth_scale / size(volume, count)).exp_m1().ln(),
-            seed,
-            device,
-        )
-        // An obstacle reaching outside the box: fall back to the box.
-        .unwrap_or_else(|| {
-            GaussianModel::init_in_box(count, sequence.lo, sequence.hi, seed, device)
-        }),
+        Some((lo, hi)) => {
+            let within = (lo.max(sequence.lo), hi.min(sequence.hi));
+            if config.static_shell.is_some() {
+                volume =
+                    static_region_volume(&sequence.obstacles, config.static_shell, within, seed);
+            }
+            GaussianModel::init_where(
+                count,
+                within,
+                volume,
+                placed,
+                // The raw value (softplus^-1) of the density that keeps density x size.
+                (depth_scale / size(volume, count)).exp_m1().ln(),
+                seed,
+                device,
+            )
+            // An obstacle reaching outside the box: fall back to the box.
+            .unwrap_or_else(|| {
+                GaussianModel::init_in_box(count, sequence.lo, sequence.hi, seed, device)
+            })
+        }
         None => GaussianModel::init_in_box(count, sequence.lo, sequence.hi, seed, device),
     }
 }
