@@ -56,12 +56,12 @@ def leakage(run):
         cell = (hi - lo) / shape
         index = np.stack(np.meshgrid(*[np.arange(k) for k in shape], indexing="ij"), -1)
         centres = lo + (index + 0.5) * cell
-        distance = np.min([f(centres) for f in fields], axis=0)
+        distances = [f(centres) for f in fields]
+        distance = np.min(distances, axis=0)
         inside, deep = distance <= 0, distance <= -cell.max()
         total = density.sum()
         row = [density[inside].sum() / total, density[deep].sum() / total, inside.mean(), deep.mean()]
-        for field in fields:
-            d = field(centres)
+        for d in distances:
             band = (d > 0) & (d <= 2 * cell.max())
             row += [density[d <= 0].sum() / total, density[band].sum() / total]
         rows.append(row)
