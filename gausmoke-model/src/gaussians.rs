@@ -188,17 +188,6 @@ impl GaussianModel {
         }
     }
 
-    /// Every row's colour replaced by the rows' mean, keeping the parameter's id (one colour
-    /// for the whole medium).
-    pub fn with_uniform_color(self) -> Self {
-        let id = self.colors.id;
-        let colors = uniform_color(self.colors.val()).detach().require_grad();
-        Self {
-            colors: Param::initialized(id, colors),
-            ..self
-        }
-    }
-
     /// Keeps colours in `[0, 1]` and log-scales in the renderer's accepted range and within
     /// `[lo, hi]` of `log_scale_bounds` ([`NO_SIZE_BOUNDS`]: the range alone), after an
     /// optimiser step (a projection onto the feasible set, not a reparameterisation).
@@ -219,11 +208,4 @@ impl GaussianModel {
             ..self
         }
     }
-}
-
-/// `colors` `[N, 3]` with every row replaced by the rows' mean; differentiable, so each row's
-/// gradient is the mean of theirs.
-pub fn uniform_color(colors: Tensor<2>) -> Tensor<2> {
-    let [n, channels] = colors.dims();
-    colors.mean_dim(0).expand([n, channels])
 }

@@ -2,17 +2,13 @@
 //! the trainable Gaussians ([`GaussianModel`]), the Eulerian grid, density splatting to it
 //! (a custom op with hand-written backward passes, with the density's analytic spatial
 //! gradient), continuous velocity interpolation with its closed-form divergence, advection of
-//! Gaussian centres and the strain of their shapes ([`deform`]), the exact Helmholtz
-//! projection `Pi` (a custom op whose backward is `Pi` itself) and the paper's penalty form
-//! of it ([`penalty`]), the update network Phi (a small
-//! 3D U-Net), an explicit buoyancy force with a fitted coefficient ([`BuoyancyForce`]), the
-//! losses `L_div`, `L_adv` and `L_refine` (plain tensor functions), and the split of the
+//! Gaussian centres, the exact Helmholtz projection `Pi` (a custom op whose backward is `Pi`
+//! itself) and the paper's penalty form of it ([`penalty`]), the update network Phi (a small
+//! 3D U-Net), the losses `L_div`, `L_adv` and `L_refine` (plain tensor functions), and the split of the
 //! refinement's move into its grid-scale and sub-grid parts ([`GridScale`]).
 
 pub mod advect;
-pub mod buoyancy;
 pub mod conv;
-pub mod deform;
 pub mod density;
 pub mod gaussians;
 pub mod grid;
@@ -24,18 +20,14 @@ pub mod projection;
 pub mod unet;
 
 pub use advect::{Advected, Integrator, advect, transport_velocity};
-pub use buoyancy::BuoyancyForce;
-pub use deform::{deform_shape, deform_shapes, flow_deformation};
 pub use density::{
     DensityBackend, DensityField, SplatOptions, density_and_gradient_grid, density_field,
     density_gradient_grid, density_grid,
 };
-pub use gaussians::{GaussianModel, INITIAL_RAW_DENSITY, NO_SIZE_BOUNDS, uniform_color};
+pub use gaussians::{GaussianModel, INITIAL_RAW_DENSITY, NO_SIZE_BOUNDS};
 pub use grid::{GridError, GridSpec};
 pub use interp::{Interpolation, VelocitySample, grid_from_fn, sample_velocity};
-pub use losses::{
-    advection_loss, density_tie_loss, divergence_loss, divergence_loss_of, log_density, refine_loss,
-};
+pub use losses::{advection_loss, divergence_loss, divergence_loss_of, refine_loss};
 pub use moves::GridScale;
 pub use penalty::{PenaltyOptions, penalty_projection};
 pub use projection::{

@@ -31,24 +31,6 @@ pub fn refine_loss(refined: &Tensor<2>, advected: &Tensor<2>) -> Tensor<1> {
         .mean()
 }
 
-/// A tie on the refinement's change of each Gaussian's density (ours): mean over Gaussians
-/// of the squared change of `ln sigma`, `sigma = softplus(raw)`, from `anchor` (the
-/// [`log_density`] of the densities the refinement started from, `[N]`). Relative, so a 10%
-/// change costs the same at any density; 1e-6 is added to `sigma` so that invisible
-/// Gaussians stay finite.
-pub fn density_tie_loss(raw_densities: &Tensor<1>, anchor: &Tensor<1>) -> Tensor<1> {
-    (log_density(raw_densities.clone()) - anchor.clone())
-        .powi_scalar(2)
-        .mean()
-}
-
-/// `ln sigma` of raw densities, as [`density_tie_loss`] compares them.
-pub fn log_density(raw_densities: Tensor<1>) -> Tensor<1> {
-    burn::tensor::activation::softplus(raw_densities, 1.0)
-        .add_scalar(1e-6)
-        .log()
-}
-
 /// `L_adv` (Eq. 17): mean over cells of the squared material derivative of the density,
 /// `(sigma^{t+1} - sigma^t) / dt + u . grad sigma`, with `grad sigma` the mean of the two
 /// frames' analytic gradients (time-centred, so translation at the true velocity leaves only

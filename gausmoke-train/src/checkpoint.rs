@@ -17,7 +17,7 @@ use crate::arrays::{HostArrays, read_arrays, take_array, write_arrays};
 use crate::config::TrainConfig;
 use crate::export::sync_to_disk;
 use crate::hash::Fnv1a;
-use crate::state::{Buoyancy, FrameReport, LossRow, PhaseSeconds, StaticGaussians, TrainState};
+use crate::state::{FrameReport, LossRow, PhaseSeconds, StaticGaussians, TrainState};
 
 fn checkpoint_error(path: &Path, reason: impl ToString) -> TrainError {
     TrainError::Checkpoint {
@@ -54,8 +54,6 @@ const VELOCITY_FILE: &str = "velocity.safetensors";
 const META_FILE: &str = "state.json";
 const STATICS_FILE: &str = "statics.bpk";
 const STATIC_OPTIM_FILE: &str = "static_optim.bpk";
-const BUOYANCY_FILE: &str = "buoyancy.bpk";
-const BUOYANCY_OPTIM_FILE: &str = "buoyancy_optim.bpk";
 const TENSOR_FILES: [&str; 5] = [
     GAUSSIANS_FILE,
     PHI_FILE,
@@ -176,16 +174,6 @@ fn write_files(dir: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<
             STATIC_OPTIM_FILE,
         )?;
         files.extend([STATICS_FILE, STATIC_OPTIM_FILE]);
-    }
-    if let Some(buoyancy) = &state.buoyancy {
-        save_with_optim(
-            dir,
-            &buoyancy.force,
-            &buoyancy.optim,
-            BUOYANCY_FILE,
-            BUOYANCY_OPTIM_FILE,
-        )?;
-        files.extend([BUOYANCY_FILE, BUOYANCY_OPTIM_FILE]);
     }
     let velocity = state.velocity.clone();
     let shape = velocity.dims().to_vec();
@@ -312,14 +300,6 @@ pub fn load(
         }
         None => None,
     };
-    let buoyancy = match state.buoyancy {
-        Some(Buoyancy { force, optim }) => {
-            let (force, optim) =
-                load_with_optim(dir, force, optim, BUOYANCY_FILE, BUOYANCY_OPTIM_FILE)?;
-            Some(Buoyancy { force, optim })
-        }
-        None => None,
-    };
     let path = dir.join(VELOCITY_FILE);
     let mut arrays = read_arrays(&path)?;
     let shape = state.velocity.dims();
@@ -333,7 +313,6 @@ pub fn load(
             phi,
             gaussian_optim,
             phi_optim,
-            buoyancy,
         },
         meta,
     ))

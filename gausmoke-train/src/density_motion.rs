@@ -1,7 +1,6 @@
-//! The velocity that carries one density grid onto the next (`velocity_from_density_motion`,
-//! ours): after a frame's refinement, the frame's velocity is refitted on the grid so that one
-//! semi-Lagrangian step of it carries the density the Gaussians of frame t-1 splat onto the
-//! density of the refined Gaussians of frame t, regularised as a velocity of ours is:
+//! The velocity that carries one density grid onto the next (ours; the engine of
+//! [`crate::velocity_estimate`]): a velocity on the grid such that one semi-Lagrangian step of
+//! it carries frame t-1's density onto frame t's, regularised as a velocity of ours is:
 //!
 //! ```text
 //! sum over data cells (rho_{t-1}(x - d(x)) - rho_t(x))^2
@@ -10,9 +9,8 @@
 //!     + G |d - d_prior|^2
 //! ```
 //!
-//! `d` is the move per step in cells, `d_prior` where the fit starts: the previous frame's
-//! velocity carried along itself, or the frame's own velocity from the joint iterations
-//! (`density_motion_prior`). The densities are divided by frame t's largest value. With
+//! `d` is the move per step in cells, `d_prior` where the fit starts (the previous frame's
+//! estimate carried along itself, or a smoke solver's step of it). The densities are divided by frame t's largest value. With
 //! [`Smoothed::Change`] the smoothness is `A |grad (d - d_prior)|^2` instead: what the densities
 //! do not see is then carried on as it is, not smoothed again at every frame.
 //! Solved by Gauss-Newton with warping: ten passes, each linearising the step's residual about
@@ -23,13 +21,9 @@
 //! the end), so the linearisation holds for moves of a cell or more. Unlike the script, a step
 //! is halved while it raises the objective, and the start is kept if the passes end above it.
 //!
-//! It is `xtask/reference/velocity_from_density.py`'s tracked fit in the trainer: on the long
-//! plume that fit, run on a preset run's own density grids, was 0.07-0.13 truer than the run's
-//! velocity at frames 18 and 36. The pictures only ever see how the density moves; this asks
-//! the velocity to explain that motion on the grid, where the joint iterations fit it through
-//! the Gaussians' centres. In the trainer it makes the plume's velocity truer and costs the
-//! held-out view about 2 dB and the 3D density (docs/RESULTS.md, "Why we fall short", item 1);
-//! after training, as an output beside the run's velocity, it is [`crate::velocity_estimate`].
+//! It is `xtask/reference/velocity_from_density.py`'s tracked fit. The pictures only ever see
+//! how the density moves; this asks the velocity to explain that motion on the grid, where
+//! the joint iterations fit it through the Gaussians' centres.
 
 use gausmoke_model::projection::Divergence;
 use gausmoke_model::projection::spectral::SpectralSolver;
@@ -117,8 +111,6 @@ pub(crate) struct MotionFit {
     /// relative to that of no move at all (`|rho_t - rho_{t-1}|` over the data cells).
     pub misfit_prior: f64,
     pub misfit_fitted: f64,
-    /// How often a Gauss-Newton step was halved because it raised the objective.
-    pub rejected_steps: usize,
     /// Whether the passes ended worse than they started (unsmoothed), so the start was kept.
     pub kept_start: bool,
     /// Conjugate-gradient iterations over all passes, and the largest residual a pass's solve
@@ -343,7 +335,6 @@ pub(crate) fn fit_density_motion(
             moves: prior.to_vec(),
             misfit_prior: 0.0,
             misfit_fitted: 0.0,
-            rejected_steps: 0,
             kept_start: true,
             solver_iterations: 0,
             solver_residual: 0.0,
@@ -357,7 +348,6 @@ pub(crate) fn fit_density_motion(
     let spectral = SpectralSolver::for_grid(&operator);
     let mut moves = prior.to_vec();
     let mut operator_out = vec![0.0; 3 * cells];
-    let mut rejected_steps = 0;
     let (mut solver_iterations, mut solver_residual) = (0, 0.0f64);
     let pull = pull_of(grid, &priors, prior);
     let problem = Problem {
@@ -433,7 +423,6 @@ pub(crate) fn fit_density_motion(
                 moves = tried;
                 break;
             }
-            rejected_steps += 1;
             length *= 0.5;
         }
     }
@@ -458,7 +447,6 @@ pub(crate) fn fit_density_motion(
         misfit_prior: misfit(prior),
         misfit_fitted: misfit(&moves),
         moves,
-        rejected_steps,
         kept_start,
         solver_iterations,
         solver_residual,

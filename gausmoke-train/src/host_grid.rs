@@ -90,3 +90,53 @@ pub(crate) fn sample(
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::smoothed;
+
+    /// The smoothing keeps a uniform field, keeps an impulse's sum away from the walls and
+    /// spreads it by sigma along each axis, each component on its own.
+    #[test]
+    fn the_move_field_is_smoothed_by_a_gaussian_of_sigma_cells() {
+        // Wide enough that no cell the impulse reaches has a wall within reach.
+        let resolution = [23, 23, 23];
+        let cells = 23 * 23 * 23;
+        let uniform: Vec<f32> = (0..cells).flat_map(|_| [0.5, -1.0, 2.0]).collect();
+        let smooth = smoothed(&uniform, resolution, 3, 2.0, [true; 3]);
+        assert!(
+            smooth
+                .iter()
+                .zip(&uniform)
+                .all(|(a, b)| (a - b).abs() < 1e-5)
+        );
+        let index = |x: usize, y: usize, z: usize| (x * 23 + y) * 23 + z;
+        let mut impulse = vec![0.0f32; 3 * cells];
+        impulse[3 * index(11, 11, 11) + 1] = 1.0;
+        let sigma = 1.5;
+        let smooth = smoothed(&impulse, resolution, 3, sigma, [true; 3]);
+        let mut sum = 0.0f64;
+        let mut second = [0.0f64; 3];
+        for x in 0..23 {
+            for y in 0..23 {
+                for z in 0..23 {
+                    let v = smooth[3 * index(x, y, z) + 1] as f64;
+                    assert_eq!(smooth[3 * index(x, y, z)], 0.0);
+                    assert_eq!(smooth[3 * index(x, y, z) + 2], 0.0);
+                    sum += v;
+                    let d = [x as f64 - 11.0, y as f64 - 11.0, z as f64 - 11.0];
+                    second.iter_mut().zip(d).for_each(|(m, d)| *m += v * d * d);
+                }
+            }
+        }
+        assert!((sum - 1.0).abs() < 1e-5, "sum {sum}");
+        // A sampled Gaussian cut at 3 sigma has a variance a little under sigma^2.
+        for m in second {
+            assert!(
+                (m - 2.25).abs() < 0.1,
+                "variance {m} against {}",
+                sigma * sigma
+            );
+        }
+    }
+}

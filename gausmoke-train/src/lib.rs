@@ -17,27 +17,20 @@
 use std::path::PathBuf;
 
 pub mod arrays;
-pub mod attribute_grads;
-pub mod carried_smoothing;
 pub mod chart;
 pub mod checkpoint;
 pub mod config;
 mod density_motion;
-pub mod emission;
 mod estimate_outputs;
 pub mod eval;
 pub mod export;
 mod hash;
-pub mod held_out_trace;
-pub mod held_view;
 mod host_grid;
-mod iterate_mean;
 pub mod logging;
 pub mod lpips;
 pub mod memory;
 pub mod metrics;
 pub mod novel_views;
-pub mod residual_blur;
 pub mod respawn;
 pub mod run;
 pub mod run_folder;
@@ -50,7 +43,6 @@ mod step_log;
 pub mod tensorboard;
 pub mod trainer;
 pub mod velocity_estimate;
-pub mod view_agreement;
 pub mod viridis;
 pub mod visuals;
 

@@ -20,9 +20,8 @@
 //!   (mean over channels, clamped at 0). A point missing from the reconstruction in every
 //!   view is a visual-hull argument for smoke there. Cells above `respawn_threshold` are
 //!   drawn without replacement with probability proportional to the score and jittered
-//!   within the cell. Two optional limits: cells next to carried smoke only
-//!   (`respawn_near_smoke`), and cells inside a box the user names (`respawn_region`, such
-//!   as the inflow where a source feeds the plume, where the views pin the depth down).
+//!   within the cell. An optional limit: cells inside a box (`respawn_region`, such as the
+//!   inflow where a source feeds the plume, where the views pin the depth down).
 //! - **What they start as.** Isotropic, the initialisation's size, the mean colour of the
 //!   visible Gaussians, and a density whose opacity through the centre supplies half of the
 //!   cell's deficit (half, because neighbouring recycled Gaussians overlap along rays).
@@ -122,9 +121,6 @@ pub struct RespawnOptions {
     pub std: f32,
     pub background: [f32; 3],
     pub seed: u64,
-    /// Cells must lie within one cell of density at least this fraction of the largest
-    /// (`respawn_near_smoke`); 0 admits every cell.
-    pub near_smoke: f32,
     /// World-space box `[lo, hi]` the cell centres must lie in (`respawn_region`: where smoke
     /// enters); `None` admits every cell.
     pub region: Option<[Vec3; 2]>,
@@ -291,43 +287,13 @@ fn cell_scores(views: &[DeficitView], lattice: &SpawnLattice, background: [f32; 
     scores
 }
 
-/// Cells within one cell (26-neighbourhood) of a cell whose `density` is at least `fraction`
-/// of the largest; all cells where the density is empty or all zero.
-fn near_smoke(density: &[f32], lattice: &SpawnLattice, fraction: f32) -> Vec<bool> {
-    let [nx, ny, nz] = lattice.resolution;
-    let peak = density.iter().cloned().fold(0.0, f32::max);
-    if density.len() != nx * ny * nz || peak <= 0.0 {
-        return vec![true; nx * ny * nz];
-    }
-    let mut near = vec![false; nx * ny * nz];
-    for i in 0..nx {
-        for j in 0..ny {
-            for k in 0..nz {
-                if density[(i * ny + j) * nz + k] < fraction * peak {
-                    continue;
-                }
-                for a in i.saturating_sub(1)..(i + 2).min(nx) {
-                    for b in j.saturating_sub(1)..(j + 2).min(ny) {
-                        for c in k.saturating_sub(1)..(k + 2).min(nz) {
-                            near[(a * ny + b) * nz + c] = true;
-                        }
-                    }
-                }
-            }
-        }
-    }
-    near
-}
-
 /// Recycles up to `options.fraction` of `gaussians` in place (see the module docs), never
-/// the `taken` rows (renewed otherwise this frame). `density` is the Gaussians' density on
-/// the lattice (`[nx, ny, nz]`, z fastest), read only with `options.near_smoke > 0`.
+/// the `taken` rows (renewed otherwise this frame).
 pub fn respawn(
     gaussians: &mut HostGaussians,
     views: &[DeficitView],
     lattice: &SpawnLattice,
     options: &RespawnOptions,
-    density: &[f32],
     taken: &[usize],
 ) -> RespawnReport {
     let budget = (options.fraction.max(0.0) * gaussians.len() as f32).floor() as usize;
@@ -335,14 +301,6 @@ pub fn respawn(
         return RespawnReport::default();
     }
     let mut scores = cell_scores(views, lattice, options.background);
-    if options.near_smoke > 0.0 {
-        let near = near_smoke(density, lattice, options.near_smoke);
-        for (score, near) in scores.iter_mut().zip(near) {
-            if !near {
-                *score = 0.0;
-            }
-        }
-    }
     if let Some(region) = options.region {
         for (cell, score) in scores.iter_mut().enumerate() {
             if !in_region(region, lattice.cell_centre(lattice.cell_of(cell))) {
@@ -466,7 +424,6 @@ mod tests {
             std: 0.03,
             background: [0.0; 3],
             seed: 7,
-            near_smoke: 0.0,
             region: None,
         }
     }
@@ -497,7 +454,7 @@ mod tests {
         let views = deficit_views(&cameras, &observed, &rendered);
         let mut g = gaussians(100);
         let before = g.clone();
-        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[], &[]);
+        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[]);
 
         assert_eq!(report.indices.len(), 5);
         assert_eq!(report.from_box_faces, 1);
@@ -531,59 +488,10 @@ mod tests {
         }
         // Rows renewed otherwise this frame are passed over, the face one included.
         let mut g = before.clone();
-        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[], &[0, 3]);
+        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[0, 3]);
         assert_eq!(report.indices, vec![2, 4, 5, 6, 7]);
         assert_eq!(report.from_box_faces, 0);
         assert_eq!(g.means[..3], before.means[..3]);
-    }
-
-    #[test]
-    fn near_smoke_admits_only_cells_beside_the_carried_density() {
-        let cameras = cameras();
-        let smoke = Vec3::new(0.3, 0.7, 0.6);
-        let observed: Vec<Vec<f32>> = cameras.iter().map(|c| spot_image(c, smoke, 4.0)).collect();
-        let rendered = vec![0.0; 64 * 64 * 3];
-        let views = deficit_views(&cameras, &observed, &rendered);
-        let density_at = |[i, j, k]: [usize; 3]| {
-            let mut density = vec![0.01f32; 8 * 8 * 8];
-            density[(i * 8 + j) * 8 + k] = 1.0;
-            density
-        };
-        let options = RespawnOptions {
-            near_smoke: 0.5,
-            ..options(0.05)
-        };
-        // Density where the views show the smoke (cell (2, 5, 4) holds the point): recycled
-        // Gaussians land in that cell or a neighbour.
-        let mut g = gaussians(100);
-        let report = respawn(
-            &mut g,
-            &views,
-            &lattice(),
-            &options,
-            &density_at([2, 5, 4]),
-            &[],
-        );
-        assert!(!report.indices.is_empty());
-        let centre = lattice().cell_centre([2, 5, 4]);
-        for &index in &report.indices {
-            let p = Vec3::from_slice(&g.means[3 * index..3 * index + 3]);
-            assert!(
-                (p - centre).abs().max_element() <= 1.5 * 0.125 + 1e-6,
-                "recycled Gaussian {index} at {p:?}, next to {centre:?}"
-            );
-        }
-        // Density only in a far corner: the deficit there is not next to smoke.
-        let mut g = gaussians(100);
-        let report = respawn(
-            &mut g,
-            &views,
-            &lattice(),
-            &options,
-            &density_at([7, 0, 0]),
-            &[],
-        );
-        assert!(report.indices.is_empty(), "{report:?}");
     }
 
     #[test]
@@ -607,7 +515,7 @@ mod tests {
             ..options(0.05)
         };
         let mut g = gaussians(100);
-        let report = respawn(&mut g, &views, &lattice(), &bottom, &[], &[]);
+        let report = respawn(&mut g, &views, &lattice(), &bottom, &[]);
         assert_eq!(report.indices.len(), 5);
         for &index in &report.indices {
             let p = Vec3::from_slice(&g.means[3 * index..3 * index + 3]);
@@ -618,7 +526,7 @@ mod tests {
         }
         // Without the region both spots receive some.
         let mut g = gaussians(100);
-        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[], &[]);
+        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[]);
         let highs = report
             .indices
             .iter()
@@ -634,7 +542,7 @@ mod tests {
             ..options(0.05)
         };
         let mut g = gaussians(100);
-        let report = respawn(&mut g, &views, &lattice(), &corner, &[], &[]);
+        let report = respawn(&mut g, &views, &lattice(), &corner, &[]);
         assert!(report.indices.is_empty(), "{report:?}");
     }
 
@@ -669,7 +577,7 @@ mod tests {
         let mut g = gaussians(100);
         let before = g.clone();
         assert!(
-            respawn(&mut g, &views, &lattice(), &options(0.05), &[], &[])
+            respawn(&mut g, &views, &lattice(), &options(0.05), &[])
                 .indices
                 .is_empty()
         );
@@ -681,7 +589,7 @@ mod tests {
             rendered: &dark,
         }];
         assert!(
-            respawn(&mut g, &views, &lattice(), &options(0.0), &[], &[])
+            respawn(&mut g, &views, &lattice(), &options(0.0), &[])
                 .indices
                 .is_empty()
         );
@@ -708,7 +616,7 @@ mod tests {
             },
         ];
         let mut g = gaussians(100);
-        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[], &[]);
+        let report = respawn(&mut g, &views, &lattice(), &options(0.05), &[]);
         assert_eq!(report.deficit_cells, 0);
         assert!(report.indices.is_empty());
     }

@@ -179,11 +179,6 @@ impl Run {
                     self.frame = Some(meta.frame);
                     self.losses = meta.losses;
                     self.reports = meta.reports;
-                    self.trainer.best_explained =
-                        self.reports
-                            .iter()
-                            .filter_map(|report| report.carrier_explained)
-                            .fold(0.0, f64::max) as f32;
                     self.elapsed_before = meta.elapsed_seconds;
                     self.phases_before = meta.phase_seconds;
                     if damaged.is_empty() {
@@ -344,7 +339,6 @@ impl Run {
                 ("frame/max_speed", report.max_speed),
                 ("frame/clamped_to_box", report.clamped_to_box as f64),
                 ("frame/respawned", report.respawned as f64),
-                ("frame/emitted", report.emitted as f64),
                 ("frame/split", report.split as f64),
                 ("frame/seconds", report.seconds),
             ],
@@ -519,7 +513,6 @@ fn frame_report(
         divergence_rms_after: projection.divergence_rms_after,
         clamped_to_box: outcome.clamped_to_box,
         respawned: outcome.respawned,
-        emitted: outcome.emitted,
         split: outcome.split,
         refine_move_cells: outcome.refine_moves.map(|m| m.rms_cells),
         refine_move_grid_share: outcome.refine_moves.map(|m| m.grid_share),
@@ -541,11 +534,6 @@ fn frame_report(
             .refine_moves
             .and_then(|m| m.persistence)
             .map(|[_, grid]| grid),
-        buoyancy: outcome.buoyancy,
-        carrier_share: outcome.carrier_share.map(f64::from),
-        carrier_explained: outcome.carrier_explained.map(f64::from),
-        held_view: outcome.held_view,
-        held_out_trace: outcome.held_out_trace.clone(),
         mean_speed: speeds.iter().sum::<f64>() / speeds.len().max(1) as f64,
         max_speed: speeds.iter().cloned().fold(0.0, f64::max),
         seconds: start.elapsed().as_secs_f64(),

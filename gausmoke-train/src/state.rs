@@ -3,11 +3,9 @@
 
 use burn::optim::ModuleOptimizer;
 use burn::tensor::Tensor;
-use gausmoke_model::{BuoyancyForce, GaussianModel, VelocityUNet};
+use gausmoke_model::{GaussianModel, VelocityUNet};
 use serde::{Deserialize, Serialize};
 
-use crate::held_out_trace::TracePoint;
-use crate::held_view::HeldViewReport;
 
 /// Everything the optimisation changes; what a checkpoint stores.
 pub struct TrainState {
@@ -19,14 +17,6 @@ pub struct TrainState {
     pub phi: VelocityUNet,
     pub gaussian_optim: ModuleOptimizer,
     pub phi_optim: ModuleOptimizer,
-    /// The explicit buoyancy force (`buoyancy_force`), and its optimiser.
-    pub buoyancy: Option<Buoyancy>,
-}
-
-/// The fitted coefficient of the explicit buoyancy force and its optimiser.
-pub struct Buoyancy {
-    pub force: BuoyancyForce,
-    pub optim: ModuleOptimizer,
 }
 
 /// Gaussians that are the same in every frame (solids, background): never advected.
@@ -137,10 +127,6 @@ pub struct FrameReport {
     /// (`respawn_fraction`).
     #[serde(default)]
     pub respawned: usize,
-    /// Gaussians emitted at the source in this frame, before recycling
-    /// (`emission_fraction`).
-    #[serde(default)]
-    pub emitted: usize,
     /// Gaussians split in this frame, after recycling (`split_fraction`).
     #[serde(default)]
     pub split: usize,
@@ -172,25 +158,6 @@ pub struct FrameReport {
     pub refine_move_flow_persistence: Option<f64>,
     #[serde(default)]
     pub refine_move_gathering_persistence: Option<f64>,
-    /// The explicit buoyancy force's coefficient after the frame (`buoyancy_force`): the
-    /// upward change of velocity per frame at the densest cell, world units per frame.
-    #[serde(default)]
-    pub buoyancy: Option<f64>,
-    /// The share of the fitted transport the refinement started from
-    /// (`carrier_share = "predicted"` or `"fitted"`).
-    #[serde(default)]
-    pub carrier_share: Option<f64>,
-    /// The share of the frame's training views' loss, with the previous Gaussians unmoved,
-    /// that carrying them by the velocity Phi predicted removed (`carrier_share =
-    /// "predicted"`, `"explained"` or `"explained_of_best"`).
-    #[serde(default)]
-    pub carrier_explained: Option<f64>,
-    /// What the training view held back from the refinement showed (`refine_held_view`).
-    #[serde(default)]
-    pub held_view: Option<HeldViewReport>,
-    /// The held-out views' PSNR through the frame (`held_out_trace`).
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub held_out_trace: Vec<TracePoint>,
     /// Mean and largest speed of the velocity grid (world units per frame).
     pub mean_speed: f64,
     pub max_speed: f64,

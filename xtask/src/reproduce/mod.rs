@@ -1222,7 +1222,6 @@ mod tests {
         for config in [&blender.config, &blocks.config] {
             assert_eq!(config.static_gaussians, 4000);
             assert_eq!(config.static_gaussians, config.gaussians);
-            assert_eq!(config.static_iterations, None);
         }
         blender.config.validate().unwrap();
         let full = ReproduceArgs {
