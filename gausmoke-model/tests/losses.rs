@@ -4,8 +4,8 @@
 use burn::tensor::{Tensor, TensorData};
 use gausmoke_core::glam::Vec3;
 use gausmoke_model::{
-    GridSpec, Interpolation, ProjectionOptions, divergence_loss, grid_from_fn,
-    project_velocity, refine_loss,
+    GridSpec, Interpolation, ProjectionOptions, divergence_loss, grid_from_fn, project_velocity,
+    refine_loss,
 };
 use gausmoke_render::backends::cpu_devices;
 

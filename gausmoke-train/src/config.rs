@@ -1,6 +1,8 @@
-//! Training configuration: the paper's defaults (Sec. 5.1), every value overridable from a
-//! TOML file and from `--set key=value` on the command line. The configuration actually used
-//! is written next to the outputs (`config.toml`).
+//! Training configuration: every key of a run, its default the paper's Algorithm 1 at the
+//! paper's sizes (Sec. 5.1; [`crate::preset`] makes ours and the quick sizes from it), every
+//! value overridable from a TOML file and from `--set key=value` on the command line. The
+//! configuration actually used is written next to the outputs (`config.toml`, annotated by
+//! [`crate::config_docs`]).
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -10,17 +12,22 @@ use serde::{Deserialize, Serialize};
 use gausmoke_model::projection::OpenFaces;
 
 use crate::TrainError;
+use crate::scene::SceneConfig;
 
 /// Learning rates of the frame-0 fit, per Gaussian attribute (3DGS practice: centres move
 /// slowly, densities fast). Units: Adam step sizes in the parameter's own units.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct InitLearningRates {
-    /// World units; scaled by the box's largest side at run time.
+    /// Centres, world units; scaled by the box's largest side at run time.
     pub means: f64,
+    /// Rotations (unit quaternions, renormalised on use).
     pub rotations: f64,
+    /// Natural logs of the standard deviations.
     pub log_scales: f64,
+    /// Densities before the softplus.
     pub raw_densities: f64,
+    /// Colours, in [0, 1].
     pub colors: f64,
 }
 
@@ -78,8 +85,6 @@ pub enum PlyAxes {
     YDown,
 }
 
-
-
 /// Which velocity carries the Gaussians on to frame t+1 in the look-ahead (see
 /// `lambda_lookahead`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -92,11 +97,19 @@ pub enum LookaheadVelocity {
     Predicted,
 }
 
-
-
-
-
-
+/// The velocity a finished run ends with besides its grid's (see `velocity_estimate`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum VelocityEstimate {
+    /// None: the run's velocity is the grid the joint iterations fitted.
+    None,
+    /// The velocity that carries each frame's density grid onto the next, tracked through
+    /// the frames (`gausmoke-train velocity`).
+    Density,
+    /// The same, each frame's fit started from a smoke solver's step with a source in
+    /// `scene.inflow` (`gausmoke-train velocity --forces`); without an inflow, `density`.
+    Forces,
+}
 
 /// What the training does with obstacles the data set describes (PINF `obstacles`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -172,6 +185,7 @@ pub const RESUMABLE_KEYS: &[&str] = &[
     "gradient_sums",
     "tile_list_headroom",
     "solver_tests",
+    "velocity_estimate",
 ];
 
 /// Largest `time_frequencies` accepted (see [`TrainConfig::validate`]).
@@ -209,6 +223,7 @@ pub struct TrainConfig {
     pub test_views: Option<Vec<String>>,
     /// Iterations of the static fit of frame 0.
     pub init_iterations: usize,
+    /// Frame 0's learning rates per attribute (`[init_learning_rates]`).
     pub init_learning_rates: InitLearningRates,
     /// K: joint physics-optical iterations per frame (Algorithm 1, lines 3-9).
     pub advect_iterations: usize,
@@ -230,9 +245,13 @@ pub struct TrainConfig {
     /// The learning rates after frame 0 are multiplied by `lr_decay` every `lr_decay_every`
     /// frames.
     pub lr_decay: f64,
+    /// See `lr_decay`.
     pub lr_decay_every: usize,
+    /// Weight of `L_div` (Eq. 16) in the joint iterations.
     pub lambda_div: f32,
+    /// Weight of `L_adv` (Eq. 17) in the joint iterations.
     pub lambda_adv: f32,
+    /// Weight of `L_refine` (Eq. 18), the refined centres' tie to the advected ones.
     pub lambda_refine: f32,
     /// Weight of a tie on the grid-scale part of the refinement's move (ours; 0 = the
     /// paper's method, which ties the whole move by `lambda_refine`): the mass-weighted mean
@@ -271,7 +290,10 @@ pub struct TrainConfig {
     pub unet_channels: usize,
     /// Sinusoidal time-encoding frequencies L of PE(t).
     pub time_frequencies: usize,
+    /// Velocity interpolation from the grid: `"gaussian"` (Eq. 11, the paper's) or
+    /// `"trilinear"`.
     pub interpolation: InterpolationKind,
+    /// Advection of the centres: `"euler"` (Eq. 13, the paper's) or `"rk2"`.
     pub integrator: IntegratorKind,
     /// Form of `Pi`: `exact` (default) or `penalty` (the paper's description).
     pub projection: ProjectionKind,
@@ -283,14 +305,6 @@ pub struct TrainConfig {
     /// Gradient steps of the penalty form (`projection = "penalty"`), each with step size
     /// `1 / sum_a h_a^-2`.
     pub penalty_steps: usize,
-    /// Box faces the flow may cross (`x-`, `x+`, `y-`, `y+`, `z-`, `z+`; `y+` is the top of
-    /// a box with y up); the others are solid walls. Exact projection only.
-    pub open_faces: Vec<String>,
-    /// The velocity on the open faces as a fraction of the cell's inside them, in (0, 1]:
-    /// 1 (the default) a zero-gradient outflow; 0.5 the mean of the cell's velocity and a
-    /// still cell's outside, the discrete top of a collocated solver that reads zero velocity
-    /// above an open face (the synthetic generator's). Needs open faces.
-    pub open_face_flow: f32,
     /// Obstacles described by the data set: `"solid"` (default; no flow into them, exact
     /// projection only) or `"ignore"`.
     pub obstacles: Obstacles,
@@ -314,11 +328,6 @@ pub struct TrainConfig {
     /// Smallest smoke deficit (image units in `[0, 1]`) a place must show in every training
     /// view to receive recycled Gaussians.
     pub respawn_threshold: f32,
-    /// `[x0, y0, z0, x1, y1, z1]`, fractions of the smoke box (its low corner, then its high
-    /// one): recycled Gaussians go only to cells whose centre lies in this box, such as the
-    /// inflow where a source feeds the plume, so that new smoke enters where it does and is
-    /// not placed anywhere in the training views' visual hull. Unset admits the whole box.
-    pub respawn_region: Option<[f32; 6]>,
     /// Most Gaussians split per frame, as a fraction of all (ours, `split` module): the
     /// largest opaque ones become two halves with the same mass, mean and covariance, the
     /// second half in a row that recycling would take (on a box face, or invisible), after
@@ -360,10 +369,21 @@ pub struct TrainConfig {
     /// solve, no wasted launches). Which is faster depends on the GPU's read latency against
     /// its launch cost; the results agree to the solver's tolerance.
     pub solver_tests: SolverTests,
+    /// After the last frame, the run's velocity also estimated from its density grids
+    /// (ours; `"none"`, `"density"` or `"forces"`; see [`VelocityEstimate`]), written to
+    /// `RUN/velocity_estimate/` and scored by `eval` beside the grid's. On a third-party
+    /// plume `"forces"` took the velocity's cosine to the truth from 0.71 to 0.82 and its
+    /// relative error from 0.63 to 0.51.
+    pub velocity_estimate: VelocityEstimate,
+    /// The scene's open faces and inflow (`[scene]`; see [`crate::scene`]): unset keys come
+    /// from the data set's `scene.toml`, else from an estimate after frame 0.
+    pub scene: SceneConfig,
 }
 
 impl Default for TrainConfig {
-    /// The paper's settings (Sec. 5.1) for ScalarFlow-like data.
+    /// The paper's Algorithm 1 at the paper's sizes (Sec. 5.1), with the exact projection
+    /// (Eq. 10) and the data set's obstacles solid; `crate::preset` builds ours and the quick
+    /// sizes on it.
     fn default() -> Self {
         Self {
             gaussians: 30_000,
@@ -402,8 +422,6 @@ impl Default for TrainConfig {
             projection_tolerance: 1e-5,
             projection_max_iterations: 400,
             penalty_steps: 20,
-            open_faces: Vec::new(),
-            open_face_flow: 1.0,
             obstacles: Obstacles::Solid,
             physics_losses: true,
             refinement: true,
@@ -411,7 +429,6 @@ impl Default for TrainConfig {
             alpha_min: 1.0 / 255.0,
             respawn_fraction: 0.0,
             respawn_threshold: 0.05,
-            respawn_region: None,
             split_fraction: 0.0,
             seed: 2026,
             output_every: 1,
@@ -422,6 +439,8 @@ impl Default for TrainConfig {
             gradient_sums: GradientSums::Planes,
             tile_list_headroom: 1.5,
             solver_tests: SolverTests::Deferred,
+            velocity_estimate: VelocityEstimate::None,
+            scene: SceneConfig::default(),
         }
     }
 }
@@ -453,6 +472,37 @@ impl TrainConfig {
             origin: path.display().to_string(),
             reason: e.to_string(),
         })
+    }
+
+    /// The keys a TOML file names, on top of this configuration (nested tables key by key);
+    /// refused naming the file and the key when one is unknown or of the wrong type.
+    pub fn with_toml_file(self, path: &Path) -> Result<Self, TrainError> {
+        let bad = |reason: String| TrainError::Config {
+            origin: path.display().to_string(),
+            reason,
+        };
+        let text = std::fs::read_to_string(path).map_err(|source| TrainError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let file: toml::Table = toml::from_str(&text).map_err(|e| bad(e.to_string()))?;
+        fn merge(into: &mut toml::Table, from: toml::Table) {
+            for (key, value) in from {
+                match (into.get_mut(&key), value) {
+                    (Some(toml::Value::Table(inner)), toml::Value::Table(value)) => {
+                        merge(inner, value)
+                    }
+                    (_, value) => {
+                        into.insert(key, value);
+                    }
+                }
+            }
+        }
+        let mut table = toml::Table::try_from(&self).map_err(|e| bad(e.to_string()))?;
+        merge(&mut table, file);
+        toml::Value::Table(table)
+            .try_into()
+            .map_err(|e: toml::de::Error| bad(e.to_string()))
     }
 
     /// Applies `key=value` overrides (`value` in TOML syntax, e.g. `lambda_div=0.05`,
@@ -500,13 +550,13 @@ impl TrainConfig {
         Ok(config)
     }
 
-    /// The faces of `open_faces` with `open_face_flow` (validated by
-    /// [`TrainConfig::validate`]).
+    /// The faces of `scene.open_faces` with `scene.open_face_flow` (none while the scene is
+    /// unsettled; validated by [`TrainConfig::validate`]).
     pub fn open_faces(&self) -> Result<OpenFaces, TrainError> {
-        OpenFaces::from_names(&self.open_faces)
-            .map(|faces| faces.with_flow(self.open_face_flow))
+        OpenFaces::from_names(self.scene.open_face_names())
+            .map(|faces| faces.with_flow(self.scene.flow()))
             .map_err(|reason| TrainError::Config {
-                origin: "open_faces".into(),
+                origin: "scene.open_faces".into(),
                 reason,
             })
     }
@@ -549,188 +599,6 @@ impl TrainConfig {
                 )
             })
             .collect()
-    }
-
-    /// Checks ranges before any work starts.
-    pub fn validate(&self) -> Result<(), TrainError> {
-        let bad = |reason: String| {
-            Err(TrainError::Config {
-                origin: "configuration".into(),
-                reason,
-            })
-        };
-        if self.gaussians == 0 {
-            return bad("gaussians must be at least 1".into());
-        }
-        if self.grid_resolution < 8 || !self.grid_resolution.is_multiple_of(4) {
-            return bad(format!(
-                "grid_resolution must be a multiple of 4 and at least 8, got {}",
-                self.grid_resolution
-            ));
-        }
-        let positive = [
-            ("lr_velocity", self.lr_velocity),
-            ("lr_gaussians", self.lr_gaussians),
-            ("lr_decay", self.lr_decay),
-            ("dt", self.dt as f64),
-            ("projection_tolerance", self.projection_tolerance),
-        ];
-        for (name, value) in positive {
-            if !(value.is_finite() && value > 0.0) {
-                return bad(format!("{name} must be a positive number, got {value}"));
-            }
-        }
-        let weights = [
-            ("lambda_div", self.lambda_div),
-            ("lambda_adv", self.lambda_adv),
-            ("lambda_refine", self.lambda_refine),
-            ("lambda_refine_grid", self.lambda_refine_grid),
-            ("lambda_lookahead", self.lambda_lookahead),
-            ("lambda_increment", self.lambda_increment),
-        ];
-        for (name, value) in weights {
-            if !(value.is_finite() && value >= 0.0) {
-                return bad(format!("{name} must be >= 0, got {value}"));
-            }
-        }
-        if !(0.0..=1000.0).contains(&self.increment_horizontal_weight) {
-            return bad(format!(
-                "increment_horizontal_weight must be in [0, 1000], got {}",
-                self.increment_horizontal_weight
-            ));
-        }
-        if self.increment_horizontal_weight != 1.0 && self.lambda_increment == 0.0 {
-            return bad(
-                "increment_horizontal_weight weighs the inertia prior, which is off: set \
-                 lambda_increment > 0 too"
-                    .into(),
-            );
-        }
-        if !(0.0..=1.0).contains(&self.respawn_fraction) {
-            return bad(format!(
-                "respawn_fraction must be in [0, 1], got {}",
-                self.respawn_fraction
-            ));
-        }
-        if !(0.0..=1.0).contains(&self.split_fraction) {
-            return bad(format!(
-                "split_fraction must be in [0, 1], got {}",
-                self.split_fraction
-            ));
-        }
-        if !(self.alpha_min > 0.0 && self.alpha_min <= 1.0 / 255.0) {
-            return bad(format!(
-                "alpha_min must be in (0, 1/255], got {}",
-                self.alpha_min
-            ));
-        }
-        if !(self.respawn_threshold.is_finite() && self.respawn_threshold >= 0.0) {
-            return bad(format!(
-                "respawn_threshold must be >= 0, got {}",
-                self.respawn_threshold
-            ));
-        }
-        if let Some(region) = self.respawn_region {
-            if !is_box_of_fractions(&region) {
-                return bad(format!(
-                    "respawn_region must be [x0, y0, z0, x1, y1, z1] with 0 <= lo < hi <= 1 \
-                     on each axis (fractions of the smoke box), got {region:?}"
-                ));
-            }
-            if self.respawn_fraction == 0.0 {
-                return bad(
-                    "respawn_region places recycled Gaussians, which are off: set \
-                     respawn_fraction > 0 too"
-                        .into(),
-                );
-            }
-        }
-        if !(self.tile_list_headroom.is_finite() && self.tile_list_headroom >= 1.0) {
-            return bad(format!(
-                "tile_list_headroom must be >= 1, got {}",
-                self.tile_list_headroom
-            ));
-        }
-        if self.lr_decay_every == 0
-            || self.output_every == 0
-            || self.log_every == 0
-            || self.unet_channels == 0
-        {
-            return bad(
-                "lr_decay_every, output_every, log_every and unet_channels must be >= 1".into(),
-            );
-        }
-        if let Some([w, h]) = self.image_size
-            && (w == 0 || h == 0)
-        {
-            return bad("image_size must not be empty".into());
-        }
-        let rates = &self.init_learning_rates;
-        let init_rates = [
-            ("init_learning_rates.means", rates.means),
-            ("init_learning_rates.rotations", rates.rotations),
-            ("init_learning_rates.log_scales", rates.log_scales),
-            ("init_learning_rates.raw_densities", rates.raw_densities),
-            ("init_learning_rates.colors", rates.colors),
-        ];
-        for (name, value) in init_rates {
-            if !(value.is_finite() && value > 0.0) {
-                return bad(format!("{name} must be a positive number, got {value}"));
-            }
-        }
-        // PE(t) uses frequencies 2^0 .. 2^(L-1): beyond 16 an f32 phase keeps no digits of t.
-        if !(1..=MAX_TIME_FREQUENCIES).contains(&self.time_frequencies) {
-            return bad(format!(
-                "time_frequencies must be in 1..={MAX_TIME_FREQUENCIES}, got {}",
-                self.time_frequencies
-            ));
-        }
-        if self.projection_max_iterations == 0 {
-            return bad("projection_max_iterations must be >= 1".into());
-        }
-        if self.projection == ProjectionKind::Penalty && self.penalty_steps == 0 {
-            return bad("penalty_steps must be >= 1 with projection = \"penalty\"".into());
-        }
-        if let Err(reason) = OpenFaces::from_names(&self.open_faces) {
-            return bad(format!("open_faces: {reason}"));
-        }
-        let flow = self.open_face_flow;
-        if !(flow > 0.0 && flow <= 1.0) {
-            return bad(format!("open_face_flow must be in (0, 1], got {flow}"));
-        }
-        if flow != 1.0 && self.open_faces.is_empty() {
-            return bad(format!(
-                "open_face_flow = {flow} has no effect with no open faces: set open_faces \
-                 too, or open_face_flow = 1 (a preset may set it: the long plume's does)"
-            ));
-        }
-        if !self.open_faces.is_empty() && self.projection != ProjectionKind::Exact {
-            return bad(
-                "open_faces needs projection = \"exact\" (the penalty form has solid \
-                        walls only); with the penalty form, also set open_faces = []"
-                    .into(),
-            );
-        }
-        if self.first_frame > 0 && self.frames.is_none() {
-            return bad(format!(
-                "first_frame = {} needs frames (how many frames from there)",
-                self.first_frame
-            ));
-        }
-        if self.frames == Some(0) {
-            return bad("frames must be >= 1 (or left out for all)".into());
-        }
-        for (name, views) in [
-            ("train_views", &self.train_views),
-            ("test_views", &self.test_views),
-        ] {
-            if views.as_ref().is_some_and(|v| v.is_empty()) {
-                return bad(format!(
-                    "{name} must name at least one view (or be left out)"
-                ));
-            }
-        }
-        Ok(())
     }
 
     pub fn to_toml(&self) -> String {
@@ -782,168 +650,7 @@ pub(crate) fn is_box_of_fractions(region: &[f32; 6]) -> bool {
         && (0..3).all(|axis| region[axis] < region[axis + 3])
 }
 
+mod validate;
+
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn overrides_reach_nested_keys_and_round_trip_through_toml() {
-        let config = TrainConfig::default()
-            .with_overrides(&[
-                "lambda_div=0.5".into(),
-                "image_size=[135, 240]".into(),
-                "init_learning_rates.means=0.01".into(),
-                "interpolation=trilinear".into(),
-            ])
-            .unwrap();
-        assert_eq!(config.lambda_div, 0.5);
-        assert_eq!(config.image_size, Some([135, 240]));
-        assert_eq!(config.init_learning_rates.means, 0.01);
-        assert_eq!(config.interpolation, InterpolationKind::Trilinear);
-        let back: TrainConfig = toml::from_str(&config.to_toml()).unwrap();
-        assert_eq!(back, config);
-    }
-
-    #[test]
-    fn unknown_keys_and_bad_values_are_named() {
-        let err = TrainConfig::default()
-            .with_overrides(&["lamda_div=0.5".into()])
-            .unwrap_err();
-        assert!(err.to_string().contains("lamda_div"), "{err}");
-        // Each invalid configuration is refused naming the setting to change.
-        let invalid = [
-            (
-                TrainConfig {
-                    grid_resolution: 30,
-                    ..TrainConfig::default()
-                },
-                "grid_resolution",
-            ),
-            (
-                TrainConfig {
-                    increment_horizontal_weight: 10.0,
-                    ..TrainConfig::default()
-                },
-                "lambda_increment",
-            ),
-            (
-                TrainConfig {
-                    increment_horizontal_weight: -1.0,
-                    lambda_increment: 0.01,
-                    ..TrainConfig::default()
-                },
-                "increment_horizontal_weight",
-            ),
-            (
-                TrainConfig {
-                    open_face_flow: 0.5,
-                    ..TrainConfig::default()
-                },
-                "set open_faces",
-            ),
-            (
-                TrainConfig {
-                    open_faces: vec!["y+".into()],
-                    open_face_flow: 1.5,
-                    ..TrainConfig::default()
-                },
-                "open_face_flow",
-            ),
-            (
-                TrainConfig {
-                    open_faces: vec!["y+".into()],
-                    open_face_flow: f32::NAN,
-                    ..TrainConfig::default()
-                },
-                "open_face_flow",
-            ),        ];
-        for (config, named) in invalid {
-            let err = config.validate().unwrap_err();
-            assert!(err.to_string().contains(named), "{err}");
-        }
-        let region = |value: &str, fraction: &str| {
-            TrainConfig::default()
-                .with_overrides(&[
-                    format!("respawn_region={value}"),
-                    format!("respawn_fraction={fraction}"),
-                ])
-                .and_then(|config| config.validate().map(|()| config))
-        };
-        let config = region("[0.3, 0, 0.3, 0.7, 0.15, 0.7]", "0.02").unwrap();
-        assert_eq!(config.respawn_region, Some([0.3, 0.0, 0.3, 0.7, 0.15, 0.7]));
-        for bad in ["[0.3, 0, 0.3, 0.2, 0.15, 0.7]", "[0, 0, 0, 1, 1, 1.5]"] {
-            let err = region(bad, "0.02").unwrap_err();
-            assert!(err.to_string().contains("respawn_region"), "{bad}: {err}");
-        }
-        let err = region("[0.3, 0, 0.3, 0.7, 0.15, 0.7]", "0").unwrap_err();
-        assert!(err.to_string().contains("respawn_fraction"), "{err}");
-        // A half-open top reaches the projection's faces.
-        let half_open = TrainConfig::default()
-            .with_overrides(&["open_faces=[\"y+\"]".into(), "open_face_flow=0.5".into()])
-            .unwrap();
-        half_open.validate().unwrap();
-        let faces = half_open.open_faces().unwrap();
-        assert_eq!(faces.face_flows(), [0.0, 0.0, 0.0, 0.5, 0.0, 0.0]);
-    }
-
-    #[test]
-    fn gradient_sums_reach_the_rasterizer_and_bad_spellings_are_refused() {
-        assert_eq!(
-            TrainConfig::default().raster_options().gradient_sums,
-            gausmoke_render::GradientSums::Planes
-        );
-        let config = TrainConfig::default()
-            .with_overrides(&["gradient_sums=per-pixel".into()])
-            .unwrap();
-        assert_eq!(
-            config.raster_options().gradient_sums,
-            gausmoke_render::GradientSums::PerPixel
-        );
-        let err = TrainConfig::default()
-            .with_overrides(&["gradient_sums=warp".into()])
-            .unwrap_err();
-        assert!(err.to_string().contains("warp"), "{err}");
-    }
-
-    #[test]
-    fn alpha_min_reaches_the_rasterizer_and_old_configs_keep_3dgs_cull() {
-        assert_eq!(
-            TrainConfig::default().raster_options().alpha_min,
-            1.0 / 255.0
-        );
-        let config = TrainConfig::default()
-            .with_overrides(&["alpha_min=1e-5".into()])
-            .unwrap();
-        assert_eq!(config.raster_options().alpha_min, 1e-5);
-        assert!(config.validate().is_ok());
-        for bad in [0.0, 0.01, -1e-5, f32::NAN] {
-            let err = TrainConfig {
-                alpha_min: bad,
-                ..TrainConfig::default()
-            }
-            .validate()
-            .unwrap_err();
-            assert!(err.to_string().contains("alpha_min"), "{bad}: {err}");
-        }
-        // A run folder written before the setting existed reads back with the old cull.
-        let old: TrainConfig = toml::from_str("gaussians = 100").unwrap();
-        assert_eq!(old.alpha_min, 1.0 / 255.0);
-    }
-
-    #[test]
-    fn solver_tests_are_spelled_for_toml_and_bad_spellings_are_refused() {
-        assert_eq!(TrainConfig::default().solver_tests, SolverTests::Deferred);
-        let config = TrainConfig::default()
-            .with_overrides(&["solver_tests=immediate".into()])
-            .unwrap();
-        assert_eq!(
-            gausmoke_model::ConvergenceTests::from(config.solver_tests),
-            gausmoke_model::ConvergenceTests::Immediate
-        );
-        let err = TrainConfig::default()
-            .with_overrides(&["solver_tests=sometimes".into()])
-            .unwrap_err();
-        assert!(err.to_string().contains("sometimes"), "{err}");
-        assert!(RESUMABLE_KEYS.contains(&"solver_tests"));
-    }
-}
+mod tests;

@@ -18,7 +18,9 @@ use gausmoke_core::glam::Vec3;
 use gausmoke_data::synth::{self, SynthConfig};
 use gausmoke_data::{LoadOptions, inspect, load_dnerf, load_pinf};
 use gausmoke_render::{Camera, RasterOptions, backends, procedural, render_volume};
+use gausmoke_train::config_docs;
 use gausmoke_train::memory::{self, MemoryEstimate};
+use gausmoke_train::preset::{Preset, Scale};
 use gausmoke_train::velocity_estimate::EstimateOptions;
 use gausmoke_train::{Run, TrainConfig, eval, sequence::Sequence};
 
@@ -34,6 +36,14 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// Print every configuration key, documented, with the values of a preset at a scale
+    /// (annotated TOML, as `train --config` reads it).
+    Config {
+        #[arg(long, value_enum, default_value_t = Preset::Ours)]
+        preset: Preset,
+        #[arg(long, value_enum, default_value_t = Scale::Paper)]
+        scale: Scale,
+    },
     /// Reconstruct density and velocity from a data set (paper Algorithm 1).
     Train(TrainArgs),
     /// Evaluate a finished (or interrupted) run on its held-out views.
@@ -104,7 +114,7 @@ enum Command {
         #[arg(long, requires = "forces", default_value_t = gausmoke_train::velocity_estimate::ForceOptions::default().fit_frames)]
         fit_frames: usize,
         /// With --forces: the smoke's source as x0,y0,z0,x1,y1,z1, fractions of the box
-        /// (default: the run's inflow box, respawn_region).
+        /// (default: the run's inflow box, scene.inflow).
         #[arg(long, requires = "forces", value_parser = parse_box_fractions)]
         source_box: Option<BoxFractions>,
         /// Take the run's density below this fraction of each frame's largest as none (the
@@ -198,7 +208,15 @@ struct TrainArgs {
     /// Run folder for checkpoints and outputs.
     #[arg(long, default_value = "out/run")]
     out: PathBuf,
-    /// TOML configuration (keys as in the run's config.toml); defaults are the paper's.
+    /// The method: our update of Algorithm 1 (the default) or the paper's as written.
+    #[arg(long, value_enum, default_value_t = Preset::Ours)]
+    preset: Preset,
+    /// The sizes: the paper's (30k Gaussians, 64^3, K = 250; a GPU's work) or `quick`
+    /// (8000 Gaussians, 32^3, K = 20; minutes a frame on a laptop CPU).
+    #[arg(long, value_enum, default_value_t = Scale::Paper)]
+    scale: Scale,
+    /// TOML configuration (keys as in the run's config.toml, any subset): applied on top of
+    /// --preset and --scale.
     #[arg(long)]
     config: Option<PathBuf>,
     /// Override one configuration value, e.g. `--set lambda_div=0.05` (repeatable).
@@ -230,46 +248,13 @@ struct TrainArgs {
     max_memory: Option<String>,
 }
 
-#[derive(Debug, Args)]
-struct RenderArgs {
-    /// A run folder written by `train`: render its reconstruction. Without it, a procedural
-    /// plume is rendered once (a check of the build and the renderer).
-    #[arg(long)]
-    run: Option<PathBuf>,
-    /// Cameras: N steps of an orbit around the smoke box (the default, with 120 steps).
-    #[arg(long, value_name = "N", conflicts_with_all = ["views", "cameras"])]
-    orbit: Option<usize>,
-    /// Cameras: every train and held-out view of the run's data set, one video each.
-    #[arg(long, conflicts_with = "cameras")]
-    views: bool,
-    /// Cameras: a NeRF-style camera-path JSON (camera_angle_x, w, h,
-    /// frames[].transform_matrix camera-to-world, OpenGL axes).
-    #[arg(long, value_name = "FILE")]
-    cameras: Option<PathBuf>,
-    /// Time frames to show: `T`, `A..B` (B excluded) or `A..=B`; default all finished frames.
-    #[arg(long, value_name = "RANGE")]
-    frames: Option<String>,
-    /// Picture size WIDTHxHEIGHT (orbit: default the held-out camera's; demo: 270x480).
-    #[arg(long, value_name = "WxH")]
-    size: Option<String>,
-    /// Pictures per second of the videos.
-    #[arg(long, default_value_t = 10)]
-    fps: u32,
-    /// Also write every picture as a PNG.
-    #[arg(long)]
-    png: bool,
-    /// Output folder (default: RUN/render, or out/demo for the procedural plume).
-    #[arg(long)]
-    out: Option<PathBuf>,
-    #[arg(long, default_value = "flex", value_parser = compiled_device, help = device_help())]
-    device: String,
-    /// Procedural plume only: number of Gaussians.
-    #[arg(long, default_value_t = 30_000, conflicts_with = "run")]
-    gaussians: usize,
-    /// Hide the progress bar.
-    #[arg(long)]
-    quiet: bool,
-}
+#[path = "cli/render.rs"]
+mod render;
+#[path = "cli/velocity.rs"]
+mod velocity;
+
+use render::{RenderArgs, parse_size, render_demo, render_trained};
+use velocity::estimate_velocity;
 
 fn main() -> ExitCode {
     gausmoke_train::logging::init();
@@ -299,6 +284,10 @@ fn run_command(cli: Cli) -> Result<()> {
     match cli.command {
         None => quickstart(),
         Some(Command::Train(args)) => train(args, None),
+        Some(Command::Config { preset, scale }) => {
+            print!("{}", config_docs::annotated_toml(&preset.config(scale)));
+            Ok(())
+        }
         Some(Command::Velocity {
             run,
             smoothness,
@@ -471,6 +460,8 @@ fn quickstart() -> Result<()> {
         TrainArgs {
             data: Some(data),
             out: root.join("run"),
+            preset: Preset::Ours,
+            scale: Scale::Quick,
             config: None,
             overrides: Vec::new(),
             resume: true,
@@ -482,20 +473,22 @@ fn quickstart() -> Result<()> {
             quiet: false,
             max_memory: None,
         },
-        Some(TrainConfig::quick_demo()),
+        Some(Preset::Ours.apply(TrainConfig::quick_demo())),
     )
 }
 
-/// `base`: the configuration before `--config`/`--set` (default: the paper's, or the quick
-/// demo's when no data set is given).
+/// `base`: the configuration before `--config`/`--set` (default: `--preset` at `--scale`, or
+/// the preset at the quick demo's sizes when no data set is given).
 fn train(args: TrainArgs, base: Option<TrainConfig>) -> Result<()> {
     let builtin = args.data.is_none();
-    let mut config = match (&args.config, base) {
-        (Some(path), _) => TrainConfig::from_toml_file(path)?,
-        (None, Some(base)) => base,
-        (None, None) if builtin => TrainConfig::quick_demo(),
-        (None, None) => TrainConfig::default(),
+    let mut config = match base {
+        Some(base) => base,
+        None if builtin => args.preset.apply(TrainConfig::quick_demo()),
+        None => args.preset.config(args.scale),
     };
+    if let Some(path) = &args.config {
+        config = config.with_toml_file(path)?;
+    }
     let mut overrides = args.overrides.clone();
     if let Some(frames) = args.frames {
         overrides.push(format!("frames={frames}"));
@@ -641,231 +634,4 @@ fn parse_box_fractions(text: &str) -> Result<BoxFractions, String> {
         format!("`{text}`: six numbers x0,y0,z0,x1,y1,z1, not {}", v.len())
     })?;
     Ok(BoxFractions(values))
-}
-
-/// `--size WIDTHxHEIGHT`, as everywhere on the command line.
-fn parse_size(text: &str) -> Result<[u32; 2]> {
-    let parsed = text.split_once('x').and_then(|(w, h)| {
-        let (w, h) = (w.trim().parse::<u32>().ok()?, h.trim().parse::<u32>().ok()?);
-        (w > 0 && h > 0).then_some([w, h])
-    });
-    parsed.with_context(|| format!("--size `{text}`: expected WIDTHxHEIGHT, e.g. 480x270"))
-}
-
-/// `--frames T`, `A..B` or `A..=B` as a half-open range.
-fn parse_frames(text: &str) -> Result<std::ops::Range<usize>> {
-    let number = |s: &str| {
-        s.trim()
-            .parse::<usize>()
-            .with_context(|| format!("--frames `{text}`: `{s}` is not a frame number"))
-    };
-    let range = if let Some((a, b)) = text.split_once("..=") {
-        number(a)?..number(b)? + 1
-    } else if let Some((a, b)) = text.split_once("..") {
-        number(a)?..number(b)?
-    } else {
-        let t = number(text)?;
-        t..t + 1
-    };
-    if range.is_empty() {
-        bail!("--frames `{text}` is empty");
-    }
-    Ok(range)
-}
-
-/// `velocity --run DIR`: the velocity estimated from a run's density grids.
-fn estimate_velocity(
-    run: &Path,
-    options: &EstimateOptions,
-    device: &burn::tensor::Device,
-    quiet: bool,
-) -> Result<()> {
-    use gausmoke_train::velocity_estimate::{estimate_dir, estimate_run_velocity};
-    let bar = if quiet {
-        indicatif::ProgressBar::hidden()
-    } else {
-        indicatif::ProgressBar::new(0)
-    };
-    bar.set_style(
-        indicatif::ProgressStyle::with_template("[{bar:40}] {pos}/{len} frames, eta {eta}")
-            .expect("valid template")
-            .progress_chars("=> "),
-    );
-    let start = Instant::now();
-    let summary = estimate_run_velocity(run, options, device, |done, total| {
-        bar.set_length(total as u64);
-        bar.set_position(done as u64);
-    })?;
-    bar.finish_and_clear();
-    let kept = summary.frames.iter().filter(|f| f.kept_start).count();
-    let mean = |f: fn(&gausmoke_train::velocity_estimate::FrameEstimate) -> f64| {
-        summary.frames.iter().map(f).sum::<f64>() / summary.frames.len() as f64
-    };
-    let start_name = summary.options.fits_start();
-    println!(
-        "{} frames in {:.1} s; misfit (relative to no motion) {:.3} {start_name}, {:.3} fitted; \
-         {kept} frame(s) kept the {start_name} start",
-        summary.frames.len(),
-        start.elapsed().as_secs_f64(),
-        mean(|f| f.misfit_prior),
-        mean(|f| f.misfit_fitted),
-    );
-    if let Some(chosen) = &summary.forces {
-        println!(
-            "smoke step: inflow {} cells a frame, buoyancy {:.4} cells a frame per frame at the \
-             source's density ({} source cells, density {:.3}); chosen over frames 1-{} in \
-             {:.1} s, step misfit {:.3}",
-            chosen.forces.inflow,
-            chosen.forces.buoyancy,
-            chosen.source_cells,
-            chosen.density_unit,
-            chosen.fit_frames,
-            chosen.seconds,
-            chosen.misfit,
-        );
-        if chosen.scarcely_explains() {
-            eprintln!(
-                "warning: even the chosen smoke step carries the run's density scarcely better \
-                 than no motion (misfit {:.2} of no motion's): the run's density does not move \
-                 as a plume from that source would (is the source box right? is the run's \
-                 density close to the smoke's?), and the estimate without --forces may be \
-                 truer",
-                chosen.misfit
-            );
-        }
-    }
-    let unconverged: Vec<_> = summary
-        .frames
-        .iter()
-        .filter(|f| f.stopped_short())
-        .collect();
-    if let Some(worst) = unconverged
-        .iter()
-        .max_by(|a, b| a.solver_residual.total_cmp(&b.solver_residual))
-    {
-        eprintln!(
-            "warning: the fit's linear solves stopped short of convergence in {} frame(s) \
-             (worst: frame {}, residual {:.1e} of its start): those frames are not the fit's \
-             minimum",
-            unconverged.len(),
-            worst.frame,
-            worst.solver_residual
-        );
-    }
-    if let Some(readings) = summary.lift_against_data() {
-        let (kept, other, flag) = if summary.options.sinking {
-            ("downward", "upward", "without --sinking")
-        } else {
-            ("upward", "downward", "with --sinking")
-        };
-        eprintln!(
-            "warning: the lift is read {kept} only, but the fits accelerated the smoke mostly \
-             {other} (their coefficients summed {:.3} {other} against {:.3} {kept}): if the \
-             smoke moves {other}, run it again {flag}",
-            readings.against, readings.along
-        );
-    }
-    println!(
-        "wrote {}; `gausmoke-train eval --run {}` scores it",
-        estimate_dir(run).display(),
-        run.display()
-    );
-    Ok(())
-}
-
-/// `render --run DIR`: videos of a trained reconstruction.
-fn render_trained(run: &Path, args: RenderArgs) -> Result<()> {
-    use gausmoke_train::novel_views::{CameraPath, RenderRequest, render_run};
-    let device = backends::device_by_name(&args.device).map_err(anyhow::Error::msg)?;
-    let cameras = if args.views {
-        CameraPath::DatasetViews
-    } else if let Some(file) = args.cameras {
-        CameraPath::File(file)
-    } else {
-        CameraPath::Orbit {
-            steps: args.orbit.unwrap_or(120),
-        }
-    };
-    let request = RenderRequest {
-        cameras,
-        frames: args.frames.as_deref().map(parse_frames).transpose()?,
-        size: args.size.as_deref().map(parse_size).transpose()?,
-        fps: args.fps,
-        png: args.png,
-        progress: !args.quiet,
-    };
-    let out = args.out.unwrap_or_else(|| run.join("render"));
-    let start = Instant::now();
-    let summary = render_run(run, &out, &request, &device)?;
-    for video in &summary.videos {
-        println!(
-            "{}: {} pictures -> {}",
-            video.name,
-            video.pictures,
-            video.video.display()
-        );
-    }
-    println!("grid slices -> {}", summary.slices_video.display());
-    println!(
-        "rendered in {:.1} s; list of pictures: {}",
-        start.elapsed().as_secs_f64(),
-        out.join("render.json").display()
-    );
-    Ok(())
-}
-
-/// Renders the procedural plume from the front and writes render.png and alpha.png.
-fn render_demo(args: RenderArgs) -> Result<()> {
-    let [width, height] = match args.size.as_deref() {
-        Some(text) => parse_size(text)?,
-        None => [270, 480],
-    };
-    let out_dir = args.out.unwrap_or_else(|| PathBuf::from("out/demo"));
-    let device = backends::device_by_name(&args.device).map_err(anyhow::Error::msg)?;
-    tracing::info!(device = %args.device, "rendering on");
-    let lo = Vec3::new(-0.25, 0.0, -0.25);
-    let hi = Vec3::new(0.25, 0.8, 0.25);
-    let gaussians = procedural::smoke_plume(args.gaussians, lo, hi, 2026);
-    let camera = Camera::look_at(
-        Vec3::new(0.0, 0.4, 2.2),
-        Vec3::new(0.0, 0.4, 0.0),
-        Vec3::Y,
-        width,
-        height,
-        0.45,
-    )
-    .context("building the demo camera")?;
-    let tensors = gaussians.to_tensors(&device)?;
-    let background = Tensor::<1>::from_data(TensorData::new(vec![0.0f32; 3], [3]), &device);
-    let start = Instant::now();
-    let out = render_volume(&tensors, &camera, &background, &RasterOptions::default())?;
-    let rgb = gausmoke_render::device_traffic::read_floats(out.rgb);
-    let transmittance = gausmoke_render::device_traffic::read_floats(out.transmittance);
-    let elapsed = start.elapsed();
-    std::fs::create_dir_all(&out_dir)
-        .with_context(|| format!("creating output directory {}", out_dir.display()))?;
-    let (w, h) = (width, height);
-    let to_u8 = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
-    let rgb_path = out_dir.join("render.png");
-    image::RgbImage::from_raw(w, h, rgb.iter().map(|&v| to_u8(v)).collect())
-        .expect("buffer matches the image size")
-        .save(&rgb_path)
-        .with_context(|| format!("writing {}", rgb_path.display()))?;
-    let alpha_path = out_dir.join("alpha.png");
-    image::GrayImage::from_raw(
-        w,
-        h,
-        transmittance.iter().map(|&t| to_u8(1.0 - t)).collect(),
-    )
-    .expect("buffer matches the image size")
-    .save(&alpha_path)
-    .with_context(|| format!("writing {}", alpha_path.display()))?;
-    println!(
-        "rendered {} Gaussians at {w}x{h} in {:.1} ms: {} and {}",
-        args.gaussians,
-        elapsed.as_secs_f64() * 1e3,
-        rgb_path.display(),
-        alpha_path.display()
-    );
-    Ok(())
 }

@@ -20,7 +20,7 @@
 //!   (mean over channels, clamped at 0). A point missing from the reconstruction in every
 //!   view is a visual-hull argument for smoke there. Cells above `respawn_threshold` are
 //!   drawn without replacement with probability proportional to the score and jittered
-//!   within the cell. An optional limit: cells inside a box (`respawn_region`, such as the
+//!   within the cell. An optional limit: cells inside a box (`scene.inflow`, such as the
 //!   inflow where a source feeds the plume, where the views pin the depth down).
 //! - **What they start as.** Isotropic, the initialisation's size, the mean colour of the
 //!   visible Gaussians, and a density whose opacity through the centre supplies half of the
@@ -95,7 +95,7 @@ impl SpawnLattice {
     }
 
     /// The world-space box `[lo, hi]` of `[x0, y0, z0, x1, y1, z1]` given as fractions of
-    /// this lattice's box (`respawn_region`).
+    /// this lattice's box (`scene.inflow`).
     pub fn region_from_fractions(&self, r: [f32; 6]) -> [Vec3; 2] {
         let extent = self.hi - self.lo;
         [
@@ -106,7 +106,7 @@ impl SpawnLattice {
 }
 
 /// Whether `p` lies in the world-space box `[lo, hi]` (bounds included), as a region such as
-/// `respawn_region` holds cell centres.
+/// `scene.inflow` holds cell centres.
 pub fn in_region([lo, hi]: [Vec3; 2], p: Vec3) -> bool {
     p.cmpge(lo).all() && p.cmple(hi).all()
 }
@@ -121,7 +121,7 @@ pub struct RespawnOptions {
     pub std: f32,
     pub background: [f32; 3],
     pub seed: u64,
-    /// World-space box `[lo, hi]` the cell centres must lie in (`respawn_region`: where smoke
+    /// World-space box `[lo, hi]` the cell centres must lie in (`scene.inflow`: where smoke
     /// enters); `None` admits every cell.
     pub region: Option<[Vec3; 2]>,
 }

@@ -212,7 +212,9 @@ impl Run {
     /// changes what was trained, naming every such key. Compared before any tensor is
     /// loaded, so that a different shape is named as the setting that caused it rather than
     /// failing inside the record loader.
-    fn check_resumable(&self, dir: &Path, trained: &TrainConfig) -> Result<(), TrainError> {
+    fn check_resumable(&mut self, dir: &Path, trained: &TrainConfig) -> Result<(), TrainError> {
+        // What frame 0 estimated of the scene, the run keeps.
+        self.trainer.config.scene.fill(trained.scene.clone());
         let changes = trained.differences(&self.trainer.config);
         let (allowed, refused): (Vec<_>, Vec<_>) = changes
             .into_iter()
@@ -272,13 +274,62 @@ impl Run {
             self.train_frame(t)?;
         }
         self.write_summary()?;
+        self.estimate_velocity()?;
         Ok(&self.reports)
+    }
+
+    /// The last stage (`velocity_estimate`): the run's velocity read off its density grids,
+    /// written to `RUN/velocity_estimate/` beside the grid's.
+    fn estimate_velocity(&self) -> Result<(), TrainError> {
+        use crate::config::VelocityEstimate;
+        use crate::velocity_estimate::{EstimateOptions, estimate_run_velocity};
+        let config = &self.trainer.config;
+        if self.trainer.sequence.frames() < 2 {
+            // A velocity carries one frame onto the next: one frame has none to estimate.
+            return Ok(());
+        }
+        let options = match (config.velocity_estimate, config.scene.inflow) {
+            (VelocityEstimate::None, _) => return Ok(()),
+            (VelocityEstimate::Forces, Some(_)) => EstimateOptions::forced(),
+            (VelocityEstimate::Forces, None) => {
+                tracing::warn!(
+                    "velocity_estimate = \"forces\" needs the scene's inflow (scene.inflow), \
+                     which is unset: estimating without the smoke step"
+                );
+                EstimateOptions::default()
+            }
+            (VelocityEstimate::Density, _) => EstimateOptions::default(),
+        };
+        let bar = self.trainer.progress_bar(0);
+        bar.set_prefix("velocity");
+        let start = Instant::now();
+        let summary = estimate_run_velocity(
+            self.folder.root(),
+            &options,
+            &self.trainer.device,
+            |done, total| {
+                bar.set_length(total as u64);
+                bar.set_position(done as u64);
+            },
+        )?;
+        bar.finish_and_clear();
+        tracing::info!(
+            frames = summary.frames.len(),
+            seconds = format!("{:.1}", start.elapsed().as_secs_f64()),
+            start = summary.options.fits_start(),
+            "velocity estimated from the density grids (RUN/velocity_estimate/)"
+        );
+        Ok(())
     }
 
     /// Trains frame `t` (the next one), evaluates it, writes its outputs and checkpoints it.
     pub fn train_frame(&mut self, t: usize) -> Result<&FrameReport, TrainError> {
         let start = Instant::now();
         let outcome = self.trainer.train_frame(t)?;
+        if t == 0 {
+            // Frame 0 may have settled the scene (see `crate::scene`).
+            self.folder.write_config(&self.trainer.config)?;
+        }
         // The optimisation's phase times so far; the evaluation and outputs below render too,
         // and their time goes to "outputs and evaluation" instead.
         self.collect_phase_times();

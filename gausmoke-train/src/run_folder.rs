@@ -232,7 +232,8 @@ impl RunFolder {
     }
 
     pub fn write_config(&self, config: &TrainConfig) -> Result<(), TrainError> {
-        write_atomic(&self.config_path(), config.to_toml().as_bytes())
+        let text = crate::config_docs::annotated_toml(config);
+        write_atomic(&self.config_path(), text.as_bytes())
     }
 
     pub fn read_config(&self) -> Result<TrainConfig, TrainError> {

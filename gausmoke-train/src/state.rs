@@ -6,7 +6,6 @@ use burn::tensor::Tensor;
 use gausmoke_model::{GaussianModel, VelocityUNet};
 use serde::{Deserialize, Serialize};
 
-
 /// Everything the optimisation changes; what a checkpoint stores.
 pub struct TrainState {
     pub gaussians: GaussianModel,

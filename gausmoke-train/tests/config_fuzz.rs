@@ -42,7 +42,7 @@ const KEYS: &[(&str, bool)] = &[
     ("projection_tolerance", true),
     ("projection_max_iterations", false),
     ("penalty_steps", false),
-    ("open_face_flow", true),
+    ("scene.open_face_flow", true),
     ("respawn_fraction", true),
     ("respawn_threshold", true),
     ("split_fraction", true),

@@ -41,6 +41,15 @@ fn largest_difference(a: &[f32], b: &[f32]) -> f32 {
         .fold(0.0f32, f32::max)
 }
 
+/// A scene of closed walls, whatever the data set declares.
+fn walls() -> gausmoke_train::scene::SceneConfig {
+    gausmoke_train::scene::SceneConfig {
+        open_faces: Some(Vec::new()),
+        open_face_flow: Some(1.0),
+        inflow: None,
+    }
+}
+
 fn tiny_scene(dir: &Path) -> PathBuf {
     let data = dir.join("data");
     generate(&SynthConfig::tiny(), &data).expect("the tiny scene generates");
@@ -183,8 +192,15 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
     );
     let csv = std::fs::read_to_string(run.join("losses.csv")).unwrap();
     assert_eq!(csv.lines().count(), 1 + 100 + 3 * (15 + 5));
+    // The configuration as given, with the scene the data set's scene.toml declares.
     let used: TrainConfig = TrainConfig::from_toml_file(&run.join("config.toml")).unwrap();
-    assert_eq!(used, config);
+    let mut scene = config.scene.clone();
+    assert!(
+        scene.fill_from_data(&data).unwrap(),
+        "synth writes a scene.toml"
+    );
+    assert_eq!(scene.open_faces, Some(vec!["y+".to_string()]));
+    assert_eq!(used, TrainConfig { scene, ..config });
 
     // Evaluation re-renders the saved frames and compares with the ground truth.
     let report = eval::evaluate(&run, &device_by_name("flex").unwrap(), None).unwrap();
@@ -578,6 +594,8 @@ fn the_ablations_train_and_fit_the_held_out_view() {
             TrainConfig {
                 projection: gausmoke_train::config::ProjectionKind::Penalty,
                 frames: Some(2),
+                // The penalty form has solid walls only; the scene's open top is refused.
+                scene: walls(),
                 ..test_config()
             },
         ),
@@ -1260,6 +1278,8 @@ fn the_velocity_is_carried_along_itself_before_phi_when_asked() {
     let config = TrainConfig {
         frames: Some(2),
         lr_velocity: 1e-20,
+        // The expected fields below are projected with solid walls.
+        scene: walls(),
         ..joint_terms_config()
     };
     let frame_one = |transport: bool, name: &str| {
@@ -1316,15 +1336,13 @@ fn the_inertia_prior_slows_the_velocity() {
         "free",
     ));
     // The velocity starts at zero, so holding Phi's increments back slows it too.
-    let priors = [
-        (
-            "inertia",
-            TrainConfig {
-                lambda_increment: 10.0,
-                ..joint_terms_config()
-            },
-        ),
-    ];
+    let priors = [(
+        "inertia",
+        TrainConfig {
+            lambda_increment: 10.0,
+            ..joint_terms_config()
+        },
+    )];
     for (name, config) in priors {
         let held = mean_square(velocity_after(&data, dir.path(), config, name));
         assert!(free > 0.0 && held.is_finite(), "{name}: {free} {held}");
@@ -1357,7 +1375,10 @@ fn obstacles_of_the_data_set_are_solid_in_the_trained_velocity() {
         init_iterations: 40,
         advect_iterations: 8,
         refine_iterations: 2,
-        open_faces: vec!["y+".into()],
+        scene: gausmoke_train::scene::SceneConfig {
+            open_faces: Some(vec!["y+".into()]),
+            ..Default::default()
+        },
         ..test_config()
     };
     let device = device_by_name("flex").unwrap().autodiff();
@@ -1452,7 +1473,10 @@ fn obstacles_of_the_data_set_are_solid_in_the_trained_velocity() {
 
     let penalty = TrainConfig {
         projection: ProjectionKind::Penalty,
-        open_faces: Vec::new(),
+        scene: gausmoke_train::scene::SceneConfig {
+            open_faces: Some(Vec::new()),
+            ..Default::default()
+        },
         ..config.clone()
     };
     let scene = Sequence::open(&data, &penalty).unwrap();
@@ -1520,7 +1544,10 @@ fn static_gaussians_fit_the_ball_and_resume() {
         init_iterations: 60,
         advect_iterations: 6,
         refine_iterations: 2,
-        open_faces: vec!["y+".into()],
+        scene: gausmoke_train::scene::SceneConfig {
+            open_faces: Some(vec!["y+".into()]),
+            ..Default::default()
+        },
         // As many as the quick ball preset packs into the ball: small enough that, started
         // as faint as the smoke, the renderer would skip them.
         static_gaussians: 1000,
@@ -1608,17 +1635,6 @@ fn copy_without_frame_2(from: &Path, to: &Path) {
     copy_dir(from, to);
     std::fs::remove_dir_all(to.join("checkpoints/frame_002")).unwrap();
     std::fs::remove_file(to.join("frames/frame_002.safetensors")).unwrap();
-}
-
-/// The run in `folder` resumed with `config` on `data` (flex, quiet) and trained to its end.
-fn resumed_run(data: &Path, config: TrainConfig, folder: &Path) -> Run {
-    let scene = Sequence::open(data, &config).unwrap();
-    let device = device_by_name("flex").unwrap().autodiff();
-    let mut run = Run::new(scene, config, device, folder, true)
-        .unwrap()
-        .quiet(true);
-    run.run().unwrap();
-    run
 }
 
 /// Frame 2's files of two runs hold the same arrays, each within 1e-5 of its largest value.
@@ -1729,7 +1745,10 @@ fn a_multi_view_dnerf_scene_groups_its_cameras_and_trains() {
         init_iterations: 20,
         advect_iterations: 4,
         refine_iterations: 2,
-        open_faces: vec!["y+".into()],
+        scene: gausmoke_train::scene::SceneConfig {
+            open_faces: Some(vec!["y+".into()]),
+            ..Default::default()
+        },
         ..test_config()
     };
     let sequence = Sequence::open(&data, &config).unwrap();
@@ -1757,4 +1776,3 @@ fn trained(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Run {
     run.run().unwrap();
     run
 }
-

@@ -47,7 +47,10 @@ fn trains_on_the_device(preset: SynthConfig) {
         refine_iterations: 2,
         unet_channels: 4,
         time_frequencies: 2,
-        open_faces: vec!["y+".into()],
+        scene: gausmoke_train::scene::SceneConfig {
+            open_faces: Some(vec!["y+".into()]),
+            ..Default::default()
+        },
         ..TrainConfig::default()
     };
     let sequence = Sequence::open(&data, &config).unwrap();

@@ -8,7 +8,7 @@ velocity estimate on sinking smoke (`gausmoke-train velocity --run OUT/run [--si
 Writes OUT/data (DATA's info.json, and gt/ with each frame's density and velocity mirrored
 in y and the velocity's y component negated; no pictures) and OUT/run (RUN's frame files
 mirrored the same way, its run.json pointing at OUT/data, and its config.toml with the y
-faces' open/solid roles and the inflow region (`respawn_region`) mirrored). The box must be
+faces' open/solid roles and the inflow box (`[scene] inflow`) mirrored). The box must be
 symmetric about its middle height in the grid's cells, as every box is: a mirror of the
 grid's rows. Eval is not meant for OUT/run: its pictures are the upright scene's.
 """
@@ -39,25 +39,25 @@ def mirrored(tensors, y_axis):
 
 
 def mirrored_config(text):
-    """config.toml's text with `open_faces`' y faces swapped and `respawn_region` mirrored in
-    y (its `[x0, y0, z0, x1, y1, z1]` as fractions of the box)."""
-    config = tomllib.loads(text)
+    """config.toml's text with `[scene]`'s `open_faces` y faces swapped and its `inflow`
+    mirrored in y (its `[x0, y0, z0, x1, y1, z1]` as fractions of the box)."""
+    config = tomllib.loads(text).get("scene", {})
     swap = {"y-": "y+", "y+": "y-"}
     faces = [swap.get(face, face) for face in config.get("open_faces", [])]
     text, count = re.subn(r"(?m)^open_faces = \[.*\]$",
                           "open_faces = " + json.dumps(faces), text)
     if count != 1 and "open_faces" in config:
         sys.exit("config.toml: `open_faces` is not on one line; mirror it by hand")
-    region = config.get("respawn_region")
+    region = config.get("inflow")
     if region is not None:
         x0, y0, z0, x1, y1, z1 = region
         flipped = [x0, 1.0 - y1, z0, x1, 1.0 - y0, z1]
-        text, count = re.subn(r"(?ms)^respawn_region = \[.*?\]$",
-                              "respawn_region = " + json.dumps(flipped), text)
+        text, count = re.subn(r"(?ms)^inflow = \[.*?\]$",
+                              "inflow = " + json.dumps(flipped), text)
         if count != 1:
-            sys.exit("config.toml: `respawn_region` not found as an array")
-    check = tomllib.loads(text)
-    if check.get("open_faces", []) != faces or check.get("respawn_region") != (
+            sys.exit("config.toml: `[scene] inflow` not found as an array")
+    check = tomllib.loads(text).get("scene", {})
+    if check.get("open_faces", []) != faces or check.get("inflow") != (
             None if region is None else flipped):
         sys.exit("config.toml: the mirrored settings did not read back")
     return text

@@ -29,10 +29,10 @@ misfit over frames 1 to N (`--fit-frames`, 36) alone, as a user without the trut
 ladder of factors of two, then a golden-section search); `--inflow fit` or a comma list
 chooses the inflow's speed the same way. The run's density is in its own units, so its
 buoyancy differs from the scene's. `--source-box x0,y0,z0,x1,y1,z1` (fractions of the box,
-as a run's `respawn_region`) replaces the source disc; `--blur` and `--floor` blur the given
+as a run's `[scene] inflow`) replaces the source disc; `--blur` and `--floor` blur the given
 densities or zero them below a fraction of each frame's maximum. `--out DIR` writes every
 frame's velocity as `DIR/frames/frame_TTT.safetensors` (`velocity` [x, y, z, 3], world
-units per frame, a run's layout), for `truth_chain.py --velocity DIR`.
+units per frame, a run's layout).
 """
 
 import argparse
@@ -60,7 +60,7 @@ def advect(field, vel, dt):
 
 def source_box(n, box):
     """The cells whose centres lie in `box` (x0, y0, z0, x1, y1, z1, fractions of the box),
-    as a run's `respawn_region` gives its source."""
+    as a run's `[scene] inflow` gives its source."""
     centre = (np.arange(n) + 0.5) / n
     inside = [(centre >= box[a]) & (centre <= box[a + 3]) for a in range(3)]
     return inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]

@@ -595,6 +595,8 @@ fn write_scene(
             ]
         }
     };
+    let scene = dir.join("scene.toml");
+    std::fs::write(&scene, SCENE_TOML).map_err(io_err(&scene))?;
     for (path, value) in files {
         let text = serde_json::to_string_pretty(&value).map_err(|source| DataError::Json {
             path: path.clone(),
@@ -609,6 +611,17 @@ fn write_scene(
         divergence,
     })
 }
+
+/// The solver's boundary and source, as `gausmoke-train` reads a data set's `scene.toml`: its
+/// top is open (and its divergence reads a still cell above it: half the top cell's velocity
+/// on the face), and the source disc (radius 0.12, up to 0.1 of the box's height, at the floor's
+/// centre) lies in the inflow box, a margin of about a cell around it at 32^3.
+pub const SCENE_TOML: &str = "\
+# The scene's boundary and source (gausmoke-train reads this beside the cameras).
+open_faces = [\"y+\"]
+open_face_flow = 0.5
+inflow = [0.35, 0.0, 0.35, 0.65, 0.15, 0.65]
+";
 
 fn write_gt(path: &Path, n: usize, density: &[f32], velocity: &[f32]) -> Result<()> {
     let err = |e: safetensors::SafeTensorError| DataError::Tensors {

@@ -7,9 +7,7 @@
 
 use burn::tensor::{Tensor, TensorData};
 use gausmoke_core::phase;
-use gausmoke_model::{
-    GridSpec, SplatOptions, advection_loss, divergence_loss_of,
-};
+use gausmoke_model::{GridSpec, SplatOptions, advection_loss, divergence_loss_of};
 use gausmoke_render::device_traffic::Traffic;
 use gausmoke_render::{GaussianTensors, Gaussians, InputCheck};
 use indicatif::ProgressBar;
@@ -100,7 +98,11 @@ pub(super) struct InertiaPrior {
 }
 
 impl InertiaPrior {
-    pub fn of(config: &TrainConfig, grid: &GridSpec, device: &burn::tensor::Device) -> Option<Self> {
+    pub fn of(
+        config: &TrainConfig,
+        grid: &GridSpec,
+        device: &burn::tensor::Device,
+    ) -> Option<Self> {
         (config.lambda_increment > 0.0).then(|| {
             let cell = grid.cell_size();
             let across = config.increment_horizontal_weight.sqrt();
@@ -248,8 +250,8 @@ impl Trainer {
         }
         let traffic = LoopTraffic::of(Phase::Advect, frame.joint_iterations, start);
         // No joint iterations: carry the Gaussians along the previous velocity.
-        let advected = advected
-            .unwrap_or_else(|| self.carry(&velocity, previous_means).positions.detach());
+        let advected =
+            advected.unwrap_or_else(|| self.carry(&velocity, previous_means).positions.detach());
         Ok(JointResult {
             velocity,
             unprojected,

@@ -91,6 +91,8 @@ pub struct Trainer {
     /// a resumed run reports none at its first frame).
     last_moves: Option<FrameMoves>,
     quiet: bool,
+    /// The data set has a `scene.toml` (see [`crate::scene`]): nothing is estimated.
+    scene_file: bool,
 }
 
 /// A frame's cameras and the images they saw, as the render losses take them.
@@ -111,9 +113,10 @@ impl Trainer {
     /// A trainer at the start of Algorithm 1 (fresh, seeded state).
     pub fn new(
         sequence: Sequence,
-        config: TrainConfig,
+        mut config: TrainConfig,
         device: Device,
     ) -> Result<Self, TrainError> {
+        let scene_file = config.scene.fill_from_data(&sequence.path)?;
         config.validate()?;
         let views = sequence.train.first().map_or(0, Vec::len);
         if config.refine_views_per_step > views {
@@ -145,6 +148,7 @@ impl Trainer {
             solids,
             last_moves: None,
             quiet: false,
+            scene_file,
         })
     }
 
@@ -193,6 +197,7 @@ impl Trainer {
         // The statics were fitted first; frame 0 fits the smoke in front of them.
         losses.extend(self.fit_to_images(StillFit::FirstFrame, &observations, &targets)?);
         let traffic = vec![LoopTraffic::of(Phase::Init, losses.len(), start)];
+        self.settle_scene();
         Ok(FrameOutcome {
             frame: 0,
             train_l1: losses.last().map_or(f32::NAN, |r| r.render) as f64,
@@ -253,7 +258,32 @@ impl Trainer {
         })
     }
 
+    /// What the configuration and the data set's `scene.toml` leave unset of the scene,
+    /// estimated from frame 0's density (see [`crate::scene::estimate`]) and reported.
+    fn settle_scene(&mut self) {
+        let scene = &self.config.scene;
+        if self.scene_file || (scene.open_faces.is_some() && scene.inflow.is_some()) {
+            return;
+        }
+        let estimate = crate::scene::estimate(&self.density_host(), self.grid.resolution());
+        self.config.scene.fill(estimate);
+        let scene = &self.config.scene;
+        tracing::info!(
+            open_faces = ?scene.open_face_names(),
+            inflow = ?scene.inflow,
+            "scene estimated from frame 0 (no scene.toml beside the data; set [scene] or \
+             --set scene.KEY=... to override)"
+        );
+    }
+
     fn progress(&self, frame: usize, length: usize) -> ProgressBar {
+        let bar = self.progress_bar(length);
+        bar.set_prefix(format!("frame {frame}/{}", self.sequence.frames() - 1));
+        bar
+    }
+
+    /// A progress bar of `length` steps in the trainer's style (hidden when quiet).
+    pub fn progress_bar(&self, length: usize) -> ProgressBar {
         let bar = if self.quiet {
             ProgressBar::hidden()
         } else {
@@ -266,7 +296,6 @@ impl Trainer {
             .expect("valid template")
             .progress_chars("=> "),
         );
-        bar.set_prefix(format!("frame {frame}/{}", self.sequence.frames() - 1));
         bar
     }
 

@@ -187,7 +187,6 @@ pub(super) fn refine_moves(
     )
 }
 
-
 impl Trainer {
     /// The refinement's moves since `anchor`, measured against the frame before's (the rows
     /// in `jumped_rows`, recycled or split this frame, left out of the persistence); the

@@ -20,7 +20,6 @@ impl Trainer {
         let outside = outside_obstacles(means, &self.sequence.obstacles);
         self.state.gaussians = self.state.gaussians.clone().with_means(outside);
     }
-
 }
 
 /// `means` `[N, 3]` with every centre inside one of `obstacles` moved onto its surface (a hair
@@ -101,4 +100,3 @@ pub(crate) fn solid_cells(
     );
     Ok(Some(solids))
 }
-

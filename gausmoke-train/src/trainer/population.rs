@@ -90,7 +90,8 @@ impl Trainer {
             seed: self.config.seed ^ (t as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
             region: self
                 .config
-                .respawn_region
+                .scene
+                .inflow
                 .map(|fractions| lattice.region_from_fractions(fractions)),
         };
         let report = respawn(host, &views, &lattice, &options, &[]);

@@ -64,7 +64,8 @@ impl Trainer {
         let lambda_refine = self.config.lambda_refine;
         let anchor = self.state.gaussians.means.val().detach();
         // The split of the moves is fixed by where they start.
-        let scale = (iterations > 0).then(|| GridScale::of(&self.grid, &self.state.gaussians.tensors()));
+        let scale =
+            (iterations > 0).then(|| GridScale::of(&self.grid, &self.state.gaussians.tensors()));
         let grid_tie = GridTie::of(self.config.lambda_refine_grid);
         // One set of list capacities per group of views a step renders (keyed by its first).
         let mut group_lists: Vec<ListCapacities> = (0..views)

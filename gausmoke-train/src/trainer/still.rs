@@ -226,7 +226,12 @@ fn static_gaussians_at_start(
     let softplus = |x: f32| x.exp().ln_1p();
     let depth_scale =
         softplus(INITIAL_RAW_DENSITY) * size(extent.x * extent.y * extent.z, config.gaussians);
-    let placed = |p: Vec3| sequence.obstacles.iter().any(|o| o.signed_distance(p) <= 0.0);
+    let placed = |p: Vec3| {
+        sequence
+            .obstacles
+            .iter()
+            .any(|o| o.signed_distance(p) <= 0.0)
+    };
     match bounds {
         Some((lo, hi)) => {
             let within = (lo.max(sequence.lo), hi.min(sequence.hi));
@@ -286,4 +291,3 @@ fn gaussian_optimizer() -> ModuleOptimizer {
     // 3DGS practice: a tiny epsilon, so rarely-seen Gaussians still move.
     AdamConfig::new().with_epsilon(1e-15).init()
 }
-

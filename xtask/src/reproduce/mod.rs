@@ -6,7 +6,6 @@
 //! `results:begin` / `results:end` markers) is rebuilt from all such files, so the tables hold
 //! only measured numbers. The prose around the block is written by people.
 
-use std::ops::Not as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -14,16 +13,24 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use gausmoke_data::synth::{SynthConfig, generate};
 use gausmoke_render::backends;
-use gausmoke_train::config::LookaheadVelocity;
+use gausmoke_train::preset::Preset;
 use gausmoke_train::{Run, TrainConfig, eval, sequence::Sequence};
 use serde_json::{Value, json};
 
 mod ablation;
 mod independent;
+mod presets;
+mod record;
 pub mod reevaluate;
 mod results;
+mod summary;
 
 use ablation::Ablation;
+use presets::{for_scalar_real, sizes, trains_with_our_update};
+use record::{
+    command_line, file_size, machine, peak_memory_mib, previous_record, reset_peak_memory,
+    session_totals, utc_now,
+};
 pub use results::write_results_md;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -136,167 +143,6 @@ pub struct ReproduceArgs {
     velocity_estimate_forces: bool,
 }
 
-fn quick_scalar_real() -> TrainConfig {
-    TrainConfig {
-        gaussians: 8000,
-        grid_resolution: 32,
-        image_size: Some([90, 160]),
-        frames: Some(8),
-        init_iterations: 400,
-        advect_iterations: 20,
-        refine_iterations: 5,
-        lr_velocity: 2e-3,
-        lr_gaussians: 2e-3,
-        unet_channels: 8,
-        time_frequencies: 2,
-        output_every: 4,
-        open_faces: scalar_real_open_faces(),
-        ..TrainConfig::default()
-    }
-}
-
-fn paper_scalar_real() -> TrainConfig {
-    TrainConfig {
-        image_size: Some([270, 480]),
-        train_views: Some(
-            ["train00", "train01", "train03", "train04"]
-                .map(String::from)
-                .into(),
-        ),
-        test_views: Some(vec!["train02".into()]),
-        output_every: 10,
-        open_faces: scalar_real_open_faces(),
-        ..TrainConfig::default()
-    }
-}
-
-/// Our sequential update on top of the paper's, for a scene whose smoke enters through a known
-/// inflow (`inflow`: a box in fractions of the smoke box, around the source). The velocity is
-/// also fitted to the next frame's views along Phi's prediction for that frame, carried by its
-/// own flow from frame to frame, and its increment is kept small; Gaussians the training
-/// views leave unused are recycled into the inflow, and the unused rows recycling leaves take
-/// the halves of the largest Gaussians (1% of all a frame). Half the joint iterations pay for
-/// the look-ahead's second render and U-Net pass. Measured at the quick presets' scale only
-/// (three paired seeds on each scene): docs/RESULTS.md, "Why we fall short", item 1.
-fn with_look_ahead_and_inflow(config: TrainConfig, inflow: [f32; 6]) -> TrainConfig {
-    TrainConfig {
-        lambda_lookahead: 1.0,
-        lookahead_velocity: LookaheadVelocity::Predicted,
-        transport_velocity: true,
-        lambda_increment: 0.01,
-        respawn_fraction: 0.02,
-        respawn_threshold: 0.01,
-        respawn_region: Some(inflow),
-        split_fraction: 0.01,
-        advect_iterations: config.advect_iterations / 2,
-        ..config
-    }
-}
-
-/// On the long plume, on top of [`with_look_ahead_and_inflow`]: K' = 40 refinement steps of
-/// one training view each (the renders of ten four-view steps) with the grid-scale part of
-/// their moves tied, and horizontal increments charged three times the vertical in the
-/// inertia prior: +1.87 +- 0.33 dB held out over the preset without them, the 3D density and
-/// the velocity closer to the truth (three paired seeds). On ScalarReal the same costs 0.23 dB
-/// held out (three seeds), so that preset does not set it. docs/RESULTS.md, "Why we fall
-/// short", item 1.
-fn with_one_view_refinement(config: TrainConfig) -> TrainConfig {
-    TrainConfig {
-        refine_iterations: ONE_VIEW_REFINE_ITERATIONS,
-        refine_views_per_step: 1,
-        lambda_refine_grid: 3.0,
-        increment_horizontal_weight: 3.0,
-        ..config
-    }
-}
-
-/// K' of the long plume's quick preset, in one-view refinement steps.
-const ONE_VIEW_REFINE_ITERATIONS: usize = 40;
-
-/// Around the synthetic solver's source disc, on the floor at the box's centre.
-const SYNTHETIC_INFLOW: [f32; 6] = [0.35, 0.0, 0.35, 0.65, 0.15, 0.65];
-
-/// Around ScalarFlow's inflow, where the smoke leaves the generator at the bottom of the box.
-const SCALAR_REAL_INFLOW: [f32; 6] = [0.4, 0.0, 0.4, 0.66, 0.15, 0.66];
-
-/// On ScalarReal with our update, a quarter of `lr_gaussians` for the Gaussians' sizes after
-/// frame 0: +0.21 +- 0.09 dB held out over 120 frames (three paired seeds). On the long plume
-/// the same costs 1.0 dB held out (while its 3D density moves closer to the truth), so that
-/// preset keeps the sizes at `lr_gaussians`. docs/RESULTS.md, "Why we fall short", item 1.
-const SCALAR_REAL_LR_LOG_SCALES: f64 = 5e-4;
-
-/// The long synthetic plume at the reduced scale of the ScalarReal quick preset: the solver's
-/// 32^3 grid, its 64x96 images, 4000 Gaussians (a quarter of the pixels per view, as 8000 is
-/// for 90x160 there), the same iterations and learning rates.
-fn quick_synthetic_long() -> TrainConfig {
-    TrainConfig {
-        gaussians: 4000,
-        frames: None,
-        image_size: None,
-        open_faces: synthetic_open_faces(),
-        ..quick_scalar_real()
-    }
-}
-
-/// The paper's settings on the synthetic scenes, whose smoke leaves through the box's top.
-fn full_synthetic_long() -> TrainConfig {
-    TrainConfig {
-        open_faces: synthetic_open_faces(),
-        ..TrainConfig::default()
-    }
-}
-
-/// The synthetic solver's boundary: solid floor and sides, open top (`gausmoke_data::synth`).
-fn synthetic_open_faces() -> Vec<String> {
-    vec!["y+".into()]
-}
-
-/// The synthetic solver's top is open to pressure but its divergence reads a still cell above
-/// it: half the top cell's velocity on the face. Set for the scenes that train as the long
-/// plume does ([`trains_as_the_long_plume`]; with and without `--paper-update`: it is the
-/// scene's boundary, not part of our update). The scene's true velocity lies closer to
-/// what this projection returns than to an outflow's or a wall's, and on the long plume it
-/// gains +0.28 +- 0.32 dB held out and lowers the velocity's error by 0.029 +- 0.018 against
-/// the outflow (eight paired seeds), its sampled frames against the frames fitted alone
-/// within the spread of a placebo. docs/RESULTS.md, "Why we fall short", item 1.
-const SYNTHETIC_TOP_FLOW: f32 = 0.5;
-
-/// The plume rises through the box's top and draws air in at the bottom; with these two faces
-/// solid the quick preset fell below fitting each frame alone after frame 60 (three paired
-/// seeds, docs/RESULTS.md, "Why we fall short" item 1).
-fn scalar_real_open_faces() -> Vec<String> {
-    vec!["y-".into(), "y+".into()]
-}
-
-/// `config` with as many static Gaussians as smoke ones (4000), for the blocks scene's and
-/// the Blender set's quick presets, whose wall fills most of every view. With 2000, 400
-/// steps of their fit leave the wall's checker to frame 0's smoke, which paints it
-/// (docs/RESULTS.md, "Obstacles and static solids"). Against 2000, three paired seeds each:
-/// on blocks the smoke's 3D density correlates with the truth at 0.81-0.86 against
-/// 0.65-0.68, on the Blender set at 0.83-0.87 against 0.50-0.65, the smoke inside the
-/// solids falls (blocks 14-15% to 6-8%, Blender 46-56% to 21-28%), and the held-out view
-/// does not pay (+0.08 +- 0.16 / +0.24 +- 0.39 dB; SSIM higher in 6 of 6). Fitting 2000 for
-/// longer instead makes the density about as true (Blender 0.89), but costs the held-out
-/// view 0.70 dB on blocks (four views) and 0.47 dB against this on the Blender set.
-fn with_statics_for_a_wall(config: TrainConfig) -> TrainConfig {
-    TrainConfig {
-        static_gaussians: config.gaussians,
-        ..config
-    }
-}
-
-/// The scenes whose quick presets train as the long plume's does (our update, the one-view
-/// refinement, the solver's half-open top): the plume itself, the turning plume, the plume
-/// past a sphere, undrawn or drawn as a ball, and past a block before a checkered wall, where
-/// the same gains +3.80 / +0.90 / +0.64 dB held out and a truer velocity over the paper's
-/// update (three paired seeds each, docs/RESULTS.md, "Obstacles and static solids").
-fn trains_as_the_long_plume(target: Target) -> bool {
-    matches!(
-        target,
-        Target::SyntheticLong | Target::Turning | Target::Obstacle | Target::Ball | Target::Blocks
-    )
-}
-
 /// One training run of the reproduction: a key for file names, a label for tables, and the
 /// group of runs it repeats with another seed.
 #[derive(Debug)]
@@ -328,16 +174,12 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
         }
         suffix += &format!("-swirl{degrees}");
     }
-    let inflow = match (args.target, args.quick) {
-        (Target::ScalarReal, true) => Some(SCALAR_REAL_INFLOW),
-        (target, true) if trains_as_the_long_plume(target) => Some(SYNTHETIC_INFLOW),
-        _ => None,
-    };
+    let ours = args.quick && trains_with_our_update(args.target);
     if args.paper_update {
-        if inflow.is_none() {
+        if !ours {
             let ours: Vec<&str> = Target::value_variants()
                 .iter()
-                .filter(|&&t| t == Target::ScalarReal || trains_as_the_long_plume(t))
+                .filter(|&&t| trains_with_our_update(t))
                 .map(|t| t.cli_name())
                 .collect();
             let (last, rest) = ours.split_last().expect("scalar-real uses our update");
@@ -358,54 +200,12 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
     if let Some(seed) = args.seed {
         suffix += &format!("-s{seed}");
     }
-    let mut base = match (args.target, args.quick) {
-        (Target::ScalarReal, true) => TrainConfig {
-            train_views: paper_scalar_real().train_views,
-            test_views: paper_scalar_real().test_views,
-            ..quick_scalar_real()
-        },
-        (Target::ScalarReal, false) => paper_scalar_real(),
-        (Target::Synthetic, true) => TrainConfig::quick_demo(),
-        (Target::Synthetic, false) => TrainConfig::default(),
-        (Target::SyntheticLong | Target::Turning | Target::Obstacle, true) => {
-            quick_synthetic_long()
-        }
-        (Target::SyntheticLong | Target::Turning | Target::Obstacle, false) => {
-            full_synthetic_long()
-        }
-        // A quarter as many static Gaussians as smoke ones.
-        (Target::Ball, true) => TrainConfig {
-            static_gaussians: 1000,
-            ..quick_synthetic_long()
-        },
-        (Target::Ball, false) => TrainConfig {
-            static_gaussians: 7500,
-            ..full_synthetic_long()
-        },
-        (Target::Blocks, true) => with_statics_for_a_wall(quick_synthetic_long()),
-        // Eleven training views, each loaded from 800x800 down to 100x100.
-        (Target::Blender, true) => TrainConfig {
-            image_size: Some([100, 100]),
-            ..with_statics_for_a_wall(quick_synthetic_long())
-        },
-        (Target::Blocks | Target::Blender, false) => TrainConfig {
-            static_gaussians: 15000,
-            ..full_synthetic_long()
-        },
+    let paper = sizes(args.target, args.quick);
+    let mut base = match (ours && !args.paper_update, args.target) {
+        (true, Target::ScalarReal) => for_scalar_real(Preset::Ours.apply(paper.clone()), &paper),
+        (true, _) => Preset::Ours.apply(paper),
+        (false, _) => paper,
     };
-    if trains_as_the_long_plume(args.target) {
-        // The scene's own top, measured on the long plume. The other scenes keep the outflow
-        // their records ran with.
-        base.open_face_flow = SYNTHETIC_TOP_FLOW;
-    }
-    if let Some(inflow) = inflow.filter(|_| !args.paper_update) {
-        base = with_look_ahead_and_inflow(base, inflow);
-        match args.target {
-            Target::ScalarReal => base.lr_log_scales = Some(SCALAR_REAL_LR_LOG_SCALES),
-            target if trains_as_the_long_plume(target) => base = with_one_view_refinement(base),
-            _ => {}
-        }
-    }
     if let Some(frames) = args.frames {
         base.frames = Some(frames);
     }
@@ -474,115 +274,6 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
     })
 }
 
-/// Starts the peak-resident-memory count again (Linux: writing 5 to `/proc/self/clear_refs`
-/// resets `VmHWM`), so each variant of one invocation reports its own peak.
-fn reset_peak_memory() {
-    if let Err(e) = std::fs::write("/proc/self/clear_refs", "5") {
-        eprintln!("warning: cannot reset the peak memory count ({e}); it includes earlier runs");
-    }
-}
-
-/// Peak resident memory since the last [`reset_peak_memory`] (Linux `VmHWM`), in MiB.
-fn peak_memory_mib() -> Option<f64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
-    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kib / 1024.0)
-}
-
-/// The record this run folder wrote before, if any (the same key and `run`).
-fn previous_record(path: &Path, run_dir: &Path) -> Option<Value> {
-    let record: Value = serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()?;
-    (record["run"].as_str() == Some(&*run_dir.display().to_string())).then_some(record)
-}
-
-/// Wall time and peak memory for a record. This process measured only its own session, so
-/// a resumed run adds the earlier sessions from the run's previous record, or records
-/// neither (null) where there is none, rather than a session's part as the whole.
-fn session_totals(
-    previous: Option<Value>,
-    resumed: bool,
-    wall_seconds: f64,
-    peak_memory: Option<f64>,
-) -> (Value, Value) {
-    if !resumed {
-        return (json!(wall_seconds), json!(peak_memory));
-    }
-    let Some(previous) = previous else {
-        eprintln!(
-            "warning: resumed without this run's earlier record: its wall time and peak \
-             memory are recorded as unknown"
-        );
-        return (Value::Null, Value::Null);
-    };
-    let wall = previous["wall_seconds_with_outputs"]
-        .as_f64()
-        .map(|before| before + wall_seconds);
-    let peak = previous["peak_memory_mib"]
-        .as_f64()
-        .zip(peak_memory)
-        .map(|(a, b)| a.max(b));
-    (json!(wall), json!(peak))
-}
-
-/// The CPU, and for GPU devices the NVIDIA adapter and driver where `nvidia-smi` exists.
-fn machine(device: &str) -> String {
-    let cpu = std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|info| {
-            info.lines()
-                .find(|l| l.starts_with("model name"))
-                .and_then(|l| l.split(':').nth(1))
-                .map(|s| s.trim().to_string())
-        })
-        .unwrap_or_else(|| "unknown CPU".into());
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let gpu = ["flex", "ndarray"]
-        .contains(&device)
-        .not()
-        .then(|| {
-            std::process::Command::new("nvidia-smi")
-                .args(["--query-gpu=name,driver_version", "--format=csv,noheader"])
-                .output()
-                .ok()
-                .filter(|o| o.status.success())
-                .and_then(|o| String::from_utf8(o.stdout).ok())
-                .and_then(|s| s.lines().next().map(|l| l.trim().to_string()))
-        })
-        .flatten()
-        .map(|line| match line.split_once(", ") {
-            Some((name, driver)) => format!("{name} (driver {driver}), "),
-            None => format!("{line}, "),
-        })
-        .unwrap_or_default();
-    format!("{gpu}{cpu}, {threads} threads")
-}
-
-fn utc_now() -> String {
-    std::process::Command::new("date")
-        .args(["-u", "+%Y-%m-%d %H:%M UTC"])
-        .output()
-        .ok()
-        .and_then(|o| String::from_utf8(o.stdout).ok())
-        .map(|s| s.trim().to_string())
-        .unwrap_or_else(|| "unknown date".into())
-}
-
-fn file_size(path: &Path) -> u64 {
-    std::fs::metadata(path).map_or(0, |m| m.len())
-}
-
-/// `value` as one POSIX shell word: as is when it holds no character the shell treats
-/// specially, else in single quotes.
-fn shell_quoted(value: &str) -> String {
-    let plain = |c: char| c.is_ascii_alphanumeric() || "-_=.,/:+@%".contains(c);
-    if !value.is_empty() && value.chars().all(plain) {
-        value.to_string()
-    } else {
-        format!("'{}'", value.replace('\'', r"'\''"))
-    }
-}
-
 impl Target {
     /// The name `reproduce` takes on its command line.
     fn cli_name(self) -> &'static str {
@@ -597,66 +288,6 @@ impl Target {
             Target::Blender => "blender",
         }
     }
-}
-
-fn command_line(args: &ReproduceArgs) -> String {
-    let mut line = format!(
-        "cargo run --release -p xtask -- reproduce {}",
-        args.target.cli_name()
-    );
-    if args.quick {
-        line += " --quick";
-    }
-    if args.device != "flex" {
-        line += &format!(" --device {}", args.device);
-    }
-    if let Some(frames) = args.frames {
-        line += &format!(" --frames {frames}");
-    }
-    if let Some(seed) = args.seed {
-        line += &format!(" --seed {seed}");
-    }
-    if let Some(fraction) = args.respawn {
-        line += &format!(" --respawn {fraction}");
-    }
-    if let Some(degrees) = args.swirl {
-        line += &format!(" --swirl {degrees}");
-    }
-    if args.paper_update {
-        line += " --paper-update";
-    }
-    for entry in &args.overrides {
-        line += &format!(" --set {}", shell_quoted(entry));
-    }
-    if let Some(tag) = &args.tag {
-        line += &format!(" --tag {}", shell_quoted(tag));
-    }
-    if let Some(key) = &args.config_of {
-        line += &format!(" --config-of {}", shell_quoted(key));
-    }
-    if args.no_ablations {
-        line += " --no-ablations";
-    }
-    if args.velocity_estimate {
-        line += " --velocity-estimate";
-    }
-    if args.velocity_estimate_forces {
-        line += " --velocity-estimate-forces";
-    }
-    if let Some(data) = &args.data {
-        line += &format!(" --data {}", shell_quoted(&data.display().to_string()));
-    }
-    if let Some(weights) = &args.lpips_weights {
-        line += &format!(
-            " --lpips-weights {}",
-            shell_quoted(&weights.display().to_string())
-        );
-    }
-    if !args.independent.is_empty() {
-        let frames: Vec<String> = args.independent.iter().map(|t| t.to_string()).collect();
-        line += &format!(" --independent {}", frames.join(","));
-    }
-    line
 }
 
 /// The one run `variants` names, configured as the record `key` in `results_dir` says (see
@@ -803,6 +434,12 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
                     );
                 }
             }
+            let scene = path.join(gausmoke_train::scene::SCENE_FILE);
+            if !scene.is_file() {
+                // Generated before the generator wrote the scene beside the cameras.
+                eprintln!("writing the solver's scene to {}", scene.display());
+                std::fs::write(&scene, gausmoke_data::synth::SCENE_TOML)?;
+            }
             path
         }
     };
@@ -829,10 +466,15 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
     if let Some(key) = &args.config_of {
         variants = vec![recorded_variant(variants, key, &results_dir, &args)?];
     }
+    for variant in &mut variants {
+        // What the preset leaves unset of the scene, the data declares (its scene.toml), so
+        // that the record holds the scene it ran with.
+        variant.config.scene.fill_from_data(&data)?;
+    }
     let estimate = if args.velocity_estimate_forces {
-        if let Some(variant) = variants.iter().find(|v| v.config.respawn_region.is_none()) {
+        if let Some(variant) = variants.iter().find(|v| v.config.scene.inflow.is_none()) {
             bail!(
-                "--velocity-estimate-forces: run {} has no inflow box (respawn_region) for the \
+                "--velocity-estimate-forces: run {} has no inflow box (scene.inflow) for the \
                  smoke step's source; estimate it afterwards with `gausmoke-train velocity \
                  --forces --source-box x0,y0,z0,x1,y1,z1`",
                 variant.key
@@ -1003,379 +645,4 @@ pub fn run(args: ReproduceArgs) -> Result<()> {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_resumed_record_keeps_the_earlier_sessions_wall_time_and_peak_memory() {
-        let fresh = session_totals(None, false, 12.5, Some(80.0));
-        assert_eq!(fresh, (json!(12.5), json!(80.0)));
-        let earlier = json!({"wall_seconds_with_outputs": 500.0, "peak_memory_mib": 130.0});
-        let resumed = session_totals(Some(earlier), true, 0.5, Some(75.0));
-        assert_eq!(resumed, (json!(500.5), json!(130.0)));
-        // Resumed with no earlier record: unknown, not this session's part.
-        assert_eq!(
-            session_totals(None, true, 0.5, Some(75.0)),
-            (Value::Null, Value::Null)
-        );
-    }
-
-    #[test]
-    fn recorded_settings_are_single_shell_words() {
-        assert_eq!(shell_quoted("frames=4"), "frames=4");
-        assert_eq!(
-            shell_quoted(r#"open_faces=["y-","y+"]"#),
-            r#"'open_faces=["y-","y+"]'"#
-        );
-        assert_eq!(shell_quoted("a b"), "'a b'");
-        assert_eq!(shell_quoted("it's"), r"'it'\''s'");
-        assert_eq!(shell_quoted(""), "''");
-    }
-
-    /// `reproduce TARGET --quick` on flex with nothing else set, as the tests start from.
-    fn quick_args(target: Target) -> ReproduceArgs {
-        ReproduceArgs {
-            target,
-            quick: true,
-            device: "flex".into(),
-            out: PathBuf::from("runs"),
-            data: None,
-            frames: None,
-            resume: false,
-            no_ablations: false,
-            lpips_weights: None,
-            seed: None,
-            respawn: None,
-            swirl: None,
-            paper_update: false,
-            overrides: Vec::new(),
-            tag: None,
-            docs: None,
-            independent: Vec::new(),
-            config_of: None,
-            velocity_estimate: false,
-            velocity_estimate_forces: false,
-        }
-    }
-
-    #[test]
-    fn the_long_synthetic_plume_trains_all_frames_with_an_open_top() {
-        let args = ReproduceArgs {
-            seed: Some(3),
-            independent: vec![0, 36, 71],
-            ..quick_args(Target::SyntheticLong)
-        };
-        let list = variants(&args).unwrap();
-        assert_eq!(list.len(), 1, "no ablations on the long plume");
-        let config = &list[0].config;
-        assert_eq!(list[0].key, "synthetic-long-quick-s3");
-        assert_eq!(list[0].group, "synthetic-long-quick");
-        assert_eq!(config.open_faces, ["y+"]);
-        assert_eq!((config.frames, config.image_size), (None, None));
-        assert_eq!(config.gaussians, 4000);
-        assert_eq!(config.grid_resolution, SynthConfig::long_plume().grid);
-        assert_eq!(config.seed, 3);
-        config.validate().unwrap();
-        assert!(
-            command_line(&args)
-                .ends_with("reproduce synthetic-long --quick --seed 3 --independent 0,36,71"),
-            "{}",
-            command_line(&args)
-        );
-    }
-
-    /// The turning plume is trained exactly as the long plume is, under its own key, so the
-    /// two scenes' gains over the frames fitted alone compare like for like.
-    #[test]
-    fn the_turning_plume_trains_with_the_long_plumes_preset() {
-        let turning = |target| ReproduceArgs {
-            seed: Some(2),
-            independent: vec![18, 36],
-            ..quick_args(target)
-        };
-        let long = variants(&turning(Target::SyntheticLong)).unwrap().remove(0);
-        let list = variants(&turning(Target::Turning)).unwrap();
-        assert_eq!(list.len(), 1);
-        assert_eq!(
-            (list[0].key.as_str(), list[0].group.as_str()),
-            ("turning-quick-s2", "turning-quick")
-        );
-        assert_eq!(list[0].config, long.config);
-        assert!(
-            command_line(&turning(Target::Turning))
-                .ends_with("reproduce turning --quick --seed 2 --independent 18,36")
-        );
-        let faster = ReproduceArgs {
-            swirl: Some(15.0),
-            ..turning(Target::Turning)
-        };
-        let list = variants(&faster).unwrap();
-        assert_eq!(list[0].key, "turning-quick-swirl15-s2");
-        assert_eq!(list[0].config, long.config);
-        assert!(command_line(&faster).contains("--seed 2 --swirl 15 --independent"));
-        let err = variants(&ReproduceArgs {
-            swirl: Some(15.0),
-            ..quick_args(Target::SyntheticLong)
-        })
-        .unwrap_err()
-        .to_string();
-        assert!(err.contains("--swirl"), "{err}");
-        let err = variants(&ReproduceArgs {
-            data: Some(PathBuf::from("scenes/mine")),
-            ..faster
-        })
-        .unwrap_err()
-        .to_string();
-        assert!(
-            err.contains("--swirl") && err.contains("scenes/mine"),
-            "{err}"
-        );
-    }
-
-    /// The quick presets of the scenes with an inflow train with our update, each
-    /// recycling into its own source; `--paper-update` gives the paper's back under `-paper`
-    /// keys, and is refused where a preset has nothing to give back.
-    #[test]
-    fn the_quick_plume_presets_train_with_our_update_unless_told_otherwise() {
-        for (target, inflow) in [
-            (Target::ScalarReal, SCALAR_REAL_INFLOW),
-            (Target::SyntheticLong, SYNTHETIC_INFLOW),
-            (Target::Obstacle, SYNTHETIC_INFLOW),
-            (Target::Ball, SYNTHETIC_INFLOW),
-            (Target::Blocks, SYNTHETIC_INFLOW),
-        ] {
-            let ours = &variants(&quick_args(target)).unwrap()[0];
-            let config = &ours.config;
-            assert_eq!(config.respawn_region, Some(inflow), "{target:?}");
-            assert!(config.lambda_lookahead > 0.0 && config.transport_velocity);
-            assert_eq!(config.lookahead_velocity, LookaheadVelocity::Predicted);
-            assert_eq!(config.advect_iterations, 10);
-            let sizes = (target == Target::ScalarReal).then_some(SCALAR_REAL_LR_LOG_SCALES);
-            assert_eq!(config.lr_log_scales, sizes, "{target:?}");
-            assert_eq!(config.split_fraction, 0.01);
-            let one_view = target != Target::ScalarReal;
-            let (steps, views, tie, horizontal) = if one_view {
-                (ONE_VIEW_REFINE_ITERATIONS, 1, 3.0, 3.0)
-            } else {
-                (5, 0, 0.0, 1.0)
-            };
-            assert_eq!(
-                (config.refine_iterations, config.refine_views_per_step),
-                (steps, views),
-                "{target:?}"
-            );
-            assert_eq!(config.lambda_refine_grid, tie, "{target:?}");
-            assert_eq!(config.increment_horizontal_weight, horizontal, "{target:?}");
-            let top_flow = if one_view { SYNTHETIC_TOP_FLOW } else { 1.0 };
-            assert_eq!(config.open_face_flow, top_flow, "{target:?}");
-            config.validate().unwrap();
-
-            let args = ReproduceArgs {
-                paper_update: true,
-                seed: Some(2),
-                ..quick_args(target)
-            };
-            let paper = &variants(&args).unwrap()[0];
-            assert!(paper.key.ends_with("-quick-paper-s2"), "{}", paper.key);
-            // The ablations train with the same update.
-            for variant in &variants(&args).unwrap()[1..] {
-                assert_eq!(variant.config.lambda_lookahead, 0.0, "{}", variant.key);
-            }
-            for variant in &variants(&quick_args(target)).unwrap()[1..] {
-                assert_eq!(
-                    variant.config.respawn_region,
-                    Some(inflow),
-                    "{}",
-                    variant.key
-                );
-            }
-            assert!(command_line(&args).ends_with("--quick --seed 2 --paper-update"));
-            let config = &paper.config;
-            assert_eq!(config.lambda_lookahead, 0.0);
-            assert!(!config.transport_velocity);
-            assert_eq!(
-                (config.lambda_increment, config.respawn_fraction),
-                (0.0, 0.0)
-            );
-            assert_eq!(config.respawn_region, None);
-            assert_eq!(config.advect_iterations, 20);
-            assert_eq!(config.lr_log_scales, None);
-            assert_eq!(config.split_fraction, 0.0);
-            assert_eq!(
-                (config.refine_iterations, config.refine_views_per_step),
-                (5, 0)
-            );
-            assert_eq!(config.lambda_refine_grid, 0.0);
-            assert_eq!(config.increment_horizontal_weight, 1.0);
-            // Everything else is the preset's.
-            assert_eq!(config.open_faces, ours.config.open_faces);
-            assert_eq!(config.open_face_flow, ours.config.open_face_flow);
-            assert_eq!(config.gaussians, ours.config.gaussians);
-        }
-        // The Blender set's preset keeps the paper's update and the outflow.
-        let blender = &variants(&quick_args(Target::Blender)).unwrap()[0];
-        assert_eq!(blender.config.lambda_lookahead, 0.0);
-        assert_eq!(blender.config.open_face_flow, 1.0);
-        // Both textured-wall scenes have as many statics as smoke Gaussians, fitted as long
-        // as frame 0.
-        let blocks = &variants(&quick_args(Target::Blocks)).unwrap()[0];
-        for config in [&blender.config, &blocks.config] {
-            assert_eq!(config.static_gaussians, 4000);
-            assert_eq!(config.static_gaussians, config.gaussians);
-        }
-        blender.config.validate().unwrap();
-        let full = ReproduceArgs {
-            quick: false,
-            ..quick_args(Target::SyntheticLong)
-        };
-        assert_eq!(
-            variants(&full).unwrap()[0].config.open_face_flow,
-            SYNTHETIC_TOP_FLOW
-        );
-        assert_eq!(blender.config.respawn_region, None);
-        for args in [
-            quick_args(Target::Blender),
-            ReproduceArgs {
-                quick: false,
-                ..quick_args(Target::ScalarReal)
-            },
-        ] {
-            let err = variants(&ReproduceArgs {
-                paper_update: true,
-                ..args
-            })
-            .unwrap_err()
-            .to_string();
-            assert!(err.contains("--paper-update"), "{err}");
-            assert!(
-                err.contains(
-                    "of scalar-real, synthetic-long, turning, obstacle, ball and blocks use"
-                ),
-                "{err}"
-            );
-        }
-    }
-
-    /// `--config-of` trains the named run with the configuration its record holds (a
-    /// setting the record predates takes its default), and refuses a record of another run,
-    /// overrides, or a command naming several runs.
-    #[test]
-    fn a_record_is_re_run_with_its_recorded_configuration() {
-        let dir = tempfile::tempdir().unwrap();
-        let args = |config_of: &str, target: Target, overrides: Vec<String>| ReproduceArgs {
-            seed: Some(3),
-            tag: (!overrides.is_empty()).then(|| "x".to_string()),
-            overrides,
-            config_of: Some(config_of.to_string()),
-            ..quick_args(target)
-        };
-        let recorded = TrainConfig {
-            open_faces: Vec::new(),
-            open_face_flow: 1.0,
-            gaussians: 1234,
-            seed: 3,
-            ..quick_synthetic_long()
-        };
-        let mut config = serde_json::to_value(&recorded).unwrap();
-        // A record older than the inertia prior.
-        config.as_object_mut().unwrap().remove("lambda_increment");
-        let record = json!({"config": config, "variant": "full method, closed walls"});
-        let key = "synthetic-long-quick-s3";
-        std::fs::write(dir.path().join(format!("{key}.json")), record.to_string()).unwrap();
-        let named = |a: &ReproduceArgs| {
-            let asked = a.config_of.as_deref().unwrap();
-            recorded_variant(variants(a).unwrap(), asked, dir.path(), a)
-        };
-
-        let variant = named(&args(key, Target::SyntheticLong, Vec::new())).unwrap();
-        assert_eq!(variant.key, key);
-        assert_eq!(variant.config, recorded);
-        assert_eq!(variant.label, "full method, closed walls");
-        assert!(
-            command_line(&args(key, Target::SyntheticLong, Vec::new())).ends_with(
-                "reproduce synthetic-long --quick --seed 3 --config-of synthetic-long-quick-s3"
-            )
-        );
-
-        let other = args("synthetic-long-quick-s4", Target::SyntheticLong, Vec::new());
-        let err = named(&other).unwrap_err().to_string();
-        assert!(err.contains("synthetic-long-quick-s3"), "{err}");
-        let with_set = args(key, Target::SyntheticLong, vec!["lambda_div=1".into()]);
-        let err = named(&with_set).unwrap_err().to_string();
-        assert!(err.contains("--set"), "{err}");
-        let several = args(key, Target::Obstacle, Vec::new());
-        let err = named(&several).unwrap_err().to_string();
-        assert!(err.contains("--no-ablations"), "{err}");
-    }
-
-    /// The slice of `reproduce scalar-real --quick` that CI runs: two frames of the real
-    /// capture, recorded into a temporary docs folder (the repository's results stay as they
-    /// are).
-    #[test]
-    fn a_two_frame_scalar_real_slice_is_recorded() {
-        let root = crate::workspace_root();
-        let dir = tempfile::tempdir().unwrap();
-        let docs = dir.path().join("docs");
-        std::fs::create_dir_all(&docs).unwrap();
-        std::fs::copy(root.join("docs/RESULTS.md"), docs.join("RESULTS.md")).unwrap();
-        let args = ReproduceArgs {
-            out: dir.path().join("runs"),
-            data: Some(root.join("../shared/datasets/scalar_real")),
-            frames: Some(2),
-            docs: Some(docs.clone()),
-            independent: vec![0, 1],
-            ..quick_args(Target::ScalarReal)
-        };
-        run(args).unwrap();
-
-        let record: Value = serde_json::from_str(
-            &std::fs::read_to_string(docs.join("results/scalar-real-quick-f2.json")).unwrap(),
-        )
-        .unwrap();
-        assert_eq!(record["frames"], 2);
-        assert_eq!(record["gaussians"], 8000);
-        // Measured 35.43 dB over frames 0 and 1 (2026-11-26, the preset with our update, its
-        // sizes' learning rate and the split). A broken loader, camera convention or renderer
-        // lands far below: an all-black render scores roughly 28 dB.
-        let psnr = record["test_psnr"].as_f64().unwrap();
-        assert!(psnr > 33.0, "held-out PSNR {psnr} dB");
-        let divergence = record["mean_abs_divergence"].as_f64().unwrap();
-        assert!(divergence < 1e-4, "mean |div u| {divergence}");
-        assert_eq!(record["test_psnr_per_frame"].as_array().unwrap().len(), 2);
-        // Frame 0 fitted alone is the sequential run's frame-0 fit (same settings and seed),
-        // so it must agree exactly; frame 1 alone is a real fit of the next frame.
-        let alone = record["independent"].as_array().unwrap();
-        assert_eq!(alone.len(), 2);
-        assert_eq!(alone[0]["frame"], 0);
-        assert_eq!(
-            alone[0]["sequential_minus_independent_psnr"], 0.0,
-            "{alone:?}"
-        );
-        let frame1 = alone[1]["test_psnr"].as_f64().unwrap();
-        assert!(frame1 > 33.0, "frame 1 alone: {frame1} dB");
-        let sequential1 = record["test_psnr_per_frame"][1].as_f64().unwrap();
-        assert_eq!(
-            alone[1]["sequential_minus_independent_psnr"].as_f64(),
-            Some(sequential1 - frame1)
-        );
-        let results = std::fs::read_to_string(docs.join("RESULTS.md")).unwrap();
-        assert!(
-            results.contains("| `scalar-real-quick-f2` | 1 | "),
-            "{results}"
-        );
-        assert_eq!(record["config"]["open_faces"], json!(["y-", "y+"]));
-        assert!(
-            results.contains(
-                "| `scalar-real-quick-f2` | full method, respawn 0.02, velocity transported, \
-                           look-ahead 1 along Phi's prediction, inertia prior 0.01, recycled into \
-                           [0.4, 0, 0.4, 0.66, 0.15, 0.66], sizes at lr 0.0005, split 0.01 a \
-                           frame, open faces y- y+ | 2 | 8000 |"
-            ),
-            "{results}"
-        );
-        assert!(
-            results.contains("## Why we fall short"),
-            "the hand-written part of RESULTS.md is kept"
-        );
-    }
-}
+mod tests;

@@ -72,7 +72,12 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
     if let Some(w) = weight("lambda_increment") {
         settings.push(("lambda_increment", format!("inertia prior {w}")));
     }
-    if let Some(region) = config["respawn_region"].as_array() {
+    // Records made before the scene had its table held the box only when they recycled.
+    let recycling = weight("respawn_fraction").is_some() || config["respawn_region"].is_array();
+    if let Some(region) = scene_value(config, "inflow", "respawn_region")
+        .as_array()
+        .filter(|_| recycling)
+    {
         let corners: Vec<String> = region
             .iter()
             .filter_map(Value::as_f64)
@@ -197,7 +202,7 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
     if !faces.is_empty() {
         settings.push(("open_faces", format!("open faces {}", faces.join(" "))));
     }
-    if let Some(flow) = config["open_face_flow"]
+    if let Some(flow) = scene_value(config, "open_face_flow", "open_face_flow")
         .as_f64()
         .map(|f| f as f32)
         .filter(|&f| f != 1.0)
@@ -214,9 +219,18 @@ fn transported(record: &Value) -> bool {
         .unwrap_or(false)
 }
 
+/// A scene key of a configuration: under `[scene]`, or (in records made before the scene
+/// had its table) at the top level as `old`.
+fn scene_value<'a>(config: &'a Value, key: &str, old: &str) -> &'a Value {
+    match &config["scene"][key] {
+        Value::Null => &config[old],
+        value => value,
+    }
+}
+
 /// The box faces the run left open.
 fn open_faces(record: &Value) -> Vec<&str> {
-    record["config"]["open_faces"]
+    scene_value(&record["config"], "open_faces", "open_faces")
         .as_array()
         .map(|faces| faces.iter().filter_map(Value::as_str).collect())
         .unwrap_or_default()
@@ -643,6 +657,7 @@ pub fn write_results_md(docs: &Path) -> Result<()> {
         );
     };
     let updated = format!("{}{begin}\n{block}{}", &text[..start], &text[stop..]);
+    let updated = super::summary::fill(&updated, &records)?;
     write_atomically(&path, &updated)?;
     eprintln!("wrote {}", path.display());
     Ok(())

@@ -1,0 +1,171 @@
+use super::*;
+
+#[test]
+fn overrides_reach_nested_keys_and_round_trip_through_toml() {
+    let config = TrainConfig::default()
+        .with_overrides(&[
+            "lambda_div=0.5".into(),
+            "image_size=[135, 240]".into(),
+            "init_learning_rates.means=0.01".into(),
+            "interpolation=trilinear".into(),
+        ])
+        .unwrap();
+    assert_eq!(config.lambda_div, 0.5);
+    assert_eq!(config.image_size, Some([135, 240]));
+    assert_eq!(config.init_learning_rates.means, 0.01);
+    assert_eq!(config.interpolation, InterpolationKind::Trilinear);
+    let back: TrainConfig = toml::from_str(&config.to_toml()).unwrap();
+    assert_eq!(back, config);
+}
+
+#[test]
+fn unknown_keys_and_bad_values_are_named() {
+    let err = TrainConfig::default()
+        .with_overrides(&["lamda_div=0.5".into()])
+        .unwrap_err();
+    assert!(err.to_string().contains("lamda_div"), "{err}");
+    // Each invalid configuration is refused naming the setting to change.
+    let invalid = [
+        (
+            TrainConfig {
+                grid_resolution: 30,
+                ..TrainConfig::default()
+            },
+            "grid_resolution",
+        ),
+        (
+            TrainConfig {
+                increment_horizontal_weight: 10.0,
+                ..TrainConfig::default()
+            },
+            "lambda_increment",
+        ),
+        (
+            TrainConfig {
+                increment_horizontal_weight: -1.0,
+                lambda_increment: 0.01,
+                ..TrainConfig::default()
+            },
+            "increment_horizontal_weight",
+        ),
+        (
+            TrainConfig {
+                scene: SceneConfig {
+                    open_faces: Some(Vec::new()),
+                    open_face_flow: Some(0.5),
+                    ..SceneConfig::default()
+                },
+                ..TrainConfig::default()
+            },
+            "set scene.open_faces",
+        ),
+        (
+            TrainConfig {
+                scene: SceneConfig {
+                    open_faces: Some(vec!["y+".into()]),
+                    open_face_flow: Some(1.5),
+                    ..SceneConfig::default()
+                },
+                ..TrainConfig::default()
+            },
+            "scene.open_face_flow",
+        ),
+        (
+            TrainConfig {
+                scene: SceneConfig {
+                    open_faces: Some(vec!["y+".into()]),
+                    open_face_flow: Some(f32::NAN),
+                    ..SceneConfig::default()
+                },
+                ..TrainConfig::default()
+            },
+            "scene.open_face_flow",
+        ),
+    ];
+    for (config, named) in invalid {
+        let err = config.validate().unwrap_err();
+        assert!(err.to_string().contains(named), "{err}");
+    }
+    let region = |value: &str| {
+        TrainConfig::default()
+            .with_overrides(&[format!("scene.inflow={value}")])
+            .and_then(|config| config.validate().map(|()| config))
+    };
+    let config = region("[0.3, 0, 0.3, 0.7, 0.15, 0.7]").unwrap();
+    assert_eq!(config.scene.inflow, Some([0.3, 0.0, 0.3, 0.7, 0.15, 0.7]));
+    for bad in ["[0.3, 0, 0.3, 0.2, 0.15, 0.7]", "[0, 0, 0, 1, 1, 1.5]"] {
+        let err = region(bad).unwrap_err();
+        assert!(err.to_string().contains("scene.inflow"), "{bad}: {err}");
+    }
+    // A half-open top reaches the projection's faces.
+    let half_open = TrainConfig::default()
+        .with_overrides(&[
+            "scene.open_faces=[\"y+\"]".into(),
+            "scene.open_face_flow=0.5".into(),
+        ])
+        .unwrap();
+    half_open.validate().unwrap();
+    let faces = half_open.open_faces().unwrap();
+    assert_eq!(faces.face_flows(), [0.0, 0.0, 0.0, 0.5, 0.0, 0.0]);
+}
+
+#[test]
+fn gradient_sums_reach_the_rasterizer_and_bad_spellings_are_refused() {
+    assert_eq!(
+        TrainConfig::default().raster_options().gradient_sums,
+        gausmoke_render::GradientSums::Planes
+    );
+    let config = TrainConfig::default()
+        .with_overrides(&["gradient_sums=per-pixel".into()])
+        .unwrap();
+    assert_eq!(
+        config.raster_options().gradient_sums,
+        gausmoke_render::GradientSums::PerPixel
+    );
+    let err = TrainConfig::default()
+        .with_overrides(&["gradient_sums=warp".into()])
+        .unwrap_err();
+    assert!(err.to_string().contains("warp"), "{err}");
+}
+
+#[test]
+fn alpha_min_reaches_the_rasterizer_and_old_configs_keep_3dgs_cull() {
+    assert_eq!(
+        TrainConfig::default().raster_options().alpha_min,
+        1.0 / 255.0
+    );
+    let config = TrainConfig::default()
+        .with_overrides(&["alpha_min=1e-5".into()])
+        .unwrap();
+    assert_eq!(config.raster_options().alpha_min, 1e-5);
+    assert!(config.validate().is_ok());
+    for bad in [0.0, 0.01, -1e-5, f32::NAN] {
+        let err = TrainConfig {
+            alpha_min: bad,
+            ..TrainConfig::default()
+        }
+        .validate()
+        .unwrap_err();
+        assert!(err.to_string().contains("alpha_min"), "{bad}: {err}");
+    }
+    // A run folder written before the setting existed reads back with the old cull.
+    let old: TrainConfig = toml::from_str("gaussians = 100").unwrap();
+    assert_eq!(old.alpha_min, 1.0 / 255.0);
+}
+
+#[test]
+fn solver_tests_are_spelled_for_toml_and_bad_spellings_are_refused() {
+    assert_eq!(TrainConfig::default().solver_tests, SolverTests::Deferred);
+    let config = TrainConfig::default()
+        .with_overrides(&["solver_tests=immediate".into()])
+        .unwrap();
+    assert_eq!(
+        gausmoke_model::ConvergenceTests::from(config.solver_tests),
+        gausmoke_model::ConvergenceTests::Immediate
+    );
+    let err = TrainConfig::default()
+        .with_overrides(&["solver_tests=sometimes".into()])
+        .unwrap_err();
+    assert!(err.to_string().contains("sometimes"), "{err}");
+    assert!(RESUMABLE_KEYS.contains(&"solver_tests"));
+}

@@ -1,0 +1,187 @@
+//! [`TrainConfig::validate`]: every range and combination checked before any work starts,
+//! each refusal naming the key to change.
+
+use gausmoke_model::projection::OpenFaces;
+
+use super::{MAX_TIME_FREQUENCIES, ProjectionKind, TrainConfig, is_box_of_fractions};
+use crate::TrainError;
+
+impl TrainConfig {
+    /// Checks ranges before any work starts.
+    pub fn validate(&self) -> Result<(), TrainError> {
+        let bad = |reason: String| {
+            Err(TrainError::Config {
+                origin: "configuration".into(),
+                reason,
+            })
+        };
+        if self.gaussians == 0 {
+            return bad("gaussians must be at least 1".into());
+        }
+        if self.grid_resolution < 8 || !self.grid_resolution.is_multiple_of(4) {
+            return bad(format!(
+                "grid_resolution must be a multiple of 4 and at least 8, got {}",
+                self.grid_resolution
+            ));
+        }
+        let positive = [
+            ("lr_velocity", self.lr_velocity),
+            ("lr_gaussians", self.lr_gaussians),
+            ("lr_decay", self.lr_decay),
+            ("dt", self.dt as f64),
+            ("projection_tolerance", self.projection_tolerance),
+        ];
+        for (name, value) in positive {
+            if !(value.is_finite() && value > 0.0) {
+                return bad(format!("{name} must be a positive number, got {value}"));
+            }
+        }
+        let weights = [
+            ("lambda_div", self.lambda_div),
+            ("lambda_adv", self.lambda_adv),
+            ("lambda_refine", self.lambda_refine),
+            ("lambda_refine_grid", self.lambda_refine_grid),
+            ("lambda_lookahead", self.lambda_lookahead),
+            ("lambda_increment", self.lambda_increment),
+        ];
+        for (name, value) in weights {
+            if !(value.is_finite() && value >= 0.0) {
+                return bad(format!("{name} must be >= 0, got {value}"));
+            }
+        }
+        if !(0.0..=1000.0).contains(&self.increment_horizontal_weight) {
+            return bad(format!(
+                "increment_horizontal_weight must be in [0, 1000], got {}",
+                self.increment_horizontal_weight
+            ));
+        }
+        if self.increment_horizontal_weight != 1.0 && self.lambda_increment == 0.0 {
+            return bad(
+                "increment_horizontal_weight weighs the inertia prior, which is off: set \
+                 lambda_increment > 0 too"
+                    .into(),
+            );
+        }
+        if !(0.0..=1.0).contains(&self.respawn_fraction) {
+            return bad(format!(
+                "respawn_fraction must be in [0, 1], got {}",
+                self.respawn_fraction
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.split_fraction) {
+            return bad(format!(
+                "split_fraction must be in [0, 1], got {}",
+                self.split_fraction
+            ));
+        }
+        if !(self.alpha_min > 0.0 && self.alpha_min <= 1.0 / 255.0) {
+            return bad(format!(
+                "alpha_min must be in (0, 1/255], got {}",
+                self.alpha_min
+            ));
+        }
+        if !(self.respawn_threshold.is_finite() && self.respawn_threshold >= 0.0) {
+            return bad(format!(
+                "respawn_threshold must be >= 0, got {}",
+                self.respawn_threshold
+            ));
+        }
+        if let Some(region) = self.scene.inflow
+            && !is_box_of_fractions(&region)
+        {
+            return bad(format!(
+                "scene.inflow must be [x0, y0, z0, x1, y1, z1] with 0 <= lo < hi <= 1 on each \
+                 axis (fractions of the smoke box), got {region:?}"
+            ));
+        }
+        if !(self.tile_list_headroom.is_finite() && self.tile_list_headroom >= 1.0) {
+            return bad(format!(
+                "tile_list_headroom must be >= 1, got {}",
+                self.tile_list_headroom
+            ));
+        }
+        if self.lr_decay_every == 0
+            || self.output_every == 0
+            || self.log_every == 0
+            || self.unet_channels == 0
+        {
+            return bad(
+                "lr_decay_every, output_every, log_every and unet_channels must be >= 1".into(),
+            );
+        }
+        if let Some([w, h]) = self.image_size
+            && (w == 0 || h == 0)
+        {
+            return bad("image_size must not be empty".into());
+        }
+        let rates = &self.init_learning_rates;
+        let init_rates = [
+            ("init_learning_rates.means", rates.means),
+            ("init_learning_rates.rotations", rates.rotations),
+            ("init_learning_rates.log_scales", rates.log_scales),
+            ("init_learning_rates.raw_densities", rates.raw_densities),
+            ("init_learning_rates.colors", rates.colors),
+        ];
+        for (name, value) in init_rates {
+            if !(value.is_finite() && value > 0.0) {
+                return bad(format!("{name} must be a positive number, got {value}"));
+            }
+        }
+        // PE(t) uses frequencies 2^0 .. 2^(L-1): beyond 16 an f32 phase keeps no digits of t.
+        if !(1..=MAX_TIME_FREQUENCIES).contains(&self.time_frequencies) {
+            return bad(format!(
+                "time_frequencies must be in 1..={MAX_TIME_FREQUENCIES}, got {}",
+                self.time_frequencies
+            ));
+        }
+        if self.projection_max_iterations == 0 {
+            return bad("projection_max_iterations must be >= 1".into());
+        }
+        if self.projection == ProjectionKind::Penalty && self.penalty_steps == 0 {
+            return bad("penalty_steps must be >= 1 with projection = \"penalty\"".into());
+        }
+        let open = self.scene.open_face_names();
+        if let Err(reason) = OpenFaces::from_names(open) {
+            return bad(format!("scene.open_faces: {reason}"));
+        }
+        let flow = self.scene.flow();
+        if !(flow > 0.0 && flow <= 1.0) {
+            return bad(format!(
+                "scene.open_face_flow must be in (0, 1], got {flow}"
+            ));
+        }
+        if flow != 1.0 && self.scene.open_faces.as_ref().is_some_and(Vec::is_empty) {
+            return bad(format!(
+                "scene.open_face_flow = {flow} has no effect with no open faces: set \
+                 scene.open_faces too, or scene.open_face_flow = 1"
+            ));
+        }
+        if !open.is_empty() && self.projection != ProjectionKind::Exact {
+            return bad(
+                "scene.open_faces needs projection = \"exact\" (the penalty form has solid \
+                 walls only); with the penalty form, also set scene.open_faces = []"
+                    .into(),
+            );
+        }
+        if self.first_frame > 0 && self.frames.is_none() {
+            return bad(format!(
+                "first_frame = {} needs frames (how many frames from there)",
+                self.first_frame
+            ));
+        }
+        if self.frames == Some(0) {
+            return bad("frames must be >= 1 (or left out for all)".into());
+        }
+        for (name, views) in [
+            ("train_views", &self.train_views),
+            ("test_views", &self.test_views),
+        ] {
+            if views.as_ref().is_some_and(|v| v.is_empty()) {
+                return bad(format!(
+                    "{name} must name at least one view (or be left out)"
+                ));
+            }
+        }
+        Ok(())
+    }
+}
