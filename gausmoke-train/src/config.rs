@@ -43,25 +43,6 @@ impl Default for InitLearningRates {
     }
 }
 
-/// How the continuous velocity is interpolated from the grid (paper Eq. 11).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum InterpolationKind {
-    /// Normalised Gaussian kernel over 4x4x4 nodes, std 0.6 cells (the closed-form
-    /// divergence of Eq. 12 applies).
-    Gaussian,
-    Trilinear,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum IntegratorKind {
-    /// `p + dt u(p)`, paper Eq. 13.
-    Euler,
-    /// Explicit midpoint.
-    Rk2,
-}
-
 /// Which form of the incompressibility projection `Pi` (paper Eq. 10) the run uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -83,18 +64,6 @@ pub enum PlyAxes {
     /// frame that 3DGS training produces and splat viewers assume (SuperSplat shows such a
     /// file upright by turning it back), so a y-up world opens upright there.
     YDown,
-}
-
-/// Which velocity carries the Gaussians on to frame t+1 in the look-ahead (see
-/// `lambda_lookahead`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum LookaheadVelocity {
-    /// Frame t's velocity, held.
-    Held,
-    /// The velocity Phi predicts for frame t+1 from the carried Gaussians' density there,
-    /// projected.
-    Predicted,
 }
 
 /// The velocity a finished run ends with besides its grid's (see `velocity_estimate`).
@@ -260,13 +229,12 @@ pub struct TrainConfig {
     /// (see `gausmoke_model::GridScale`).
     pub lambda_refine_grid: f32,
     /// Weight of a look-ahead render term in the joint iterations (ours; 0 = the paper's
-    /// method): the Gaussians carried to frame t are carried on to frame t+1 and rendered
-    /// against its training views, so the velocity of frame t must also explain the next
+    /// method): the Gaussians carried to frame t are carried on to frame t+1 along Phi's
+    /// projected prediction for it (from their density there) and rendered against its
+    /// training views, so the velocity of frame t must also explain the next
     /// frame's pictures (their attributes are held fixed in that term: it trains the
     /// velocity only). Not applied at the last frame.
     pub lambda_lookahead: f32,
-    /// The velocity of the look-ahead's step past frame t: `"held"` or `"predicted"`.
-    pub lookahead_velocity: LookaheadVelocity,
     /// Carry the previous frame's velocity along itself before Phi's increment (ours; `false`
     /// = the paper's Eq. 9): `u^t = Pi(A(u^{t-1}) + Phi(A(u^{t-1}), sigma, t))` with `A`
     /// semi-Lagrangian transport over `dt` (see `gausmoke_model::transport_velocity`), so
@@ -290,11 +258,6 @@ pub struct TrainConfig {
     pub unet_channels: usize,
     /// Sinusoidal time-encoding frequencies L of PE(t).
     pub time_frequencies: usize,
-    /// Velocity interpolation from the grid: `"gaussian"` (Eq. 11, the paper's) or
-    /// `"trilinear"`.
-    pub interpolation: InterpolationKind,
-    /// Advection of the centres: `"euler"` (Eq. 13, the paper's) or `"rk2"`.
-    pub integrator: IntegratorKind,
     /// Form of `Pi`: `exact` (default) or `penalty` (the paper's description).
     pub projection: ProjectionKind,
     /// Relative residual at which the exact projection's PCG solve stops (device backends
@@ -316,11 +279,6 @@ pub struct TrainConfig {
     /// alpha, an opacity times the projected 2D Gaussian ("w/o volumetric rendering"; see
     /// `gausmoke_render::AlphaModel::SplatOpacity`).
     pub volumetric: bool,
-    /// The renderer skips a Gaussian on a ray where its alpha is below this (3DGS's 1/255,
-    /// the default). A skipped Gaussian gets no gradient from that pixel, so one fitted
-    /// below it in every view is frozen there while still carried and splatted into the
-    /// density grid. Thin smoke's Gaussians sit close to 1/255. In (0, 1/255].
-    pub alpha_min: f32,
     /// Most Gaussians moved per frame, as a fraction of all, from the box's faces and from
     /// invisibility to where the training views show missing smoke (`respawn` module). 0 is
     /// the paper's method (a fixed set, only advected).
@@ -409,15 +367,12 @@ impl Default for TrainConfig {
             lambda_refine: 0.01,
             lambda_refine_grid: 0.0,
             lambda_lookahead: 0.0,
-            lookahead_velocity: LookaheadVelocity::Held,
             transport_velocity: false,
             lambda_increment: 0.0,
             increment_horizontal_weight: 1.0,
             dt: 1.0,
             unet_channels: 16,
             time_frequencies: 4,
-            interpolation: InterpolationKind::Gaussian,
-            integrator: IntegratorKind::Euler,
             projection: ProjectionKind::Exact,
             projection_tolerance: 1e-5,
             projection_max_iterations: 400,
@@ -426,7 +381,6 @@ impl Default for TrainConfig {
             physics_losses: true,
             refinement: true,
             volumetric: true,
-            alpha_min: 1.0 / 255.0,
             respawn_fraction: 0.0,
             respawn_threshold: 0.05,
             split_fraction: 0.0,
@@ -605,12 +559,11 @@ impl TrainConfig {
         toml::to_string_pretty(self).expect("the configuration serialises to TOML")
     }
 
-    /// The rasterizer's options: the defaults, with the configured `alpha_min`, the
+    /// The rasterizer's options: the defaults (3DGS's cull at alpha 1/255), with the
     /// ablation's alpha model when `volumetric` is off and the configured backward tile sums.
     pub fn raster_options(&self) -> gausmoke_render::RasterOptions {
         gausmoke_render::RasterOptions {
             gradient_sums: self.gradient_sums.into(),
-            alpha_min: self.alpha_min,
             alpha_model: if self.volumetric {
                 gausmoke_render::AlphaModel::BeerLambert
             } else {

@@ -4,7 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::config::{LookaheadVelocity, TrainConfig, VelocityEstimate};
+use crate::config::{TrainConfig, VelocityEstimate};
 
 /// How Algorithm 1 updates a frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
@@ -81,7 +81,6 @@ impl Preset {
                 // and U-Net pass.
                 advect_iterations: sizes.advect_iterations / 2,
                 lambda_lookahead: 1.0,
-                lookahead_velocity: LookaheadVelocity::Predicted,
                 transport_velocity: true,
                 lambda_increment: 0.01,
                 increment_horizontal_weight: 3.0,
@@ -134,7 +133,6 @@ mod tests {
                     "lambda_increment",
                     "lambda_lookahead",
                     "lambda_refine_grid",
-                    "lookahead_velocity",
                     "refine_iterations",
                     "refine_views_per_step",
                     "respawn_fraction",

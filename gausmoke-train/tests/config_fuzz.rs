@@ -46,7 +46,6 @@ const KEYS: &[(&str, bool)] = &[
     ("respawn_fraction", true),
     ("respawn_threshold", true),
     ("split_fraction", true),
-    ("alpha_min", true),
     ("seed", true),
     ("output_every", true),
     ("log_every", true),

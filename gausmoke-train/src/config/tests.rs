@@ -7,13 +7,13 @@ fn overrides_reach_nested_keys_and_round_trip_through_toml() {
             "lambda_div=0.5".into(),
             "image_size=[135, 240]".into(),
             "init_learning_rates.means=0.01".into(),
-            "interpolation=trilinear".into(),
+            "projection=penalty".into(),
         ])
         .unwrap();
     assert_eq!(config.lambda_div, 0.5);
     assert_eq!(config.image_size, Some([135, 240]));
     assert_eq!(config.init_learning_rates.means, 0.01);
-    assert_eq!(config.interpolation, InterpolationKind::Trilinear);
+    assert_eq!(config.projection, ProjectionKind::Penalty);
     let back: TrainConfig = toml::from_str(&config.to_toml()).unwrap();
     assert_eq!(back, config);
 }
@@ -126,31 +126,6 @@ fn gradient_sums_reach_the_rasterizer_and_bad_spellings_are_refused() {
         .with_overrides(&["gradient_sums=warp".into()])
         .unwrap_err();
     assert!(err.to_string().contains("warp"), "{err}");
-}
-
-#[test]
-fn alpha_min_reaches_the_rasterizer_and_old_configs_keep_3dgs_cull() {
-    assert_eq!(
-        TrainConfig::default().raster_options().alpha_min,
-        1.0 / 255.0
-    );
-    let config = TrainConfig::default()
-        .with_overrides(&["alpha_min=1e-5".into()])
-        .unwrap();
-    assert_eq!(config.raster_options().alpha_min, 1e-5);
-    assert!(config.validate().is_ok());
-    for bad in [0.0, 0.01, -1e-5, f32::NAN] {
-        let err = TrainConfig {
-            alpha_min: bad,
-            ..TrainConfig::default()
-        }
-        .validate()
-        .unwrap_err();
-        assert!(err.to_string().contains("alpha_min"), "{bad}: {err}");
-    }
-    // A run folder written before the setting existed reads back with the old cull.
-    let old: TrainConfig = toml::from_str("gaussians = 100").unwrap();
-    assert_eq!(old.alpha_min, 1.0 / 255.0);
 }
 
 #[test]

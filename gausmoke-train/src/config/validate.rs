@@ -74,12 +74,6 @@ impl TrainConfig {
                 self.split_fraction
             ));
         }
-        if !(self.alpha_min > 0.0 && self.alpha_min <= 1.0 / 255.0) {
-            return bad(format!(
-                "alpha_min must be in (0, 1/255], got {}",
-                self.alpha_min
-            ));
-        }
         if !(self.respawn_threshold.is_finite() && self.respawn_threshold >= 0.0) {
             return bad(format!(
                 "respawn_threshold must be >= 0, got {}",

@@ -15,7 +15,7 @@ use indicatif::ProgressBar;
 use super::losses::{ListCapacities, read_log};
 use super::{FrameStart, Trainer, ViewTargets};
 use crate::TrainError;
-use crate::config::{LookaheadVelocity, TrainConfig};
+use crate::config::TrainConfig;
 use crate::state::{LoopTraffic, LossRow, Phase};
 use crate::step_log::{StepLog, StepLosses};
 
@@ -32,13 +32,11 @@ pub(super) struct JointResult {
 }
 
 /// Ours (`lambda_lookahead`): the Gaussians carried to frame t are carried one frame further,
-/// along `u^t` (`lookahead_velocity = "held"`) or along Phi's projected prediction for frame
-/// t+1 from their density there (`"predicted"`), and rendered against frame t+1's training
+/// along Phi's projected prediction for frame t+1 from their density there, and rendered against frame t+1's training
 /// views with their other attributes held: `u^t` must also explain the next frame's
 /// pictures. Not applied at the last frame.
 pub(super) struct LookAhead {
     weight: f32,
-    velocity: LookaheadVelocity,
     /// Phi's time input at frame t+1.
     time: f32,
     views: ViewTargets,
@@ -51,7 +49,6 @@ impl LookAhead {
         let next = frame.t + 1;
         (config.lambda_lookahead > 0.0 && next < trainer.sequence.frames()).then(|| Self {
             weight: config.lambda_lookahead,
-            velocity: config.lookahead_velocity,
             time: next as f32 / (trainer.sequence.frames() - 1) as f32,
             views: trainer.training_views(next),
             lists: ListCapacities::new(config.tile_list_headroom),
@@ -65,12 +62,7 @@ impl LookAhead {
         projected: Tensor<4>,
         next: &GaussianTensors,
     ) -> Result<(Tensor<1>, InputCheck), TrainError> {
-        let carrier = match self.velocity {
-            LookaheadVelocity::Held => projected,
-            LookaheadVelocity::Predicted => {
-                trainer.predicted_velocity(projected, next, self.time)?
-            }
-        };
+        let carrier = trainer.predicted_velocity(projected, next, self.time)?;
         // Only the velocity learns here: the other attributes are held.
         let carried = Gaussians {
             means: trainer.carry(&carrier, &next.means).positions,

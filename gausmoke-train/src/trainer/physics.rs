@@ -15,33 +15,19 @@ use gausmoke_render::device_traffic::read_floats;
 
 use super::Trainer;
 use crate::TrainError;
-use crate::config::{IntegratorKind, InterpolationKind, ProjectionKind};
+use crate::config::ProjectionKind;
 
 impl Trainer {
-    pub(super) fn interpolation(&self) -> Interpolation {
-        match self.config.interpolation {
-            InterpolationKind::Gaussian => Interpolation::default(),
-            InterpolationKind::Trilinear => Interpolation::Trilinear,
-        }
-    }
-
-    fn integrator(&self) -> Integrator {
-        match self.config.integrator {
-            IntegratorKind::Euler => Integrator::Euler,
-            IntegratorKind::Rk2 => Integrator::Rk2,
-        }
-    }
-
-    /// `means` carried one step of `dt` by `velocity`, with the configured integrator and
-    /// interpolation: how the trainer moves Gaussians from frame to frame.
+    /// `means` carried one step of `dt` by `velocity`, Euler (Eq. 13) through the Gaussian
+    /// interpolation (Eq. 11): how the trainer moves Gaussians from frame to frame.
     pub(super) fn carry(&self, velocity: &Tensor<4>, means: &Tensor<2>) -> Advected {
         advect(
             &self.grid,
             velocity,
             means,
             self.config.dt,
-            self.integrator(),
-            self.interpolation(),
+            Integrator::Euler,
+            Interpolation::default(),
         )
     }
 

@@ -63,9 +63,13 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
         settings.push(("transport_velocity", "velocity transported".to_string()));
     }
     if let Some(w) = weight("lambda_lookahead") {
-        let along = match config["lookahead_velocity"].as_str() {
-            Some("predicted") => " along Phi's prediction",
-            _ => "",
+        // Since the scene has its table, the look-ahead always follows Phi's prediction.
+        let predicted = config["lookahead_velocity"].as_str() == Some("predicted")
+            || config["scene"].is_object();
+        let along = if predicted {
+            " along Phi's prediction"
+        } else {
+            ""
         };
         settings.push(("lambda_lookahead", format!("look-ahead {w}{along}")));
     }
