@@ -19,6 +19,7 @@ use crate::sequence::{Observation, Sequence};
 use crate::state::{FrameReport, LossRow, PhaseSeconds};
 use crate::tensorboard::EventWriter;
 use crate::trainer::{FrameOutcome, Trainer};
+use crate::velocity_estimate::StoredEstimate;
 use crate::{TrainConfig, TrainError, metrics};
 
 /// Algorithm 1 over a whole sequence, with its outputs.
@@ -274,7 +275,12 @@ impl Run {
             self.train_frame(t)?;
         }
         self.write_summary()?;
-        self.estimate_velocity()?;
+        // A finished run resumed trains nothing new: its estimate stands, if it was finished
+        // (its summary is written last).
+        let trained_now = first < self.trainer.sequence.frames();
+        if trained_now || StoredEstimate::open(self.folder.root())?.is_none() {
+            self.estimate_velocity()?;
+        }
         Ok(&self.reports)
     }
 

@@ -1710,3 +1710,59 @@ fn trained(data: &Path, dir: &Path, config: TrainConfig, name: &str) -> Run {
     run.run().unwrap();
     run
 }
+
+/// A data set without a scene.toml: frame 0 settles the scene from its density (reported in
+/// config.toml), a resume keeps what it settled, and `velocity_estimate` ends the run with the
+/// velocity read off the densities, from the estimated inflow.
+#[test]
+fn a_data_set_without_a_scene_file_gets_its_scene_from_frame_0() {
+    use gausmoke_train::config::VelocityEstimate;
+    use gausmoke_train::scene::SCENE_FILE;
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    std::fs::remove_file(data.join(SCENE_FILE)).unwrap();
+    let config = TrainConfig {
+        frames: Some(3),
+        velocity_estimate: VelocityEstimate::Forces,
+        ..test_config()
+    };
+    let mut run = quiet_run(&data, dir.path(), config.clone(), "estimated");
+    assert_eq!(run.trainer.config.scene.open_faces, None);
+    run.train_frame(0).unwrap();
+    let scene = run.trainer.config.scene.clone();
+    // The tiny plume rises from its source on the floor.
+    assert_eq!(
+        scene.open_faces,
+        Some(vec!["y-".to_string(), "y+".to_string()])
+    );
+    let inflow = scene.inflow.expect("an inflow box");
+    assert_eq!(
+        inflow[1], 0.0,
+        "the inflow box stands on the floor: {inflow:?}"
+    );
+    assert!(
+        inflow[0] < 0.5 && inflow[3] > 0.5,
+        "around the source: {inflow:?}"
+    );
+    let written = TrainConfig::from_toml_file(&dir.path().join("estimated/config.toml")).unwrap();
+    assert_eq!(written.scene, scene);
+    run.train_frame(1).unwrap();
+    drop(run);
+    // Resumed with the scene unset again, the run keeps frame 0's.
+    let sequence = Sequence::open(&data, &config).unwrap();
+    let device = device_by_name("flex").unwrap().autodiff();
+    let mut resumed = Run::new(
+        sequence,
+        config,
+        device,
+        &dir.path().join("estimated"),
+        true,
+    )
+    .unwrap()
+    .quiet(true);
+    assert_eq!(resumed.trainer.config.scene, scene);
+    resumed.run().unwrap();
+    let estimate = dir.path().join("estimated/velocity_estimate");
+    assert!(estimate.join("estimate.json").is_file());
+    assert!(estimate.join("frame_002.safetensors").is_file());
+}
