@@ -10,9 +10,6 @@ use gausmoke_render::{Gaussian, GaussianTensors, Gaussians, HostGaussians};
 /// so a 0.5-unit box starts mostly transparent.
 pub const INITIAL_RAW_DENSITY: f32 = -2.0;
 
-/// Log-scale bounds that leave only the renderer's range (see [`GaussianModel::clamped`]).
-pub const NO_SIZE_BOUNDS: [f32; 2] = [f32::NEG_INFINITY, f32::INFINITY];
-
 /// The log-scales an optimiser step may leave: the renderer's accepted range.
 const MIN_LOG_SCALE: f32 = -12.0;
 const MAX_LOG_SCALE: f32 = 4.0;
@@ -188,18 +185,16 @@ impl GaussianModel {
         }
     }
 
-    /// Keeps colours in `[0, 1]` and log-scales in the renderer's accepted range and within
-    /// `[lo, hi]` of `log_scale_bounds` ([`NO_SIZE_BOUNDS`]: the range alone), after an
+    /// Keeps colours in `[0, 1]` and log-scales in the renderer's accepted range after an
     /// optimiser step (a projection onto the feasible set, not a reparameterisation).
-    pub fn clamped(self, log_scale_bounds: [f32; 2]) -> Self {
+    pub fn clamped(self) -> Self {
         let colors_id = self.colors.id;
         let scales_id = self.log_scales.id;
         let colors = self.colors.val().clamp(0.0, 1.0).detach().require_grad();
-        let [lo, hi] = log_scale_bounds.map(|b| b.clamp(MIN_LOG_SCALE, MAX_LOG_SCALE));
         let log_scales = self
             .log_scales
             .val()
-            .clamp(lo, hi.max(lo))
+            .clamp(MIN_LOG_SCALE, MAX_LOG_SCALE)
             .detach()
             .require_grad();
         Self {

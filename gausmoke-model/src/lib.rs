@@ -24,7 +24,7 @@ pub use density::{
     DensityBackend, DensityField, SplatOptions, density_and_gradient_grid, density_field,
     density_gradient_grid, density_grid,
 };
-pub use gaussians::{GaussianModel, INITIAL_RAW_DENSITY, NO_SIZE_BOUNDS};
+pub use gaussians::{GaussianModel, INITIAL_RAW_DENSITY};
 pub use grid::{GridError, GridSpec};
 pub use interp::{Interpolation, VelocitySample, grid_from_fn, sample_velocity};
 pub use losses::{advection_loss, divergence_loss, divergence_loss_of, refine_loss};

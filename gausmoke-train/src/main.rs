@@ -217,7 +217,7 @@ struct TrainArgs {
     #[arg(long, value_enum, default_value_t = Preset::Ours)]
     preset: Preset,
     /// The sizes: the paper's (30k Gaussians, 64^3, K = 250; a GPU's work) or `quick`
-    /// (8000 Gaussians, 32^3, K = 20; minutes a frame on a laptop CPU).
+    /// (8000 Gaussians, 32^3, K = 20; seconds a frame on a laptop CPU).
     #[arg(long, value_enum, default_value_t = Scale::Paper)]
     scale: Scale,
     /// TOML configuration (keys as in the run's config.toml, any subset): applied on top of

@@ -33,7 +33,7 @@ pub enum Scale {
     /// K' = 50, a 16-channel U-Net. Hours a sequence; a GPU's work.
     #[default]
     Paper,
-    /// Sizes a laptop CPU trains in minutes a frame: 8000 Gaussians, 32^3 grid, 400 frame-0
+    /// Sizes a laptop CPU trains in seconds a frame: 8000 Gaussians, 32^3 grid, 400 frame-0
     /// steps, K = 20, K' = 5, an 8-channel U-Net, learning rates 2e-3. Every figure in
     /// docs/RESULTS.md marked "quick" was measured at these sizes.
     Quick,

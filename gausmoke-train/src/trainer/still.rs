@@ -5,9 +5,7 @@ use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Gradients, Tensor, TensorData};
 use gausmoke_core::glam::Vec3;
 use gausmoke_core::{Camera, phase};
-use gausmoke_model::{
-    GaussianModel, GridSpec, INITIAL_RAW_DENSITY, NO_SIZE_BOUNDS, UNetConfig, VelocityUNet,
-};
+use gausmoke_model::{GaussianModel, GridSpec, INITIAL_RAW_DENSITY, UNetConfig, VelocityUNet};
 use gausmoke_render::Gaussians;
 
 use super::Trainer;
@@ -41,7 +39,7 @@ fn adam_per_attribute(
             model = optim.step(lr, model, params);
         }
     }
-    model.clamped(NO_SIZE_BOUNDS)
+    model.clamped()
 }
 
 /// Which Gaussians a fit to still images trains (see [`Trainer::fit_to_images`]).
