@@ -54,6 +54,17 @@ impl Run {
         out: &Path,
         resume: bool,
     ) -> Result<Self, TrainError> {
+        // run.json keeps the data set's resolved path as text, and resuming compares it: a
+        // path that is not text is refused before the run folder is touched.
+        let resolved = std::fs::canonicalize(&sequence.path).unwrap_or(sequence.path.clone());
+        if resolved.to_str().is_none() {
+            return Err(TrainError::Dataset {
+                path: resolved,
+                reason: "the path is not valid UTF-8, which the run's run.json cannot record; \
+                         rename the folder"
+                    .into(),
+            });
+        }
         let trainer = Trainer::new(sequence, config, device)?;
         let folder = RunFolder::at(out);
         let existing = checkpoint::complete(out)?;

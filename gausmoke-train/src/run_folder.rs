@@ -216,7 +216,10 @@ impl RunFolder {
     }
 
     fn write_json(path: &Path, value: &impl Serialize) -> Result<(), TrainError> {
-        let text = serde_json::to_string_pretty(value).expect("plain JSON");
+        let text = serde_json::to_string_pretty(value).map_err(|e| TrainError::Export {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })?;
         write_atomic(path, text.as_bytes())
     }
 

@@ -1766,3 +1766,27 @@ fn a_data_set_without_a_scene_file_gets_its_scene_from_frame_0() {
     assert!(estimate.join("estimate.json").is_file());
     assert!(estimate.join("frame_002.safetensors").is_file());
 }
+
+/// A data set whose path is not UTF-8 is refused naming it, before the run folder is
+/// created (it used to panic writing run.json and leave a folder no start accepted).
+#[test]
+fn a_data_path_that_is_not_utf8_is_refused_before_anything_is_written() {
+    use std::os::unix::ffi::OsStrExt;
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let odd = dir.path().join(std::ffi::OsStr::from_bytes(b"nu_\xff\xfe"));
+    std::fs::rename(&data, &odd).unwrap();
+    let config = TrainConfig {
+        frames: Some(1),
+        ..test_config()
+    };
+    let sequence = Sequence::open(&odd, &config).unwrap();
+    let device = device_by_name("flex").unwrap().autodiff();
+    let out = dir.path().join("run");
+    let err = match Run::new(sequence, config, device, &out, false) {
+        Ok(_) => panic!("a non-UTF-8 data path was accepted"),
+        Err(e) => e.to_string(),
+    };
+    assert!(err.contains("UTF-8") && err.contains("nu_"), "{err}");
+    assert!(!out.exists(), "nothing is written");
+}
