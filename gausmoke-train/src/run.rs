@@ -146,16 +146,39 @@ impl Run {
             }
         };
         match &info.data_fingerprint {
-            Some(trained) if trained != fingerprint => Err(TrainError::Config {
-                origin: "--data".into(),
-                reason: format!(
-                    "{} is not the data set this run was trained on ({}): its cameras, views, \
+            Some(trained) if trained != fingerprint => {
+                // Settings that choose what is read of the data change its fingerprint too:
+                // name them rather than blame the data.
+                if let Ok(run_config) = self.folder.read_config() {
+                    let changed: Vec<String> = run_config
+                        .differences(&self.trainer.config)
+                        .into_iter()
+                        .filter(|(key, _, _)| DATA_KEYS.contains(&key.as_str()))
+                        .map(|(key, was, now)| format!("{key} = {was} in the run, {now} now"))
+                        .collect();
+                    if !changed.is_empty() {
+                        return Err(TrainError::Config {
+                            origin: "configuration".into(),
+                            reason: format!(
+                                "{}: these settings choose what the run reads of its data and \
+                                 cannot change on resume; resume with the run's values (its \
+                                 config.toml) or start a new --out",
+                                changed.join("; ")
+                            ),
+                        });
+                    }
+                }
+                Err(TrainError::Config {
+                    origin: "--data".into(),
+                    reason: format!(
+                        "{} is not the data set this run was trained on ({}): its cameras, views, \
                      box or first images differ (fingerprint {fingerprint}, the run's {trained}); \
                      resume with the original --data or start a new --out",
-                    data.display(),
-                    info.data.display()
-                ),
-            }),
+                        data.display(),
+                        info.data.display()
+                    ),
+                })
+            }
             Some(_) => Ok(()),
             None => {
                 tracing::warn!(
@@ -608,6 +631,9 @@ fn frame_report(
         device_traffic: outcome.traffic.clone(),
     }
 }
+
+/// The settings that choose what a run reads of its data set (and so its fingerprint).
+const DATA_KEYS: &[&str] = &["image_size", "train_views", "test_views", "first_frame"];
 
 /// Refuses an `--out` folder that holds files but no run of ours (no `run.json`), so that
 /// training never writes over someone's data.

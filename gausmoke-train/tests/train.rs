@@ -707,6 +707,23 @@ fn resume_refuses_other_data_and_names_changed_settings() {
         "{err}"
     );
 
+    // A setting that chooses what is read of the data (and so its fingerprint) is named,
+    // not reported as other data.
+    let smaller = TrainConfig {
+        image_size: Some([32, 48]),
+        ..config.clone()
+    };
+    let scene = Sequence::open(&data, &smaller).unwrap();
+    let Err(err) = Run::new(scene, smaller, device.clone(), &out, true) else {
+        panic!("resuming with another image size was accepted");
+    };
+    let message = err.to_string();
+    assert!(
+        message.contains("image_size = (unset) in the run, [32, 48] now")
+            && !message.contains("not the data set"),
+        "{message}"
+    );
+
     // The same data through another path (a relative one) resumes, with gentler learning
     // rates and more frames: the settings a diverged or finished run may change.
     let relative = pathdiff_relative(&data);
