@@ -144,3 +144,27 @@ fn solver_tests_are_spelled_for_toml_and_bad_spellings_are_refused() {
     assert!(err.to_string().contains("sometimes"), "{err}");
     assert!(RESUMABLE_KEYS.contains(&"solver_tests"));
 }
+
+/// Values that cannot train are refused naming the key: a decay that grows, learning rates
+/// above 1, a huge time step or tolerance, a view named twice (issue 81 item 3).
+#[test]
+fn nonsense_values_are_refused_naming_the_key() {
+    for (set, named) in [
+        ("lr_decay=1e12", "lr_decay"),
+        ("lr_velocity=1e12", "lr_velocity"),
+        ("lr_gaussians=2", "lr_gaussians"),
+        ("lr_log_scales=1e12", "lr_log_scales"),
+        ("init_learning_rates.means=5", "init_learning_rates.means"),
+        ("dt=1e12", "dt"),
+        ("projection_tolerance=1e12", "projection_tolerance"),
+        ("tile_list_headroom=1e12", "tile_list_headroom"),
+        (r#"train_views=["view00", "view00"]"#, "view00"),
+    ] {
+        let err = TrainConfig::default()
+            .with_overrides(&[set.to_string()])
+            .and_then(|config| config.validate())
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains(named), "{set}: {err}");
+    }
+}

@@ -24,17 +24,26 @@ impl TrainConfig {
                 self.grid_resolution
             ));
         }
-        let positive = [
-            ("lr_velocity", self.lr_velocity),
-            ("lr_gaussians", self.lr_gaussians),
-            ("lr_decay", self.lr_decay),
-            ("dt", self.dt as f64),
-            ("projection_tolerance", self.projection_tolerance),
+        // Positive, and no larger than any value that still trains: a learning rate above 1
+        // moves a parameter by more than its own range in one step, a decay above 1 grows.
+        let bounded = [
+            ("lr_velocity", self.lr_velocity, 1.0),
+            ("lr_gaussians", self.lr_gaussians, 1.0),
+            ("lr_decay", self.lr_decay, 1.0),
+            ("dt", self.dt as f64, 10.0),
+            ("projection_tolerance", self.projection_tolerance, 0.1),
         ];
-        for (name, value) in positive {
-            if !(value.is_finite() && value > 0.0) {
-                return bad(format!("{name} must be a positive number, got {value}"));
+        for (name, value, most) in bounded {
+            if !(value.is_finite() && value > 0.0 && value <= most) {
+                return bad(format!("{name} must be in (0, {most}], got {value}"));
             }
+        }
+        if let Some(lr) = self.lr_log_scales
+            && !(lr.is_finite() && (0.0..=1.0).contains(&lr))
+        {
+            return bad(format!(
+                "lr_log_scales must be in [0, 1] when set, got {lr}"
+            ));
         }
         let weights = [
             ("lambda_div", self.lambda_div),
@@ -88,9 +97,9 @@ impl TrainConfig {
                  axis (fractions of the smoke box), got {region:?}"
             ));
         }
-        if !(self.tile_list_headroom.is_finite() && self.tile_list_headroom >= 1.0) {
+        if !(1.0..=100.0).contains(&self.tile_list_headroom) {
             return bad(format!(
-                "tile_list_headroom must be >= 1, got {}",
+                "tile_list_headroom must be in [1, 100], got {}",
                 self.tile_list_headroom
             ));
         }
@@ -117,8 +126,8 @@ impl TrainConfig {
             ("init_learning_rates.colors", rates.colors),
         ];
         for (name, value) in init_rates {
-            if !(value.is_finite() && value > 0.0) {
-                return bad(format!("{name} must be a positive number, got {value}"));
+            if !(value.is_finite() && value > 0.0 && value <= 1.0) {
+                return bad(format!("{name} must be in (0, 1], got {value}"));
             }
         }
         // PE(t) uses frequencies 2^0 .. 2^(L-1): beyond 16 an f32 phase keeps no digits of t.
@@ -174,6 +183,15 @@ impl TrainConfig {
                 return bad(format!(
                     "{name} must name at least one view (or be left out)"
                 ));
+            }
+            if let Some(views) = views
+                && let Some(twice) = views
+                    .iter()
+                    .enumerate()
+                    .find(|(i, view)| views[..*i].contains(view))
+                    .map(|(_, view)| view)
+            {
+                return bad(format!("{name} names the view {twice:?} twice"));
             }
         }
         Ok(())
