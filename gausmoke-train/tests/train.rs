@@ -549,14 +549,23 @@ fn bad_options_and_data_are_reported_plainly() {
 
 #[test]
 fn a_diverging_run_stops_naming_the_quantity_and_keeps_the_last_frame() {
-    // An absurd velocity learning rate: Phi's weights jump to ~1e30 after the first step, the
-    // velocity grid overflows, and the run must stop at frame 1 with frame 0 kept.
+    // The largest velocity learning rate and time step accepted (1, a thousand times the
+    // paper's rate; 10 frames a step): Phi's weights move by about 1 a step, the carried
+    // centres overflow within a few joint iterations, and the run must stop at frame 1 with
+    // frame 0 kept.
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
     let run = dir.path().join("run");
     let out = train_command(&data, &run)
         .args(["--set", "frames=2", "--set", "init_iterations=5"])
-        .args(["--set", "lr_velocity=1e30", "--set", "output_every=1"])
+        .args([
+            "--set",
+            "lr_velocity=1",
+            "--set",
+            "dt=10",
+            "--set",
+            "output_every=1",
+        ])
         .output()
         .unwrap();
     assert!(!out.status.success());
