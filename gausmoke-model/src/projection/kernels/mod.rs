@@ -27,10 +27,7 @@ use burn_cubecl::tensor::CubeTensor;
 use cubecl::prelude::*;
 use gausmoke_render::kernels::buffers::{buffer, contiguous_f32};
 
-use super::DeferredSolves;
-use super::host::{
-    ConvergenceTests, OpenFaces, ProjectionOptions, ProjectionReport, ProjectionSpec, SolveKind,
-};
+use super::host::{ConvergenceTests, ProjectionOptions, ProjectionReport, ProjectionSpec};
 use cg::{
     CELL_BLOCK, direction_kernel, dot_partials_kernel, finish_sums_kernel,
     operator_direction_kernel, step_kernel, subtract_kernel,
@@ -42,7 +39,7 @@ mod deferred;
 mod operators;
 
 pub use deferred::{CHECK_EVERY, settle_deferred_solves};
-use deferred::{HintKey, IterationHints, PendingSolve, defer};
+use deferred::{IterationHints, PendingSolve, defer};
 
 /// Slots of the CG scalar buffer: `|b|^2` and `|u|^2` first, then three per iteration.
 struct Slot;
