@@ -50,7 +50,8 @@ enum Command {
     },
     /// Reconstruct density and velocity from a data set (paper Algorithm 1).
     Train(TrainArgs),
-    /// Evaluate a finished (or interrupted) run on its held-out views.
+    /// Evaluate a finished (or interrupted) run on its held-out views: prints a summary and
+    /// writes every figure, per frame and averaged, to RUN/eval.json.
     Eval {
         /// The run folder written by `train`.
         #[arg(long)]

@@ -18,7 +18,8 @@ pub(super) struct RenderArgs {
     /// frames[].transform_matrix camera-to-world, OpenGL axes).
     #[arg(long, value_name = "FILE")]
     pub(super) cameras: Option<PathBuf>,
-    /// Time frames to show: `T`, `A..B` (B excluded) or `A..=B`; default all finished frames.
+    /// Time frames to show: `T`, `A-B` or `A..=B` (both ends), `A:B` or `A..B` (B excluded);
+    /// default all finished frames.
     #[arg(long, value_name = "RANGE")]
     pub(super) frames: Option<String>,
     /// Picture size WIDTHxHEIGHT (orbit: default the held-out camera's; demo: 270x480).
@@ -51,25 +52,53 @@ pub(super) fn parse_size(text: &str) -> Result<[u32; 2]> {
     parsed.with_context(|| format!("--size `{text}`: expected WIDTHxHEIGHT, e.g. 480x270"))
 }
 
-/// `--frames T`, `A..B` or `A..=B` as a half-open range.
+/// `--frames T`, `A-B` or `A..=B` (both ends shown), `A:B` or `A..B` (B excluded, as Python
+/// and Rust slice), as a half-open range.
 pub(super) fn parse_frames(text: &str) -> Result<std::ops::Range<usize>> {
     let number = |s: &str| {
         s.trim()
             .parse::<usize>()
             .with_context(|| format!("--frames `{text}`: `{s}` is not a frame number"))
     };
-    let range = if let Some((a, b)) = text.split_once("..=") {
-        number(a)?..number(b)? + 1
-    } else if let Some((a, b)) = text.split_once("..") {
-        number(a)?..number(b)?
-    } else {
-        let t = number(text)?;
-        t..t + 1
+    let inclusive = text.split_once("..=").or_else(|| text.split_once('-'));
+    let exclusive = text.split_once("..").or_else(|| text.split_once(':'));
+    let range = match (inclusive, exclusive) {
+        (Some((a, b)), _) => number(a)?..number(b)? + 1,
+        (None, Some((a, b))) => number(a)?..number(b)?,
+        (None, None) => {
+            let t = number(text)?;
+            t..t + 1
+        }
     };
     if range.is_empty() {
         bail!("--frames `{text}` is empty");
     }
     Ok(range)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_frames;
+
+    /// The forms users type: a frame, Rust's ranges, a dash (both ends) and Python's colon
+    /// (end excluded); nonsense and empty ranges are refused naming the text.
+    #[test]
+    fn frames_are_read_as_users_type_them() {
+        for (text, range) in [
+            ("7", 7..8),
+            ("0..60", 0..60),
+            ("0..=59", 0..60),
+            ("0-59", 0..60),
+            ("0:60", 0..60),
+            (" 3 - 5 ", 3..6),
+        ] {
+            assert_eq!(parse_frames(text).unwrap(), range, "{text}");
+        }
+        for text in ["a-b", "5:5", "-1", "9-3"] {
+            let err = parse_frames(text).unwrap_err().to_string();
+            assert!(err.contains(text.trim()), "{text}: {err}");
+        }
+    }
 }
 
 /// `render --run DIR`: videos of a trained reconstruction.
