@@ -76,31 +76,6 @@ pub(super) fn parse_frames(text: &str) -> Result<std::ops::Range<usize>> {
     Ok(range)
 }
 
-#[cfg(test)]
-mod tests {
-    use super::parse_frames;
-
-    /// The forms users type: a frame, Rust's ranges, a dash (both ends) and Python's colon
-    /// (end excluded); nonsense and empty ranges are refused naming the text.
-    #[test]
-    fn frames_are_read_as_users_type_them() {
-        for (text, range) in [
-            ("7", 7..8),
-            ("0..60", 0..60),
-            ("0..=59", 0..60),
-            ("0-59", 0..60),
-            ("0:60", 0..60),
-            (" 3 - 5 ", 3..6),
-        ] {
-            assert_eq!(parse_frames(text).unwrap(), range, "{text}");
-        }
-        for text in ["a-b", "5:5", "-1", "9-3"] {
-            let err = parse_frames(text).unwrap_err().to_string();
-            assert!(err.contains(text.trim()), "{text}: {err}");
-        }
-    }
-}
-
 /// `render --run DIR`: videos of a trained reconstruction.
 pub(super) fn render_trained(run: &Path, args: RenderArgs) -> Result<()> {
     use gausmoke_train::novel_views::{CameraPath, RenderRequest, render_run};
@@ -196,4 +171,29 @@ pub(super) fn render_demo(args: RenderArgs) -> Result<()> {
         alpha_path.display()
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_frames;
+
+    /// The forms users type: a frame, Rust's ranges, a dash (both ends) and Python's colon
+    /// (end excluded); nonsense and empty ranges are refused naming the text.
+    #[test]
+    fn frames_are_read_as_users_type_them() {
+        for (text, range) in [
+            ("7", 7..8),
+            ("0..60", 0..60),
+            ("0..=59", 0..60),
+            ("0-59", 0..60),
+            ("0:60", 0..60),
+            (" 3 - 5 ", 3..6),
+        ] {
+            assert_eq!(parse_frames(text).unwrap(), range, "{text}");
+        }
+        for text in ["a-b", "5:5", "-1", "9-3"] {
+            let err = parse_frames(text).unwrap_err().to_string();
+            assert!(err.contains(text.trim()), "{text}: {err}");
+        }
+    }
 }
