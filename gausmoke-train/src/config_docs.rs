@@ -8,26 +8,27 @@ use crate::config::TrainConfig;
 /// The sources whose `pub struct`s define the keys: the top level and its tables.
 const SOURCES: [&str; 2] = [include_str!("config.rs"), include_str!("scene.rs")];
 
+/// The body of `pub struct name` in [`SOURCES`] (up to its closing brace).
+fn struct_body(name: &str) -> Option<&'static str> {
+    SOURCES.iter().find_map(|source| {
+        let body = &source[source.find(&format!("pub struct {name} {{"))?..];
+        Some(&body[..body.find("\n}\n").unwrap_or(body.len())])
+    })
+}
+
 /// The doc comment of field `key` of `pub struct name` in [`SOURCES`], one line per entry.
 fn doc_of(name: &str, key: &str) -> Vec<String> {
-    for source in SOURCES {
-        let Some(start) = source.find(&format!("pub struct {name} {{")) else {
+    let mut doc = Vec::new();
+    for line in struct_body(name).unwrap_or_default().lines() {
+        let line = line.trim();
+        if let Some(text) = line.strip_prefix("///") {
+            doc.push(text.trim().to_string());
+        } else if line.starts_with("#[") {
             continue;
-        };
-        let body = &source[start..];
-        let body = &body[..body.find("\n}\n").unwrap_or(body.len())];
-        let mut doc = Vec::new();
-        for line in body.lines() {
-            let line = line.trim();
-            if let Some(text) = line.strip_prefix("///") {
-                doc.push(text.trim().to_string());
-            } else if line.starts_with("#[") {
-                continue;
-            } else if line.starts_with(&format!("pub {key}:")) {
-                return doc;
-            } else {
-                doc.clear();
-            }
+        } else if line.starts_with(&format!("pub {key}:")) {
+            return doc;
+        } else {
+            doc.clear();
         }
     }
     Vec::new()
@@ -87,25 +88,17 @@ pub fn annotated_toml(config: &TrainConfig) -> String {
 
 /// The fields of the struct behind `table`, in the order the source declares them.
 fn field_order(table: Option<&str>) -> Vec<String> {
-    let name = struct_of(table);
-    for source in SOURCES {
-        let Some(start) = source.find(&format!("pub struct {name} {{")) else {
-            continue;
-        };
-        let body = &source[start..];
-        let body = &body[..body.find("\n}\n").unwrap_or(body.len())];
-        return body
-            .lines()
-            .filter_map(|line| {
-                let field = line.trim().strip_prefix("pub ")?;
-                let (key, _) = field.split_once(':')?;
-                key.chars()
-                    .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_')
-                    .then(|| key.to_string())
-            })
-            .collect();
-    }
-    Vec::new()
+    struct_body(struct_of(table))
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|line| {
+            let field = line.trim().strip_prefix("pub ")?;
+            let (key, _) = field.split_once(':')?;
+            key.chars()
+                .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_')
+                .then(|| key.to_string())
+        })
+        .collect()
 }
 
 #[cfg(test)]

@@ -109,7 +109,7 @@ impl Run {
         };
         let sequence = &run.trainer.sequence;
         let fingerprint = sequence.fingerprint();
-        let data = std::fs::canonicalize(&sequence.path).unwrap_or_else(|_| sequence.path.clone());
+        let data = resolved;
         if resume && !existing.is_empty() {
             run.check_same_data(&data, &fingerprint)?;
             run.restore(&existing)?;
