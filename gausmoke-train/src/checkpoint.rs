@@ -44,6 +44,29 @@ pub struct CheckpointMeta {
     /// rather than trained on. Filled in by [`save`].
     #[serde(default)]
     pub checksums: BTreeMap<String, String>,
+    /// The frames of the run that wrote this (its sequence's length), which Phi's time input
+    /// `t / (frames - 1)` depends on.
+    #[serde(default)]
+    pub run_frames: Option<usize>,
+    /// The data set's fingerprint (as `run.json`'s), so that a resume checks its data even
+    /// when `run.json` is gone.
+    #[serde(default)]
+    pub data_fingerprint: Option<String>,
+    /// FNV-1a of this `state.json` as written with this field empty, so that an edited or
+    /// damaged frame number, configuration or history is refused. Filled in by [`save`].
+    #[serde(default)]
+    pub state_checksum: Option<String>,
+}
+
+impl CheckpointMeta {
+    /// The hash of `state.json`'s JSON with [`Self::state_checksum`] empty.
+    fn unsealed_checksum(&self) -> Result<String, serde_json::Error> {
+        let mut unsealed = self.clone();
+        unsealed.state_checksum = None;
+        let mut hash = Fnv1a::default();
+        hash.write(serde_json::to_string_pretty(&unsealed)?.as_bytes());
+        Ok(hash.hex())
+    }
 }
 
 const GAUSSIANS_FILE: &str = "gaussians.bpk";
@@ -54,6 +77,9 @@ const VELOCITY_FILE: &str = "velocity.safetensors";
 const META_FILE: &str = "state.json";
 const STATICS_FILE: &str = "statics.bpk";
 const STATIC_OPTIM_FILE: &str = "static_optim.bpk";
+/// Host arrays a trainer carries from frame to frame besides its modules (the last frame's
+/// refinement moves), when it has any.
+const EXTRAS_FILE: &str = "extras.safetensors";
 const TENSOR_FILES: [&str; 5] = [
     GAUSSIANS_FILE,
     PHI_FILE,
@@ -114,7 +140,12 @@ pub fn remove_partials(run: &Path) -> Result<(), TrainError> {
 /// Writes the checkpoint of `meta.frame`: into a hidden partial folder, every file and the
 /// folder flushed to the disk, then renamed, so that `frame_TTT` is whole even after a power
 /// loss. A failed write removes its partial folder and leaves the older checkpoints alone.
-pub fn save(run: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<PathBuf, TrainError> {
+pub fn save(
+    run: &Path,
+    state: &TrainState,
+    extras: &HostArrays,
+    meta: &CheckpointMeta,
+) -> Result<PathBuf, TrainError> {
     let root = checkpoint_root(run);
     let name = format!("frame_{:03}", meta.frame);
     let partial = root.join(format!(".{name}.partial"));
@@ -125,7 +156,7 @@ pub fn save(run: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<Pat
             source,
         })?;
     }
-    if let Err(err) = write_files(&partial, state, meta) {
+    if let Err(err) = write_files(&partial, state, extras, meta) {
         // The error is the one worth reporting; a leftover is removed on the next start.
         let _ = std::fs::remove_dir_all(&partial);
         return Err(err);
@@ -151,7 +182,12 @@ pub fn save(run: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<Pat
     Ok(done)
 }
 
-fn write_files(dir: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<(), TrainError> {
+fn write_files(
+    dir: &Path,
+    state: &TrainState,
+    extras: &HostArrays,
+    meta: &CheckpointMeta,
+) -> Result<(), TrainError> {
     std::fs::create_dir_all(dir).map_err(|source| TrainError::Io {
         path: dir.to_path_buf(),
         source,
@@ -182,12 +218,20 @@ fn write_files(dir: &Path, state: &TrainState, meta: &CheckpointMeta) -> Result<
         &dir.join(VELOCITY_FILE),
         &HostArrays::from([("velocity".to_string(), (shape, values))]),
     )?;
+    if !extras.is_empty() {
+        write_arrays(&dir.join(EXTRAS_FILE), extras)?;
+        files.push(EXTRAS_FILE);
+    }
     let mut meta = meta.clone();
     meta.checksums.clear();
     for &file in &files {
         meta.checksums
             .insert(file.into(), checksum(&dir.join(file))?);
     }
+    let sum = meta
+        .unsealed_checksum()
+        .map_err(|e| checkpoint_error(dir, e))?;
+    meta.state_checksum = Some(sum);
     let json = serde_json::to_string_pretty(&meta).map_err(|e| checkpoint_error(dir, e))?;
     std::fs::write(dir.join(META_FILE), json).map_err(|source| TrainError::Io {
         path: dir.join(META_FILE),
@@ -272,15 +316,53 @@ pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, TrainError> {
         path: path.clone(),
         source,
     })?;
-    serde_json::from_str(&text).map_err(|e| checkpoint_error(&path, e))
+    let meta: CheckpointMeta =
+        serde_json::from_str(&text).map_err(|e| checkpoint_error(&path, e))?;
+    match &meta.state_checksum {
+        Some(recorded) => {
+            let found = meta
+                .unsealed_checksum()
+                .map_err(|e| checkpoint_error(&path, e))?;
+            if &found != recorded {
+                return Err(checkpoint_error(
+                    &path,
+                    format!(
+                        "the file was changed after it was written (its checksum is {found}, \
+                         {recorded} when written); resume from the checkpoint before it, or \
+                         train again"
+                    ),
+                ));
+            }
+        }
+        None => tracing::warn!(
+            path = %path.display(),
+            "this checkpoint predates state.json checksums; read as it is"
+        ),
+    }
+    let named = format!("frame_{:03}", meta.frame);
+    if dir.file_name().is_some_and(|name| name != named.as_str()) {
+        return Err(checkpoint_error(
+            &path,
+            format!(
+                "it says frame {} but its folder is {}",
+                meta.frame,
+                dir.file_name().unwrap_or_default().to_string_lossy()
+            ),
+        ));
+    }
+    Ok(meta)
+}
+
+/// What [`load`] restores.
+pub struct Restored {
+    pub state: TrainState,
+    /// The extras [`save`] was given (empty when it had none).
+    pub extras: HostArrays,
+    pub meta: CheckpointMeta,
 }
 
 /// Restores `state` (freshly built with the same configuration) from checkpoint `dir`.
-pub fn load(
-    dir: &Path,
-    state: TrainState,
-    device: &Device,
-) -> Result<(TrainState, CheckpointMeta), TrainError> {
+pub fn load(dir: &Path, state: TrainState, device: &Device) -> Result<Restored, TrainError> {
     let meta = read_meta(dir)?;
     verify(dir, &meta)?;
     let (gaussians, gaussian_optim) = load_with_optim(
@@ -305,8 +387,13 @@ pub fn load(
     let shape = state.velocity.dims();
     let values = take_array(&mut arrays, "velocity", &shape, &path)?;
     let velocity = Tensor::<4>::from_data(TensorData::new(values, shape), device);
-    Ok((
-        TrainState {
+    let extras = if meta.checksums.contains_key(EXTRAS_FILE) {
+        read_arrays(&dir.join(EXTRAS_FILE))?
+    } else {
+        HostArrays::new()
+    };
+    Ok(Restored {
+        state: TrainState {
             gaussians,
             statics,
             velocity,
@@ -314,6 +401,7 @@ pub fn load(
             gaussian_optim,
             phi_optim,
         },
+        extras,
         meta,
-    ))
+    })
 }

@@ -14,6 +14,17 @@ use gausmoke_model::projection::OpenFaces;
 use crate::TrainError;
 use crate::scene::SceneConfig;
 
+/// A table's keys, refused when given as anything else: serde reads a struct from an array
+/// too, so `init_learning_rates = []` would quietly be the defaults.
+fn table_only<'de, D, T>(deserializer: D) -> Result<T, D::Error>
+where
+    D: serde::Deserializer<'de>,
+    T: serde::de::DeserializeOwned,
+{
+    let table = toml::Table::deserialize(deserializer)?;
+    table.try_into().map_err(serde::de::Error::custom)
+}
+
 /// Learning rates of the frame-0 fit, per Gaussian attribute (3DGS practice: centres move
 /// slowly, densities fast). Units: Adam step sizes in the parameter's own units.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -137,8 +148,9 @@ impl From<GradientSums> for gausmoke_render::GradientSums {
 }
 
 /// Keys that may differ when a run is resumed: they change how the rest of the run trains or
-/// what it writes, not the shape or meaning of what is already trained. `frames` extends (or
-/// shortens) the run; the learning rates let a run that diverged continue more gently.
+/// what it writes, not the shape or meaning of what is already trained. `frames` only while
+/// the run has trained frame 0 alone (Phi's time input is `t / (frames - 1)`); the learning
+/// rates let a run that diverged continue more gently.
 pub const RESUMABLE_KEYS: &[&str] = &[
     "frames",
     "lr_velocity",
@@ -193,6 +205,7 @@ pub struct TrainConfig {
     /// Iterations of the static fit of frame 0.
     pub init_iterations: usize,
     /// Frame 0's learning rates per attribute (`[init_learning_rates]`).
+    #[serde(deserialize_with = "table_only")]
     pub init_learning_rates: InitLearningRates,
     /// K: joint physics-optical iterations per frame (Algorithm 1, lines 3-9).
     pub advect_iterations: usize,

@@ -1,11 +1,13 @@
-//! What `gausmoke-train velocity` leaves to look at beside its frame files in
-//! `RUN/velocity_estimate/`. At the run's own output cadence (`output_every`, and the last
-//! frame): `exports/grid_TTT.vti` (ParaView; `exports/grid.pvd` plays them, time = frame) and
-//! `exports/grid_TTT.npz` (`density`, `velocity` the estimate, `run_velocity` the run's own,
-//! `lo`, `hi`), and `slices/frame_TTT.png`, the middle z slice: density | the run's speed |
-//! the estimate's speed, both speeds on one colour scale, animated by `slices.mp4`. Over all
-//! frames, two charts: `speed.png` (the two velocities' speed where the smoke is) and
-//! `misfit.png` (how well the start and the fit carry one density onto the next).
+//! What the velocity estimate leaves to look at. It becomes the run's velocity in the run's
+//! own exports: at the run's output cadence (`output_every`, and the last frame)
+//! `RUN/exports/grid_TTT.vti` and `.npz` are rewritten with `velocity` the estimate and
+//! `grid_velocity` the grid velocity training fitted (the `.npz`'s other arrays kept), so
+//! ParaView's `grid.pvd` and NumPy read the estimate by the same names as before. Beside its
+//! frame files in `RUN/velocity_estimate/`: `slices/frame_TTT.png`, the middle z slice, density
+//! | the grid velocity's speed | the estimate's speed, both speeds on one colour scale,
+//! animated by `slices.mp4`; and over all frames, two charts: `speed.png` (the two velocities'
+//! speed where the smoke is) and `misfit.png` (how well the start and the fit carry one
+//! density onto the next).
 
 use std::path::{Path, PathBuf};
 
@@ -13,7 +15,7 @@ use gausmoke_model::GridSpec;
 
 use crate::TrainError;
 use crate::chart::{self, Chart, Series};
-use crate::export::{write_npz, write_pvd, write_vti};
+use crate::export::{rewrite_npz, write_vti};
 use crate::visuals::{self, Picture};
 
 /// Pictures per second of `slices.mp4`, as the run's own `slices.mp4`.
@@ -47,23 +49,30 @@ pub(crate) fn smoke_speed(density: &[f32], velocity: &[f32]) -> f64 {
 /// The estimate's outputs, written frame by frame and finished once.
 pub(crate) struct EstimateOutputs<'a> {
     dir: PathBuf,
+    exports: PathBuf,
     grid: &'a GridSpec,
     every: usize,
     last: usize,
     slices: Vec<Picture>,
-    grids: Vec<(f64, String)>,
 }
 
 impl<'a> EstimateOutputs<'a> {
-    /// Outputs in `dir` for a run whose frames go up to `last`, written every `every` frames.
-    pub(crate) fn new(dir: &Path, grid: &'a GridSpec, every: usize, last: usize) -> Self {
+    /// Outputs in `dir` and the run's `exports` folder for a run whose frames go up to
+    /// `last`, written every `every` frames.
+    pub(crate) fn new(
+        dir: &Path,
+        exports: &Path,
+        grid: &'a GridSpec,
+        every: usize,
+        last: usize,
+    ) -> Self {
         Self {
             dir: dir.to_path_buf(),
+            exports: exports.to_path_buf(),
             grid,
             every: every.max(1),
             last,
             slices: Vec::new(),
-            grids: Vec::new(),
         }
     }
 
@@ -72,37 +81,41 @@ impl<'a> EstimateOutputs<'a> {
         t.is_multiple_of(self.every) || t == self.last
     }
 
-    /// Frame `t`'s grids and slice: the run's `density` and `run_velocity` and the
+    /// Frame `t`'s grids and slice: the run's `density` and `grid_velocity` and the
     /// `estimate` (`[nx, ny, nz]` and `[nx, ny, nz, 3]`, world units per frame).
     pub(crate) fn frame(
         &mut self,
         t: usize,
         density: &[f32],
-        run_velocity: &[f32],
+        grid_velocity: &[f32],
         estimate: &[f32],
     ) -> Result<(), TrainError> {
-        let exports = self.dir.join("exports");
         let slices = self.dir.join("slices");
-        for dir in [&exports, &slices] {
+        for dir in [&self.exports, &slices] {
             std::fs::create_dir_all(dir).map_err(|source| TrainError::Io {
                 path: dir.clone(),
                 source,
             })?;
         }
-        let name = format!("grid_{t:03}.vti");
-        write_vti(&exports.join(&name), self.grid, density, estimate)?;
-        self.grids.push((t as f64, name));
-        write_npz(
-            &exports.join(format!("grid_{t:03}.npz")),
+        let grid_field = [("grid_velocity", grid_velocity)];
+        write_vti(
+            &self.exports.join(format!("grid_{t:03}.vti")),
             self.grid,
             density,
             estimate,
-            &[("run_velocity", run_velocity)],
+            &grid_field,
+        )?;
+        rewrite_npz(
+            &self.exports.join(format!("grid_{t:03}.npz")),
+            self.grid,
+            density,
+            estimate,
+            &grid_field,
         )?;
         let [nx, ny, _] = self.grid.resolution();
         let scale = (256 / nx.max(ny)).max(1) as u32;
         let (picture, _) =
-            visuals::grid_slices(self.grid, density, &[run_velocity, estimate], scale);
+            visuals::grid_slices(self.grid, density, &[grid_velocity, estimate], scale);
         picture.save_png(&slices.join(format!("frame_{t:03}.png")))?;
         self.slices.push(picture);
         Ok(())
@@ -113,9 +126,6 @@ impl<'a> EstimateOutputs<'a> {
     pub(crate) fn finish(self, frames: &[FrameFigures], start: &str) -> Result<(), TrainError> {
         if !self.slices.is_empty() {
             visuals::save_mp4(&self.dir.join("slices.mp4"), &self.slices, FPS)?;
-        }
-        if !self.grids.is_empty() {
-            write_pvd(&self.dir.join("exports").join("grid.pvd"), &self.grids)?;
         }
         let series = |label: &str, value: fn(&FrameFigures) -> f64| Series {
             label: label.into(),

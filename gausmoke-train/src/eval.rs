@@ -332,9 +332,11 @@ pub fn evaluate(
                 .into(),
         });
     }
+    folder.require_whole()?;
     let config = folder.read_config()?;
     let info = folder.read_run_info()?;
     let scene = Sequence::open(&info.data, &config)?;
+    info.check_data(&scene.fingerprint())?;
     let grid = config.grid(scene.lo, scene.hi)?;
     let open_faces = config.open_faces()?;
     let solids = crate::trainer::solid_cells(&scene.obstacles, &config, &grid)?;

@@ -132,29 +132,41 @@ fn x_fastest(grid: &GridSpec, values: &[f32], channels: usize) -> Vec<f32> {
     out
 }
 
-/// Density `[nx, ny, nz]` and velocity `[nx, ny, nz, 3]` as VTK XML ImageData with raw
-/// appended data: points at the cell centres, spacing = cell size, world units.
+/// Density `[nx, ny, nz]`, velocity `[nx, ny, nz, 3]` and each of `vectors` (a name and a
+/// `[nx, ny, nz, 3]` field) as VTK XML ImageData with raw appended data: points at the cell
+/// centres, spacing = cell size, world units.
 pub fn write_vti(
     path: &Path,
     grid: &GridSpec,
     density: &[f32],
     velocity: &[f32],
+    vectors: &[(&str, &[f32])],
 ) -> Result<(), TrainError> {
     let [nx, ny, nz] = grid.resolution();
     let cell = grid.cell_size();
     let origin = grid.lo() + 0.5 * cell;
-    let density = x_fastest(grid, density, 1);
-    let velocity = x_fastest(grid, velocity, 3);
-    let density_bytes = (density.len() * 4) as u64;
-    let velocity_bytes = (velocity.len() * 4) as u64;
+    let mut fields = vec![("density", 1, x_fastest(grid, density, 1))];
+    fields.push(("velocity", 3, x_fastest(grid, velocity, 3)));
+    fields.extend(
+        vectors
+            .iter()
+            .map(|(name, values)| (*name, 3, x_fastest(grid, values, 3))),
+    );
+    let mut arrays = String::new();
+    let mut offset = 0u64;
+    for (name, components, values) in &fields {
+        arrays += &format!(
+            "<DataArray type=\"Float32\" Name=\"{name}\" NumberOfComponents=\"{components}\" \
+             format=\"appended\" offset=\"{offset}\"/>\n"
+        );
+        offset += 8 + 4 * values.len() as u64;
+    }
     let header = format!(
         "<?xml version=\"1.0\"?>\n\
          <VTKFile type=\"ImageData\" version=\"1.0\" byte_order=\"LittleEndian\" header_type=\"UInt64\">\n\
          <ImageData WholeExtent=\"0 {} 0 {} 0 {}\" Origin=\"{} {} {}\" Spacing=\"{} {} {}\">\n\
          <Piece Extent=\"0 {} 0 {} 0 {}\">\n\
-         <PointData Scalars=\"density\" Vectors=\"velocity\">\n\
-         <DataArray type=\"Float32\" Name=\"density\" format=\"appended\" offset=\"0\"/>\n\
-         <DataArray type=\"Float32\" Name=\"velocity\" NumberOfComponents=\"3\" format=\"appended\" offset=\"{}\"/>\n\
+         <PointData Scalars=\"density\" Vectors=\"velocity\">\n{arrays}\
          </PointData>\n</Piece>\n</ImageData>\n<AppendedData encoding=\"raw\">\n_",
         nx - 1,
         ny - 1,
@@ -168,17 +180,14 @@ pub fn write_vti(
         nx - 1,
         ny - 1,
         nz - 1,
-        8 + density_bytes,
     );
     let mut bytes = header.into_bytes();
-    bytes.extend_from_slice(&density_bytes.to_le_bytes());
-    density
-        .iter()
-        .for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
-    bytes.extend_from_slice(&velocity_bytes.to_le_bytes());
-    velocity
-        .iter()
-        .for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
+    for (_, _, values) in &fields {
+        bytes.extend_from_slice(&(4 * values.len() as u64).to_le_bytes());
+        values
+            .iter()
+            .for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
+    }
     bytes.extend_from_slice(b"\n</AppendedData>\n</VTKFile>\n");
     write_atomic(path, &bytes)
 }
@@ -229,9 +238,35 @@ fn npy(values: &[f32], shape: &[usize]) -> Vec<u8> {
     out
 }
 
-/// `density [nx, ny, nz]`, `velocity [nx, ny, nz, 3]`, `lo`, `hi` (world box) and each of
-/// `vectors` (a name and a `[nx, ny, nz, 3]` field) in one `.npz`:
-/// `np.load(path)["velocity"][i, j, k]` is the velocity of cell (i, j, k).
+/// What every `.npz` export says of its arrays' layout and units (its `layout` array).
+pub const NPZ_LAYOUT: &str = "density[i, j, k] and velocity[i, j, k, :] belong to cell (i, j, k): \
+i along world x, j along y, k along z (C order, so z is fastest in memory); the cell's centre \
+is lo + (index + 0.5) * (hi - lo) / shape; density in the model's units (the Gaussians' summed \
+densities), velocity in world units per frame, lo and hi in world units";
+
+/// One `.npy` holding `text` as a NumPy unicode scalar (`np.load(path)["layout"]` reads it
+/// without pickling).
+fn npy_text(text: &str) -> Vec<u8> {
+    let chars: Vec<char> = text.chars().collect();
+    let mut dict = format!(
+        "{{'descr': '<U{}', 'fortran_order': False, 'shape': (), }}",
+        chars.len()
+    );
+    let unpadded = 10 + dict.len() + 1;
+    dict += &" ".repeat(unpadded.next_multiple_of(64) - unpadded);
+    dict.push('\n');
+    let mut out = b"\x93NUMPY\x01\x00".to_vec();
+    out.extend_from_slice(&(dict.len() as u16).to_le_bytes());
+    out.extend_from_slice(dict.as_bytes());
+    chars
+        .iter()
+        .for_each(|&c| out.extend_from_slice(&(c as u32).to_le_bytes()));
+    out
+}
+
+/// `density [nx, ny, nz]`, `velocity [nx, ny, nz, 3]`, `lo`, `hi` (world box), `layout`
+/// ([`NPZ_LAYOUT`]) and each of `vectors` (a name and a `[nx, ny, nz, 3]` field) in one
+/// `.npz`: `np.load(path)["velocity"][i, j, k]` is the velocity of cell (i, j, k).
 pub fn write_npz(
     path: &Path,
     grid: &GridSpec,
@@ -239,37 +274,108 @@ pub fn write_npz(
     velocity: &[f32],
     vectors: &[(&str, &[f32])],
 ) -> Result<(), TrainError> {
+    write_npz_members(path, npz_members(grid, density, velocity, vectors))
+}
+
+/// [`write_npz`] over an existing `.npz` at `path`: its arrays not named here (a run's
+/// `refine_move`, say) are kept as they are.
+pub fn rewrite_npz(
+    path: &Path,
+    grid: &GridSpec,
+    density: &[f32],
+    velocity: &[f32],
+    vectors: &[(&str, &[f32])],
+) -> Result<(), TrainError> {
+    let mut members = npz_members(grid, density, velocity, vectors);
+    if path.is_file() {
+        let export_error = |reason: String| TrainError::Export {
+            path: path.to_path_buf(),
+            reason,
+        };
+        let file = std::fs::File::open(path).map_err(io_error(path))?;
+        let mut old = zip::ZipArchive::new(file).map_err(|e| export_error(e.to_string()))?;
+        for index in 0..old.len() {
+            let mut member = old
+                .by_index(index)
+                .map_err(|e| export_error(e.to_string()))?;
+            if members.iter().any(|(name, _)| name == member.name()) {
+                continue;
+            }
+            let mut data = Vec::new();
+            std::io::Read::read_to_end(&mut member, &mut data).map_err(io_error(path))?;
+            members.push((member.name().to_string(), data));
+        }
+    }
+    write_npz_members(path, members)
+}
+
+fn npz_members(
+    grid: &GridSpec,
+    density: &[f32],
+    velocity: &[f32],
+    vectors: &[(&str, &[f32])],
+) -> Vec<(String, Vec<u8>)> {
     let [nx, ny, nz] = grid.resolution();
+    let mut members: Vec<(String, Vec<u8>)> = vec![
+        ("density.npy".into(), npy(density, &[nx, ny, nz])),
+        ("velocity.npy".into(), npy(velocity, &[nx, ny, nz, 3])),
+        ("lo.npy".into(), npy(&grid.lo().to_array(), &[3])),
+        ("hi.npy".into(), npy(&grid.hi().to_array(), &[3])),
+        ("layout.npy".into(), npy_text(NPZ_LAYOUT)),
+    ];
+    members.extend(
+        vectors
+            .iter()
+            .map(|(name, values)| (format!("{name}.npy"), npy(values, &[nx, ny, nz, 3]))),
+    );
+    members
+}
+
+fn write_npz_members(path: &Path, members: Vec<(String, Vec<u8>)>) -> Result<(), TrainError> {
+    let export_error = |e: zip::result::ZipError| TrainError::Export {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    };
     let mut buffer = std::io::Cursor::new(Vec::new());
     {
         let mut zip = zip::ZipWriter::new(&mut buffer);
         let options =
             zip::write::FileOptions::default().compression_method(zip::CompressionMethod::Stored);
-        let mut arrays: Vec<(String, Vec<u8>)> = vec![
-            ("density.npy".into(), npy(density, &[nx, ny, nz])),
-            ("velocity.npy".into(), npy(velocity, &[nx, ny, nz, 3])),
-            ("lo.npy".into(), npy(&grid.lo().to_array(), &[3])),
-            ("hi.npy".into(), npy(&grid.hi().to_array(), &[3])),
-        ];
-        arrays.extend(
-            vectors
-                .iter()
-                .map(|(name, values)| (format!("{name}.npy"), npy(values, &[nx, ny, nz, 3]))),
-        );
-        for (name, data) in arrays {
+        for (name, data) in members {
             zip.start_file(name, options)
                 .and_then(|_| zip.write_all(&data).map_err(Into::into))
-                .map_err(|e| TrainError::Export {
-                    path: path.to_path_buf(),
-                    reason: e.to_string(),
-                })?;
+                .map_err(export_error)?;
         }
-        zip.finish().map_err(|e| TrainError::Export {
-            path: path.to_path_buf(),
-            reason: e.to_string(),
-        })?;
+        zip.finish().map_err(export_error)?;
     }
     write_atomic(path, &buffer.into_inner())
+}
+
+/// The `.npz` at `path` as its members' names (without `.npy`) and their `.npy` headers and
+/// data bytes, for tests that read exports back.
+#[cfg(test)]
+pub(crate) fn read_npz(path: &Path) -> std::collections::BTreeMap<String, (String, Vec<u8>)> {
+    let mut archive = zip::ZipArchive::new(std::fs::File::open(path).unwrap()).unwrap();
+    (0..archive.len())
+        .map(|index| {
+            let mut member = archive.by_index(index).unwrap();
+            let mut bytes = Vec::new();
+            std::io::Read::read_to_end(&mut member, &mut bytes).unwrap();
+            let header_len = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+            let header = String::from_utf8(bytes[10..10 + header_len].to_vec()).unwrap();
+            let name = member.name().trim_end_matches(".npy").to_string();
+            (name, (header, bytes[10 + header_len..].to_vec()))
+        })
+        .collect()
+}
+
+/// The f32 values of an `.npy`'s data bytes.
+#[cfg(test)]
+pub(crate) fn floats(bytes: &[u8]) -> Vec<f32> {
+    bytes
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+        .collect()
 }
 
 #[cfg(test)]
@@ -360,9 +466,106 @@ mod tests {
         assert_eq!(x_fastest(&grid, &values, 1), vec![0.0, 10.0, 1.0, 11.0]);
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("g.vti");
-        write_vti(&path, &grid, &values, &[0.0; 12]).unwrap();
+        write_vti(&path, &grid, &values, &[0.0; 12], &[]).unwrap();
         let text = String::from_utf8_lossy(&std::fs::read(&path).unwrap()).into_owned();
         assert!(text.contains("WholeExtent=\"0 1 0 0 0 1\""));
         assert!(text.contains("Spacing=\"1 1 0.5\""));
+    }
+
+    /// The `.npz` says its layout; rewriting one keeps the arrays it does not name.
+    #[test]
+    fn npz_carries_its_layout_and_a_rewrite_keeps_other_arrays() {
+        let grid = GridSpec::new(Vec3::ZERO, Vec3::ONE, [1, 1, 2], 1).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("g.npz");
+        let moves = [7.0; 6];
+        write_npz(
+            &path,
+            &grid,
+            &[1.0, 2.0],
+            &[0.5; 6],
+            &[("refine_move", &moves)],
+        )
+        .unwrap();
+        let read = read_npz(&path);
+        let (header, text) = &read["layout"];
+        assert!(header.contains("'descr': '<U") && header.contains("'shape': ()"));
+        let text: String = text
+            .chunks_exact(4)
+            .map(|c| char::from_u32(u32::from_le_bytes(c.try_into().unwrap())).unwrap())
+            .collect();
+        assert_eq!(text, NPZ_LAYOUT);
+        rewrite_npz(
+            &path,
+            &grid,
+            &[1.0, 2.0],
+            &[3.0; 6],
+            &[("grid_velocity", &[0.5; 6])],
+        )
+        .unwrap();
+        let read = read_npz(&path);
+        let names: Vec<&str> = read.keys().map(String::as_str).collect();
+        assert_eq!(
+            names,
+            [
+                "density",
+                "grid_velocity",
+                "hi",
+                "layout",
+                "lo",
+                "refine_move",
+                "velocity"
+            ]
+        );
+        assert_eq!(floats(&read["velocity"].1), [3.0; 6]);
+        assert_eq!(floats(&read["grid_velocity"].1), [0.5; 6]);
+        assert_eq!(floats(&read["refine_move"].1), moves);
+    }
+
+    /// Each field of a `.vti` sits at the offset its header gives.
+    #[test]
+    fn vti_fields_sit_at_their_offsets() {
+        let grid = GridSpec::new(Vec3::ZERO, Vec3::ONE, [1, 1, 2], 1).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("g.vti");
+        let extra = [9.0f32; 6];
+        write_vti(
+            &path,
+            &grid,
+            &[1.0, 2.0],
+            &[3.0; 6],
+            &[("grid_velocity", &extra)],
+        )
+        .unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        let text = String::from_utf8_lossy(&bytes).into_owned();
+        let marker = b"encoding=\"raw\">\n_";
+        let data = bytes
+            .windows(marker.len())
+            .position(|w| w == marker)
+            .unwrap()
+            + marker.len();
+        for (name, first, count) in [
+            ("density", 1.0, 2),
+            ("velocity", 3.0, 6),
+            ("grid_velocity", 9.0, 6),
+        ] {
+            let tag = format!("Name=\"{name}\"");
+            let at = text.find(&tag).unwrap();
+            let offset: usize = text[at..]
+                .split("offset=\"")
+                .nth(1)
+                .unwrap()
+                .split('"')
+                .next()
+                .unwrap()
+                .parse()
+                .unwrap();
+            let start = data + offset;
+            let length = u64::from_le_bytes(bytes[start..start + 8].try_into().unwrap());
+            assert_eq!(length, 4 * count, "{name}");
+            let value = f32::from_le_bytes(bytes[start + 8..start + 12].try_into().unwrap());
+            assert_eq!(value, first, "{name}");
+        }
     }
 }

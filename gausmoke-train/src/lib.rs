@@ -83,8 +83,9 @@ pub enum TrainError {
          lower learning rates, e.g. --set lr_gaussians=... --set lr_velocity=...)"
     )]
     NonFinite {
-        quantity: &'static str,
-        value: f32,
+        quantity: String,
+        /// The value, or "non-finite (NaN or infinity)" where a check saw several.
+        value: String,
         frame: usize,
         phase: &'static str,
         iteration: usize,

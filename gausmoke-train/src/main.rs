@@ -65,8 +65,9 @@ enum Command {
     },
     /// Estimate a trained run's velocity from its density grids (ours): for each frame, the
     /// velocity that carries the frame before's density onto the frame's, tracked through the
-    /// frames. Written beside the run's own velocity to RUN/velocity_estimate/; `eval` then
-    /// scores both against a synthetic scene's ground truth.
+    /// frames (an `ours` run ends with it). Written to RUN/velocity_estimate/, and as the
+    /// velocity of the run's grid exports (the grid velocity beside it); `eval` scores both
+    /// against a synthetic scene's ground truth.
     Velocity {
         /// The run folder written by `train`.
         #[arg(long)]

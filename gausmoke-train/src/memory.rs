@@ -94,8 +94,13 @@ impl MemoryEstimate {
                 },
                 MemoryPart {
                     what: "Gaussians",
-                    bytes: config.gaussians as f64 * BYTES_PER_GAUSSIAN,
-                    settings: format!("gaussians = {}", config.gaussians),
+                    // The static ones are rendered, optimised and kept as the smoke's are.
+                    bytes: (config.gaussians as f64 + config.static_gaussians as f64)
+                        * BYTES_PER_GAUSSIAN,
+                    settings: format!(
+                        "gaussians = {}, static_gaussians = {}",
+                        config.gaussians, config.static_gaussians
+                    ),
                 },
                 MemoryPart {
                     what: "velocity grid and U-Net",
@@ -252,9 +257,19 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("Gaussians 111.8 GiB (gaussians = 100000000)"),
+            err.contains("Gaussians 111.8 GiB (gaussians = 100000000, static_gaussians = 0)"),
             "{err}"
         );
+        // Static Gaussians count as the smoke's do.
+        let statics = TrainConfig {
+            static_gaussians: 100_000_000,
+            ..config.clone()
+        };
+        let err = MemoryEstimate::new(&statics, &plan, true)
+            .check(24 << 30, "available")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("static_gaussians = 100000000"), "{err}");
         let grid = TrainConfig {
             grid_resolution: 512,
             ..config.clone()

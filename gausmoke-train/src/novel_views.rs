@@ -74,8 +74,11 @@ pub struct RenderedVideo {
 pub struct RenderSummary {
     pub run: PathBuf,
     pub videos: Vec<RenderedVideo>,
-    /// Middle-z density | speed slices of the grid, one picture per frame.
+    /// Middle-z slices, one picture per frame: density | the grid velocity's speed, and with
+    /// the run's velocity estimate | the estimate's speed (one colour scale per picture).
     pub slices_video: PathBuf,
+    /// Whether the slices show the velocity estimate.
+    pub slices_show_estimate: bool,
 }
 
 fn config_error(origin: &str, reason: impl Into<String>) -> TrainError {
@@ -156,6 +159,7 @@ pub fn render_run(
     }
     let mut config = folder.read_config()?;
     let info = folder.read_run_info()?;
+    folder.require_whole()?;
     let finished = folder.finished_frames();
     if finished == 0 {
         return Err(TrainError::Dataset {
@@ -181,6 +185,7 @@ pub fn render_run(
     };
     config.frames = Some(needed);
     let scene = Sequence::open(&info.data, &config)?;
+    info.check_data(&scene.fingerprint())?;
     let grid = config.grid(scene.lo, scene.hi)?;
     let background =
         Tensor::<1>::from_data(TensorData::new(scene.background.to_vec(), [3]), device);
@@ -327,11 +332,28 @@ pub fn render_run(
     let mut writer: Option<VideoWriter> = None;
     let [nx, ny, _] = grid.resolution();
     let scale = (256 / nx.max(ny)).max(1) as u32;
+    let estimate = crate::velocity_estimate::StoredEstimate::open(run)?;
     for &t in &frame_list {
         let state = folder
             .read_frame_state(t, &grid)?
             .expect("frames before `finished` exist");
-        let (picture, _) = visuals::grid_slices(&grid, &state.density, &[&state.velocity], scale);
+        let picture = match &estimate {
+            Some(estimate) => {
+                // Frame 0 has no estimate: the smoke starts at rest.
+                let estimated = match t.checked_sub(1) {
+                    Some(before) => {
+                        let previous = folder
+                            .read_frame_state(before, &grid)?
+                            .expect("frames before `finished` exist");
+                        estimate.frame(t, grid.resolution(), [&previous.density, &state.density])?
+                    }
+                    None => None,
+                }
+                .unwrap_or_else(|| vec![0.0; state.velocity.len()]);
+                visuals::grid_slices(&grid, &state.density, &[&state.velocity, &estimated], scale).0
+            }
+            None => visuals::grid_slices(&grid, &state.density, &[&state.velocity], scale).0,
+        };
         let writer = match &mut writer {
             Some(w) => w,
             None => writer.insert(VideoWriter::create(
@@ -350,6 +372,7 @@ pub fn render_run(
         run: run.to_path_buf(),
         videos,
         slices_video,
+        slices_show_estimate: estimate.is_some(),
     };
     let json = serde_json::to_string_pretty(&summary).expect("serialisable summary");
     crate::export::write_atomic(&out.join("render.json"), json.as_bytes())?;

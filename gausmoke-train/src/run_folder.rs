@@ -33,6 +33,24 @@ pub struct RunInfo {
     pub version: String,
 }
 
+impl RunInfo {
+    /// Refuses data whose fingerprint (`found`, [`crate::sequence::Sequence::fingerprint`])
+    /// is not the one the run was trained on: a data set regenerated or replaced at the same
+    /// path would be scored or rendered against the wrong pictures.
+    pub fn check_data(&self, found: &str) -> Result<(), TrainError> {
+        match &self.data_fingerprint {
+            Some(trained) if trained != found => Err(TrainError::Dataset {
+                path: self.data.clone(),
+                reason: format!(
+                    "this is no longer the data set the run was trained on: its cameras, views, \
+                     box or first images differ (fingerprint {found}, the run's {trained})"
+                ),
+            }),
+            _ => Ok(()),
+        }
+    }
+}
+
 /// `metrics.json`: per-frame reports and their means.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Metrics {
@@ -170,33 +188,56 @@ impl RunFolder {
         self.root.join("frames").join(frame_file(t, "safetensors"))
     }
 
-    /// Frames `0..n` whose state the run has written without a gap: what eval, render and
-    /// the velocity estimate read. Frame files past a missing one (deleted, or copied in
-    /// part) are not read, and a warning names the gap.
-    pub fn finished_frames(&self) -> usize {
-        let finished = (0..)
-            .take_while(|&t| self.frame_state_path(t).is_file())
-            .count();
-        let later: Vec<usize> = std::fs::read_dir(self.root.join("frames"))
+    /// The frame numbers of `frames/frame_TTT.safetensors` present.
+    fn frame_files(&self) -> std::collections::BTreeSet<usize> {
+        std::fs::read_dir(self.root.join("frames"))
             .into_iter()
             .flatten()
             .flatten()
             .filter_map(|entry| {
                 let name = entry.file_name().into_string().ok()?;
                 let t = name.strip_prefix("frame_")?.strip_suffix(".safetensors")?;
-                t.parse::<usize>().ok().filter(|&t| t > finished)
+                t.parse::<usize>().ok()
             })
-            .collect();
-        if let Some(last) = later.iter().max() {
-            tracing::warn!(
-                "{}: frame_{finished:03}.safetensors is missing, so only frames 0-{} are read; \
-                 {} frame file(s) after it (up to frame {last}) are left out",
-                self.root.join("frames").display(),
-                finished.saturating_sub(1),
-                later.len()
-            );
-        }
-        finished
+            .collect()
+    }
+
+    /// Frames `0..n` whose state the run has written without a gap: what eval, render and
+    /// the velocity estimate read ([`Self::require_whole`] refuses a folder with a gap).
+    pub fn finished_frames(&self) -> usize {
+        (0..)
+            .take_while(|&t| self.frame_state_path(t).is_file())
+            .count()
+    }
+
+    /// Refuses a run folder missing a frame file that the run wrote: one below a frame file
+    /// that exists, or below the frames `metrics.json` reports trained. What reads the frames
+    /// would otherwise score or show fewer frames than the run has, without saying so.
+    pub fn require_whole(&self) -> Result<(), TrainError> {
+        let finished = self.finished_frames();
+        let present = self.frame_files();
+        let reported = self
+            .read_metrics()
+            .ok()
+            .and_then(|m| m.per_frame.iter().map(|f| f.frame + 1).max())
+            .unwrap_or(0);
+        let later = present.range(finished + 1..).next_back().copied();
+        let why = match (later, reported > finished) {
+            (Some(last), _) => format!("frame files up to frame {last} exist"),
+            (None, true) => format!(
+                "metrics.json reports {reported} trained frame(s) (frames 0-{})",
+                reported - 1
+            ),
+            (None, false) => return Ok(()),
+        };
+        Err(TrainError::Dataset {
+            path: self.frame_state_path(finished),
+            reason: format!(
+                "missing, while {why}: reading the frames would leave frames from {finished} on \
+                 out; put the file back, or train the run again (--resume trains only frames \
+                 after its checkpoint)"
+            ),
+        })
     }
 
     pub fn checkpoints(&self) -> PathBuf {
@@ -249,6 +290,19 @@ impl RunFolder {
 
     pub fn read_run_info(&self) -> Result<RunInfo, TrainError> {
         Self::read_json(&self.run_info_path())
+    }
+
+    /// `metrics.json` as the run last wrote it.
+    pub fn read_metrics(&self) -> Result<Metrics, TrainError> {
+        let path = self.metrics_path();
+        let text = std::fs::read_to_string(&path).map_err(|source| TrainError::Io {
+            path: path.clone(),
+            source,
+        })?;
+        serde_json::from_str(&text).map_err(|e| TrainError::Dataset {
+            path,
+            reason: format!("not a run's metrics: {e}"),
+        })
     }
 
     pub fn write_metrics(&self, metrics: &Metrics) -> Result<(), TrainError> {
@@ -360,7 +414,7 @@ impl RunFolder {
         visuals::grid_slices(grid, &state.density, &[&state.velocity], scale)
             .0
             .save_png(&dir.join(frame_file(t, "png")))?;
-        let dir = self.root.join("exports");
+        let dir = self.exports_dir();
         Self::create_dir(&dir)?;
         export::write_ply(
             &dir.join(format!("gaussians_{t:03}.ply")),
@@ -375,6 +429,7 @@ impl RunFolder {
             grid,
             &state.density,
             &state.velocity,
+            &[],
         )?;
         let vectors: Vec<(&str, &[f32])> = refine_moves
             .map(|m| {
@@ -391,6 +446,11 @@ impl RunFolder {
             &state.velocity,
             &vectors,
         )
+    }
+
+    /// `exports/`: the `.ply`, `.vti` and `.npz` files other tools open.
+    pub fn exports_dir(&self) -> PathBuf {
+        self.root.join("exports")
     }
 
     pub fn write_losses(&self, losses: &[LossRow]) -> Result<(), TrainError> {
@@ -524,10 +584,10 @@ impl RunFolder {
         // Frame t of the run is time step t (the data set's frame first_frame + t).
         let grids: Vec<(f64, String)> = (0..frames)
             .map(|t| (t as f64, format!("grid_{t:03}.vti")))
-            .filter(|(_, name)| self.root.join("exports").join(name).is_file())
+            .filter(|(_, name)| self.exports_dir().join(name).is_file())
             .collect();
         if !grids.is_empty() {
-            export::write_pvd(&self.root.join("exports").join("grid.pvd"), &grids)?;
+            export::write_pvd(&self.exports_dir().join("grid.pvd"), &grids)?;
         }
         write_atomic(&self.root.join("README.txt"), RUN_README.as_bytes())
     }
@@ -569,22 +629,23 @@ slices/            per frame, middle z slice: density (grey) | speed (viridis, e
 exports/           per frame: gaussians_TTT.ply (3DGS layout; world axes, or y down for
                    splat viewers with ply_axes = 'y-down'), grid_TTT.vti (ParaView;
                    open grid.pvd to play them as a time series, time = frame index),
-                   grid_TTT.npz (density [nx,ny,nz], velocity [nx,ny,nz,3], lo, hi;
-                   with the refinement also refine_move [nx,ny,nz,3], its moves' grid-scale
-                   field in cells, and refine_move_flow, the part a divergence-free flow
-                   can make)
+                   grid_TTT.npz (density [nx,ny,nz], velocity [nx,ny,nz,3], lo, hi, and
+                   `layout`, which says the axes and units; with the refinement also
+                   refine_move [nx,ny,nz,3], its moves' grid-scale field in cells, and
+                   refine_move_flow, the part a divergence-free flow can make). Once the
+                   velocity estimate has run, `velocity` is the estimate and the grid
+                   velocity training fitted is beside it as `grid_velocity`
 frames/            per frame: Gaussians, velocity and density grids (safetensors), read by
                    `gausmoke-train eval`
 checkpoints/       the two newest complete frames; `--resume` continues from the newest
-velocity_estimate/ written by `gausmoke-train velocity --run RUN` (ours), not by training: the
-                   velocity estimated from these density grids, beside the run's own, which
-                   it leaves as it is. Per frame frame_TTT.safetensors (read by eval);
+velocity_estimate/ the run's last stage (velocity_estimate = forces or density; also
+                   `gausmoke-train velocity --run RUN`): the velocity estimated from these
+                   density grids. Per frame frame_TTT.safetensors (read by eval);
                    estimate.json (settings; per frame the fit's residuals, solver
-                   iterations, lift, and its speed and the run's where the smoke is);
-                   speed.png and misfit.png chart them; at the cadence above,
-                   exports/grid_TTT.vti and .npz (density, velocity = the estimate,
-                   run_velocity; grid.pvd plays them) and slices/ (density | the run's
-                   speed | the estimate's speed, one colour scale), slices.mp4
+                   iterations, lift, and its speed and the grid velocity's where the smoke
+                   is); speed.png and misfit.png chart them; slices/ (density | the grid
+                   velocity's speed | the estimate's speed, one colour scale), slices.mp4.
+                   It also rewrites exports/grid_TTT.* (see above)
 ";
 
 #[cfg(test)]
@@ -623,6 +684,11 @@ mod tests {
         // A gap: frames 0 and 2 written, 1 missing, so only frame 0 counts as finished.
         folder.write_frame_state(2, &grid, &state).unwrap();
         assert_eq!(folder.finished_frames(), 1);
+        let error = folder.require_whole().unwrap_err().to_string();
+        assert!(
+            error.contains("frame_001.safetensors") && error.contains("up to frame 2"),
+            "{error}"
+        );
         std::fs::remove_file(folder.frame_state_path(2)).unwrap();
         let spoilt = |name: &str, value: f32| {
             let mut bad = FrameState {

@@ -215,6 +215,17 @@ impl Sequence {
             .find_map(|info| info["synth"]["density_scale"].as_f64())
             .map(|s| s as f32);
         let test = gather(&test_names);
+        for jump in sudden_changes(&train, &test) {
+            tracing::warn!(
+                view = %jump.view,
+                frame = jump.frame,
+                change = jump.change,
+                typical = jump.typical,
+                "this view's picture is far from the mean of its frames before and after, \
+                 farther than the view's pictures usually are: a damaged or missing video \
+                 frame (a black or garbled picture) looks like this; check the file"
+            );
+        }
         for suspect in implausible_pictures(&train, &test) {
             tracing::warn!(
                 view = %suspect.view,
@@ -299,6 +310,80 @@ pub fn implausible_pictures(
                     mean,
                     others: median,
                 }),
+            }
+        }
+    }
+    found
+}
+
+/// A picture unlike the same view's pictures just before and after it (see
+/// [`sudden_changes`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SuddenChange {
+    pub view: String,
+    pub frame: usize,
+    /// Mean absolute difference from the mean of the view's pictures before and after it,
+    /// and the median of that difference over the view's other frames.
+    pub change: f32,
+    pub typical: f32,
+}
+
+/// How many times its view's median the difference must exceed, and by how much at least
+/// (pixel units in [0, 1]), to be reported. Smoke moves smoothly, so a picture is close to
+/// the mean of its neighbours in time; a black frame, or a garbled slice, is not.
+const SUDDEN_CHANGE_FACTOR: f32 = 6.0;
+const SUDDEN_CHANGE_FLOOR: f32 = 0.002;
+
+/// Pictures whose mean absolute difference from the mean of the same view's pictures at the
+/// frames before and after is more than [`SUDDEN_CHANGE_FACTOR`] times the median of the
+/// view's other frames' (leaving out the two beside it) plus [`SUDDEN_CHANGE_FLOOR`], and the largest of the three frames around it
+/// (so a black frame is reported once, not its neighbours too): per view and over time, so it
+/// needs no other view (unlike [`implausible_pictures`]) and sees a dark picture in a dark
+/// scene. A heuristic: it needs six frames or more, and misses damage smaller than the
+/// smoke's own change between frames.
+pub fn sudden_changes(train: &[Vec<Observation>], test: &[Vec<Observation>]) -> Vec<SuddenChange> {
+    let at = |t: usize, v: usize| {
+        train[t]
+            .iter()
+            .chain(test.get(t).into_iter().flatten())
+            .nth(v)
+    };
+    let views = train.first().map_or(0, Vec::len) + test.first().map_or(0, Vec::len);
+    let mut found = Vec::new();
+    for v in 0..views {
+        // changes[i] belongs to frame i + 1.
+        let changes: Vec<f32> = (1..train.len().saturating_sub(1))
+            .map_while(|t| {
+                let [a, b, c] = [t - 1, t, t + 1].map(|t| at(t, v).map(|o| o.image.data()));
+                let (a, b, c) = (a?, b?, c?);
+                let sum: f32 = (0..b.len())
+                    .map(|i| (b[i] - 0.5 * (a[i] + c[i])).abs())
+                    .sum();
+                Some(sum / b.len().max(1) as f32)
+            })
+            .collect();
+        if changes.len() < 4 {
+            continue;
+        }
+        for (i, &change) in changes.iter().enumerate() {
+            let near = i.saturating_sub(1)..(i + 2).min(changes.len());
+            let around = changes[near.clone()].iter().fold(0.0f32, |m, &c| m.max(c));
+            // The view's usual difference, without the frames a damaged one spoils.
+            let mut others: Vec<f32> = changes
+                .iter()
+                .enumerate()
+                .filter(|(j, _)| !near.contains(j))
+                .map(|(_, &c)| c)
+                .collect();
+            others.sort_by(f32::total_cmp);
+            let typical = others[others.len() / 2];
+            if change > SUDDEN_CHANGE_FACTOR * typical + SUDDEN_CHANGE_FLOOR && change >= around {
+                found.push(SuddenChange {
+                    view: at(i + 1, v).map_or_else(String::new, |o| o.view.clone()),
+                    frame: i + 1,
+                    change,
+                    typical,
+                });
             }
         }
     }

@@ -157,6 +157,13 @@ impl StepLog {
                             phase: step.phase.name(),
                             iteration: step.iteration,
                         },
+                        RenderError::NonFinite { name } => TrainError::NonFinite {
+                            quantity: format!("the Gaussians' `{name}`"),
+                            value: "non-finite (NaN or infinity)".into(),
+                            frame: step.frame,
+                            phase: step.phase.name(),
+                            iteration: step.iteration,
+                        },
                         other => other.into(),
                     })?;
             }
@@ -195,8 +202,8 @@ fn check_finite(row: &LossRow, diagnostic: Option<(&'static str, f32)>) -> Resul
         .find(|(_, v)| !v.is_finite())
     {
         return Err(TrainError::NonFinite {
-            quantity,
-            value,
+            quantity: quantity.into(),
+            value: value.to_string(),
             frame: row.frame,
             phase: row.phase.name(),
             iteration: row.iteration,
@@ -299,10 +306,12 @@ mod tests {
             None,
             vec![check(f32::NAN, &device)],
         );
-        assert!(matches!(
-            log.flush(None),
-            Err(TrainError::Render(RenderError::NonFinite { name: "means" }))
-        ));
+        match log.flush(None) {
+            Err(TrainError::NonFinite {
+                quantity, frame: 2, ..
+            }) => assert_eq!(quantity, "the Gaussians' `means`"),
+            other => panic!("{:?}", other.map(|f| f.rows)),
+        }
     }
 
     #[test]

@@ -14,11 +14,12 @@
 //! that errs 0.41-0.42 against the default's 0.57 (docs/RESULTS.md). It needs the smoke's
 //! source, the run's inflow box or one given.
 //!
-//! The run's own velocity is what carried its Gaussians; it is left as it is. On the long
-//! plume this estimate, read off the same run's densities, is truer than the run's velocity,
-//! while the same fit used as the trainer's carrier costs the pictures (docs/RESULTS.md, "Why
-//! we fall short", item 1): so it is an output beside the run's velocity, not a step of it.
-//! `gausmoke-train eval` scores it against a synthetic scene's ground truth next to the run's.
+//! The grid velocity training fitted is what carried the run's Gaussians; it stays in the
+//! frame files. On the long plume this estimate, read off the same run's densities, is truer,
+//! while the same fit used as the trainer's carrier costs the pictures (docs/EXPERIMENTS.md):
+//! so it is the run's last stage (`velocity_estimate` in the configuration), not a step of
+//! each frame. It becomes the velocity of the run's exports (the grid velocity beside it as
+//! `grid_velocity`), and `eval` scores both against a synthetic scene's ground truth.
 //!
 //! Written to `RUN/velocity_estimate/`: `frame_TTT.safetensors` (`velocity`, `[nx, ny, nz,
 //! 3]`, world units per frame as the frame files keep theirs) and `estimate.json` (the
@@ -257,6 +258,7 @@ pub fn estimate_run_velocity(
                 .into(),
         });
     }
+    folder.require_whole()?;
     let config: TrainConfig = folder.read_config()?;
     let info = folder.read_run_info()?;
     let grid = config.grid(info.box_lo.into(), info.box_hi.into())?;
@@ -343,7 +345,13 @@ pub fn estimate_run_velocity(
     }
     let [nx, ny, nz] = grid.resolution();
     let total = densities.len() - 1;
-    let mut outputs = EstimateOutputs::new(&dir, &grid, config.output_every, total);
+    let mut outputs = EstimateOutputs::new(
+        &dir,
+        &folder.exports_dir(),
+        &grid,
+        config.output_every,
+        total,
+    );
     let mut frames = Vec::new();
     let mut previous: Option<Vec<f64>> = forced
         .as_ref()

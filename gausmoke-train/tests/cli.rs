@@ -165,7 +165,7 @@ fn synth_renders_at_another_size_with_the_same_ground_truth() {
 
     for (size, message) in [
         ("48by72", "--size `48by72`"),
-        ("9000x100", "9000x100: at most 8192 pixels a side"),
+        ("9000x100", "at most 8192 pixels a side"),
     ] {
         let (scene, out) = synth(size, Some(size));
         assert!(!out.status.success(), "{size}");

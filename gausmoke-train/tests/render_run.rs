@@ -8,6 +8,7 @@ use std::sync::OnceLock;
 use gausmoke_data::synth::{SynthConfig, generate};
 use gausmoke_data::video::decode_mp4;
 use gausmoke_render::backends::device_by_name;
+use gausmoke_train::config::VelocityEstimate;
 use gausmoke_train::novel_views::{CameraPath, RenderRequest, render_run};
 use gausmoke_train::sequence::Sequence;
 use gausmoke_train::{Run, TrainConfig};
@@ -28,6 +29,8 @@ fn trained_run() -> &'static Path {
             refine_iterations: 2,
             unet_channels: 8,
             time_frequencies: 2,
+            // So the slices show the estimate beside the grid velocity.
+            velocity_estimate: VelocityEstimate::Density,
             ..TrainConfig::default()
         };
         let scene = Sequence::open(&data, &config).unwrap();
@@ -107,6 +110,13 @@ fn the_data_sets_views_reproduce_the_runs_own_renders() {
     }
     let slices = decode_mp4(&summary.slices_video, 0..2, None).unwrap();
     assert_eq!(slices.frames.len(), 2);
+    // Density | the grid velocity's speed | the estimate's speed: three square panels.
+    assert!(summary.slices_show_estimate);
+    assert!(
+        slices.info.width > 5 * slices.info.height / 2,
+        "{:?}",
+        slices.info
+    );
     let listing: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.path().join("render.json")).unwrap())
             .unwrap();
@@ -241,6 +251,44 @@ fn the_cli_renders_an_orbit_and_says_where_it_went() {
     );
     assert!(stdout.contains("orbit: 3 pictures"), "{stdout}");
     assert!(out.path().join("orbit.mp4").is_file());
+    let render = |extra: &[&str]| {
+        let result = Command::new(env!("CARGO_BIN_EXE_gausmoke-train"))
+            .args(["render", "--orbit", "2", "--frames", "1", "--quiet"])
+            .args(extra)
+            .arg("--run")
+            .arg(run)
+            .arg("--out")
+            .arg(out.path())
+            .output()
+            .unwrap();
+        (
+            result.status.success(),
+            String::from_utf8_lossy(&result.stderr).into_owned(),
+        )
+    };
+    // The earlier render is not overwritten unless asked; nonsense sizes and rates are refused.
+    let (ok, stderr) = render(&["--size", "32x48"]);
+    assert!(!ok && stderr.contains("--overwrite"), "{stderr}");
+    let (ok, stderr) = render(&["--size", "32x48", "--overwrite"]);
+    assert!(ok, "{stderr}");
+    for (extra, expected) in [
+        (&["--fps", "4294967295"][..], "--fps"),
+        (&["--fps", "0"][..], "--fps"),
+        (&["--overwrite", "--size", "16385x10"][..], "at most 8192"),
+    ] {
+        let (ok, stderr) = render(extra);
+        assert!(!ok && stderr.contains(expected), "{extra:?}: {stderr}");
+    }
+    // Options that only mean something for a run are refused without one.
+    let result = Command::new(env!("CARGO_BIN_EXE_gausmoke-train"))
+        .args(["render", "--frames", "0-3"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    assert!(
+        !result.status.success() && stderr.contains("--run"),
+        "{stderr}"
+    );
     let result = Command::new(env!("CARGO_BIN_EXE_gausmoke-train"))
         .args(["render", "--frames", "2..1", "--run"])
         .arg(run)

@@ -169,7 +169,13 @@ fn training_improves_the_held_out_view_and_writes_every_output() {
         let archive = zip::ZipArchive::new(file).unwrap();
         let mut names: Vec<&str> = archive.file_names().collect();
         names.sort_unstable();
-        let mut want = vec!["density.npy", "hi.npy", "lo.npy", "velocity.npy"];
+        let mut want = vec![
+            "density.npy",
+            "hi.npy",
+            "layout.npy",
+            "lo.npy",
+            "velocity.npy",
+        ];
         if t > 0 {
             want.extend(["refine_move.npy", "refine_move_flow.npy"]);
             want.sort_unstable();
@@ -415,6 +421,27 @@ fn a_killed_run_resumes_to_the_uninterrupted_result() {
         let text = std::fs::read_to_string(run.join("metrics.json")).unwrap();
         serde_json::from_str::<serde_json::Value>(&text).unwrap()["phase_seconds"].clone()
     };
+    // The refinement's persistence, measured against the frame before's moves, continues
+    // across the resume: the checkpoint keeps them.
+    let persistence = |run: &Path| -> Vec<serde_json::Value> {
+        let text = std::fs::read_to_string(run.join("metrics.json")).unwrap();
+        let metrics: serde_json::Value = serde_json::from_str(&text).unwrap();
+        metrics["per_frame"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|f| f["refine_move_persistence"].clone())
+            .collect()
+    };
+    let whole_persistence = persistence(&straight);
+    assert!(whole_persistence[2].is_number(), "{whole_persistence:?}");
+    let resumed_persistence = persistence(&interrupted);
+    for (a, b) in whole_persistence.iter().zip(&resumed_persistence) {
+        match (a.as_f64(), b.as_f64()) {
+            (Some(a), Some(b)) => assert!((a - b).abs() < 1e-6, "{a} against {b}"),
+            _ => assert_eq!(a, b, "{resumed_persistence:?}"),
+        }
+    }
     let (whole, resumed) = (phases(&straight), phases(&interrupted));
     assert!(whole["render"]["calls"].as_u64().unwrap() > 0, "{whole}");
     assert_eq!(
@@ -513,7 +540,7 @@ fn bad_options_and_data_are_reported_plainly() {
     // A configuration far beyond the machine's memory is refused before loading anything,
     // naming the setting; so is one above --max-memory.
     for (setting, named, limit) in [
-        ("gaussians=100000000", "gaussians = 100000000", None),
+        ("gaussians=40000000", "gaussians = 40000000", None),
         ("grid_resolution=512", "grid_resolution = 512", None),
         (
             "image_size=[100000,100000]",
@@ -573,7 +600,10 @@ fn a_diverging_run_stops_naming_the_quantity_and_keeps_the_last_frame() {
     assert!(!stderr.contains("panicked"), "{stderr}");
     assert!(stderr.contains("at frame 1"), "{stderr}");
     assert!(
-        stderr.contains("velocity grid") || stderr.contains("loss") || stderr.contains("L_"),
+        stderr.contains("velocity grid")
+            || stderr.contains("loss")
+            || stderr.contains("L_")
+            || stderr.contains("the Gaussians'"),
         "names the quantity: {stderr}"
     );
     assert!(
@@ -699,6 +729,16 @@ fn resume_refuses_other_data_and_names_changed_settings() {
         message.contains("--data") && message.contains("other") && message.contains("data"),
         "{message}"
     );
+    // Without run.json the checkpoint's own record of the data still refuses it.
+    let run_json = out.join("run.json");
+    let kept = std::fs::read(&run_json).unwrap();
+    std::fs::remove_file(&run_json).unwrap();
+    let elsewhere = Sequence::open(&other, &config).unwrap();
+    let Err(err) = Run::new(elsewhere, config.clone(), device.clone(), &out, true) else {
+        panic!("resuming on another data set without run.json was accepted");
+    };
+    assert!(err.to_string().contains("not the data set"), "{err}");
+    std::fs::write(&run_json, kept).unwrap();
 
     // A setting that changes what was trained is named, before any tensor is loaded (a
     // different Gaussian count used to fail inside the record loader).
@@ -743,13 +783,28 @@ fn resume_refuses_other_data_and_names_changed_settings() {
         ..config
     };
     let same = Sequence::open(&relative, &extended).unwrap();
-    let mut resumed = Run::new(same, extended, device, &out, true)
+    let mut resumed = Run::new(same, extended.clone(), device.clone(), &out, true)
         .expect("the same data set resumes")
         .quiet(true);
     assert_eq!(
         resumed.run().unwrap().len(),
         2,
         "frame 1 trained after the resume"
+    );
+    drop(resumed);
+    // Past frame 0, another length would give the trained frames other times.
+    let longer = TrainConfig {
+        frames: Some(3),
+        ..extended.clone()
+    };
+    let scene = Sequence::open(&data, &longer).unwrap();
+    let Err(err) = Run::new(scene, longer, device, &out, true) else {
+        panic!("resuming a two-frame run as three frames was accepted");
+    };
+    assert!(
+        err.to_string()
+            .contains("run of 2 frames and this one has 3"),
+        "{err}"
     );
 }
 
@@ -897,6 +952,21 @@ fn a_damaged_checkpoint_falls_back_to_the_one_before() {
         "frame 2 trained again from frame 1 gives the same Gaussians"
     );
 
+    // An edited state.json (a figure of its history) fails its own checksum.
+    let state = checkpoints.join("frame_002/state.json");
+    let text = std::fs::read_to_string(&state).unwrap();
+    assert!(text.contains("\"state_checksum\""), "sealed");
+    std::fs::write(
+        &state,
+        text.replacen("\"elapsed_seconds\": ", "\"elapsed_seconds\": 1", 1),
+    )
+    .unwrap();
+    let resumed = Run::new(scene.clone(), config.clone(), device.clone(), &out, true)
+        .expect("the older checkpoint resumes");
+    assert_eq!(resumed.frame, Some(1), "the edited frame 2 is not resumed");
+    drop(resumed);
+    std::fs::write(&state, text).unwrap();
+
     flip_bytes(&checkpoints.join("frame_001/velocity.safetensors"));
     flip_bytes(&checkpoints.join("frame_002/phi.bpk"));
     let Err(err) = Run::new(scene, config, device, &out, true) else {
@@ -910,6 +980,57 @@ fn a_damaged_checkpoint_falls_back_to_the_one_before() {
             && message.contains("damaged"),
         "{message}"
     );
+}
+
+/// A frame file the run wrote and then lost is refused by name: by `eval` (which would
+/// score fewer frames), by `--resume` (which trains only the frames after its checkpoint),
+/// wherever it is missing.
+#[test]
+fn a_lost_frame_file_is_refused_by_eval_and_resume() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let config = brief_config(3);
+    let device = device_by_name("flex").unwrap().autodiff();
+    let out = dir.path().join("run");
+    let scene = Sequence::open(&data, &config).unwrap();
+    let mut run = Run::new(scene.clone(), config.clone(), device.clone(), &out, false)
+        .unwrap()
+        .quiet(true);
+    run.run().unwrap();
+    drop(run);
+    let flex = device_by_name("flex").unwrap();
+    for lost in [1, 2] {
+        let path = out.join(format!("frames/frame_{lost:03}.safetensors"));
+        let kept = std::fs::read(&path).unwrap();
+        std::fs::remove_file(&path).unwrap();
+        let error = eval::evaluate(&out, &flex, None).unwrap_err().to_string();
+        assert!(
+            error.contains(&format!("frame_{lost:03}.safetensors")) && error.contains("missing"),
+            "{error}"
+        );
+        if lost == 1 {
+            // Frame 1 lies before the newest checkpoint (frame 2).
+            let Err(err) = Run::new(scene.clone(), config.clone(), device.clone(), &out, true)
+            else {
+                panic!("a resume over a lost frame file was accepted");
+            };
+            assert!(err.to_string().contains("frame_001.safetensors"), "{err}");
+        }
+        std::fs::write(&path, kept).unwrap();
+    }
+    assert_eq!(eval::evaluate(&out, &flex, None).unwrap().frames.len(), 3);
+    // Other data generated at the run's data path is refused, not scored.
+    std::fs::remove_dir_all(&data).unwrap();
+    generate(
+        &SynthConfig {
+            camera_distance: SynthConfig::tiny().camera_distance * 1.1,
+            ..SynthConfig::tiny()
+        },
+        &data,
+    )
+    .unwrap();
+    let error = eval::evaluate(&out, &flex, None).unwrap_err().to_string();
+    assert!(error.contains("no longer the data set"), "{error}");
 }
 
 /// A picture far brighter than every other view's at the same time (what a damaged video frame
@@ -939,6 +1060,31 @@ fn a_picture_unlike_the_other_views_is_reported() {
         (found[0].view.as_str(), found[0].frame, found[0].count),
         (scene.train[1][1].view.as_str(), 1, 2)
     );
+}
+
+/// A black picture in one view's video (what a lost frame decodes to) stands out from that
+/// view's own frames before and after it, even where the scene is dark; the clean scene has
+/// none.
+#[test]
+fn a_black_picture_in_a_video_is_reported() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let config = TrainConfig {
+        frames: Some(8),
+        ..test_config()
+    };
+    let scene = Sequence::open(&data, &config).unwrap();
+    let clean = gausmoke_train::sequence::sudden_changes(&scene.train, &scene.test);
+    assert!(clean.is_empty(), "{clean:?}");
+    let mut damaged = scene.clone();
+    let picture = &mut damaged.train[4][0];
+    let (w, h) = (picture.image.width(), picture.image.height());
+    picture.image = gausmoke_data::Image::from_vec(w, h, vec![0.0; (w * h * 3) as usize]).unwrap();
+    let found = gausmoke_train::sequence::sudden_changes(&damaged.train, &damaged.test);
+    let frames: Vec<(&str, usize)> = found.iter().map(|f| (f.view.as_str(), f.frame)).collect();
+    let view = scene.train[4][0].view.as_str();
+    assert!(frames.contains(&(view, 4)), "{found:?}");
+    assert!(frames.iter().all(|&(v, _)| v == view), "{found:?}");
 }
 
 /// A full disk, simulated with a file-size limit (writes past it fail with EFBIG), stops the

@@ -9,31 +9,36 @@ pub(super) struct RenderArgs {
     #[arg(long)]
     pub(super) run: Option<PathBuf>,
     /// Cameras: N steps of an orbit around the smoke box (the default, with 120 steps).
-    #[arg(long, value_name = "N", conflicts_with_all = ["views", "cameras"])]
+    #[arg(long, value_name = "N", conflicts_with_all = ["views", "cameras"], requires = "run")]
     pub(super) orbit: Option<usize>,
     /// Cameras: every train and held-out view of the run's data set, one video each.
-    #[arg(long, conflicts_with = "cameras")]
+    #[arg(long, conflicts_with = "cameras", requires = "run")]
     pub(super) views: bool,
     /// Cameras: a NeRF-style camera-path JSON (camera_angle_x, w, h,
     /// frames[].transform_matrix camera-to-world, OpenGL axes).
-    #[arg(long, value_name = "FILE")]
+    #[arg(long, value_name = "FILE", requires = "run")]
     pub(super) cameras: Option<PathBuf>,
     /// Time frames to show: `T`, `A-B` or `A..=B` (both ends), `A:B` or `A..B` (B excluded);
     /// default all finished frames.
-    #[arg(long, value_name = "RANGE")]
+    #[arg(long, value_name = "RANGE", requires = "run")]
     pub(super) frames: Option<String>,
-    /// Picture size WIDTHxHEIGHT (orbit: default the held-out camera's; demo: 270x480).
+    /// Picture size WIDTHxHEIGHT, each side 1 to 8192 (orbit: default the held-out
+    /// camera's; demo: 270x480).
     #[arg(long, value_name = "WxH")]
     pub(super) size: Option<String>,
-    /// Pictures per second of the videos.
-    #[arg(long, default_value_t = 10)]
+    /// Pictures per second of the videos, 1 to 240.
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..=240), requires = "run")]
     pub(super) fps: u32,
     /// Also write every picture as a PNG.
-    #[arg(long)]
+    #[arg(long, requires = "run")]
     pub(super) png: bool,
-    /// Output folder (default: RUN/render, or out/demo for the procedural plume).
+    /// Output folder (default: RUN/render, or out/demo for the procedural plume). One that
+    /// holds an earlier render is refused unless --overwrite is given.
     #[arg(long)]
     pub(super) out: Option<PathBuf>,
+    /// Replace the render already in the output folder.
+    #[arg(long, requires = "run")]
+    pub(super) overwrite: bool,
     #[arg(long, default_value = "flex", value_parser = compiled_device, help = device_help())]
     pub(super) device: String,
     /// Procedural plume only: number of Gaussians.
@@ -43,13 +48,51 @@ pub(super) struct RenderArgs {
     #[arg(long)]
     pub(super) quiet: bool,
 }
+/// The largest side `--size` accepts: beyond what H.264 encoders and players take.
+const MAX_SIDE: u32 = 8192;
+
 /// `--size WIDTHxHEIGHT`, as everywhere on the command line.
 pub(super) fn parse_size(text: &str) -> Result<[u32; 2]> {
     let parsed = text.split_once('x').and_then(|(w, h)| {
         let (w, h) = (w.trim().parse::<u32>().ok()?, h.trim().parse::<u32>().ok()?);
         (w > 0 && h > 0).then_some([w, h])
     });
-    parsed.with_context(|| format!("--size `{text}`: expected WIDTHxHEIGHT, e.g. 480x270"))
+    let [w, h] =
+        parsed.with_context(|| format!("--size `{text}`: expected WIDTHxHEIGHT, e.g. 480x270"))?;
+    if w.max(h) > MAX_SIDE {
+        bail!("--size `{text}`: at most {MAX_SIDE} pixels a side");
+    }
+    Ok([w, h])
+}
+
+/// Refuses an output folder that holds an earlier render (unless `overwrite`), or that is a
+/// data set or a run folder itself, whose files a render would mix with.
+fn check_render_out(out: &Path, overwrite: bool) -> Result<()> {
+    let holds = |name: &str| out.join(name).exists();
+    if ["info.json", "transforms.json", "transforms_train.json"]
+        .iter()
+        .any(|name| holds(name))
+    {
+        bail!(
+            "--out {}: this is a data set's folder; render into a folder of its own",
+            out.display()
+        );
+    }
+    if holds("run.json") {
+        bail!(
+            "--out {}: this is a run folder; render into a folder of its own (the default is \
+             RUN/render)",
+            out.display()
+        );
+    }
+    if holds("render.json") && !overwrite {
+        bail!(
+            "--out {} holds an earlier render (render.json); pass --overwrite to replace it, or \
+             choose another --out",
+            out.display()
+        );
+    }
+    Ok(())
 }
 
 /// `--frames T`, `A-B` or `A..=B` (both ends shown), `A:B` or `A..B` (B excluded, as Python
@@ -98,6 +141,7 @@ pub(super) fn render_trained(run: &Path, args: RenderArgs) -> Result<()> {
         progress: !args.quiet,
     };
     let out = args.out.unwrap_or_else(|| run.join("render"));
+    check_render_out(&out, args.overwrite)?;
     let start = Instant::now();
     let summary = render_run(run, &out, &request, &device)?;
     for video in &summary.videos {

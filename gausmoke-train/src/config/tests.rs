@@ -24,6 +24,11 @@ fn unknown_keys_and_bad_values_are_named() {
         .with_overrides(&["lamda_div=0.5".into()])
         .unwrap_err();
     assert!(err.to_string().contains("lamda_div"), "{err}");
+    // A table given as an array is not read as the defaults.
+    let err = TrainConfig::default()
+        .with_overrides(&["init_learning_rates=[]".into()])
+        .unwrap_err();
+    assert!(err.to_string().contains("init_learning_rates"), "{err}");
     // Each invalid configuration is refused naming the setting to change.
     let invalid = [
         (
@@ -154,6 +159,9 @@ fn nonsense_values_are_refused_naming_the_key() {
         ("lr_velocity=1e12", "lr_velocity"),
         ("lr_gaussians=2", "lr_gaussians"),
         ("lr_log_scales=1e12", "lr_log_scales"),
+        ("init_iterations=1000000000000", "init_iterations"),
+        ("refine_iterations=1000000000000", "refine_iterations"),
+        ("static_gaussians=1000000000000", "static_gaussians"),
         ("init_learning_rates.means=5", "init_learning_rates.means"),
         ("dt=1e12", "dt"),
         ("projection_tolerance=1e12", "projection_tolerance"),

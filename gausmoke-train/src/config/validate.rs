@@ -6,6 +6,11 @@ use gausmoke_model::projection::OpenFaces;
 use super::{MAX_TIME_FREQUENCIES, ProjectionKind, TrainConfig, is_box_of_fractions};
 use crate::TrainError;
 
+/// The most steps any loop of a frame may take.
+const MAX_ITERATIONS: usize = 1_000_000;
+/// The most Gaussians of either kind: 10^8 would need over 100 GB.
+const MAX_GAUSSIANS: usize = 50_000_000;
+
 impl TrainConfig {
     /// Checks ranges before any work starts.
     pub fn validate(&self) -> Result<(), TrainError> {
@@ -139,6 +144,31 @@ impl TrainConfig {
         }
         if self.projection_max_iterations == 0 {
             return bad("projection_max_iterations must be >= 1".into());
+        }
+        // Far beyond any useful run (the paper's largest is 2000), and each step keeps a row
+        // of losses: a count beyond these is a typo, not a plan, and would exhaust memory.
+        for (name, value) in [
+            ("init_iterations", self.init_iterations),
+            ("advect_iterations", self.advect_iterations),
+            ("refine_iterations", self.refine_iterations),
+            ("projection_max_iterations", self.projection_max_iterations),
+            ("penalty_steps", self.penalty_steps),
+        ] {
+            if value > MAX_ITERATIONS {
+                return bad(format!(
+                    "{name} must be at most {MAX_ITERATIONS}, got {value}"
+                ));
+            }
+        }
+        for (name, value) in [
+            ("gaussians", self.gaussians),
+            ("static_gaussians", self.static_gaussians),
+        ] {
+            if value > MAX_GAUSSIANS {
+                return bad(format!(
+                    "{name} must be at most {MAX_GAUSSIANS}, got {value}"
+                ));
+            }
         }
         if self.projection == ProjectionKind::Penalty && self.penalty_steps == 0 {
             return bad("penalty_steps must be >= 1 with projection = \"penalty\"".into());

@@ -39,6 +39,7 @@ use gausmoke_render::{GaussianTensors, RasterOptions, render_volume};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::TrainError;
+use crate::arrays::HostArrays;
 use crate::config::TrainConfig;
 use crate::sequence::{Observation, Sequence};
 use crate::state::{LoopTraffic, LossRow, Phase, RefineMoveField, TrainState};
@@ -87,8 +88,8 @@ pub struct Trainer {
     raster: RasterOptions,
     /// The data set's obstacles on the grid, when the configuration makes them solid.
     solids: Option<SolidCells>,
-    /// The last frame's refinement moves, for the next frame's persistence (not saved:
-    /// a resumed run reports none at its first frame).
+    /// The last frame's refinement moves, for the next frame's persistence (kept in the
+    /// checkpoint: [`Trainer::checkpoint_extras`]).
     last_moves: Option<FrameMoves>,
     quiet: bool,
     /// The data set has a `scene.toml` (see [`crate::scene`]): nothing is estimated.
@@ -168,9 +169,31 @@ impl Trainer {
         fresh_state(&self.sequence, &self.config, &self.grid, &self.device)
     }
 
-    /// Takes the state a checkpoint held (see [`Trainer::fresh_state_for_resume`]).
-    pub fn restore(&mut self, state: TrainState) {
+    /// Takes the state and extras a checkpoint held (see [`Trainer::fresh_state_for_resume`]
+    /// and [`Trainer::checkpoint_extras`]).
+    pub fn restore(&mut self, state: TrainState, extras: HostArrays) -> Result<(), TrainError> {
+        let n = state.gaussians.len();
         self.state = state;
+        self.last_moves = FrameMoves::from_arrays(&extras, &self.device);
+        if let Some(moves) = &self.last_moves {
+            let [rows, _] = moves.moves.dims();
+            if rows != n {
+                return Err(TrainError::Checkpoint {
+                    path: "extras.safetensors".into(),
+                    reason: format!("it holds moves of {rows} Gaussians, the state {n}"),
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// What a checkpoint keeps besides the state: the last frame's refinement moves, so that
+    /// a resumed run measures its first frame's persistence as an uninterrupted one does.
+    pub fn checkpoint_extras(&self) -> HostArrays {
+        self.last_moves
+            .as_ref()
+            .map(FrameMoves::to_arrays)
+            .unwrap_or_default()
     }
 
     /// Frame `t` of Algorithm 1: the static fit for frame 0, else the step from `t - 1`.

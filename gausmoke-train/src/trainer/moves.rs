@@ -6,6 +6,7 @@ use gausmoke_model::{GridScale, GridSpec, ProjectionOptions, project_direct};
 use gausmoke_render::device_traffic::read_floats;
 
 use super::Trainer;
+use crate::arrays::HostArrays;
 use crate::state::RefineMoveField;
 
 /// The refinement's move of the centres at one frame, mass-weighted (see
@@ -23,7 +24,8 @@ pub struct RefineMoves {
     /// before, and the same for the moves' grid-scale parts: near 1 the refinement supplies
     /// the same motion frame after frame (motion the velocity keeps missing), near 0 its
     /// moves do not persist. Gaussians that jumped this frame are left out; `None` at the
-    /// first frame the trainer refines (after a start or a resume).
+    /// first frame the trainer refines (a resume takes the frame before's from the
+    /// checkpoint).
     pub persistence: Option<[f64; 2]>,
     /// Share of the grid-scale move field (at each cell the mass-weighted mean move around
     /// it) that the projection keeps: the part a divergence-free velocity can make; the rest
@@ -94,6 +96,49 @@ pub(super) struct FrameMoves {
     pub(super) moves: Tensor<2>,
     pub(super) grid_part: Tensor<2>,
     pub(super) field: RefineMoveField,
+}
+
+/// The names of [`FrameMoves`]' arrays in a checkpoint's extras.
+const SAVED: [&str; 4] = [
+    "refine_moves",
+    "refine_moves_grid_part",
+    "refine_move_field",
+    "refine_move_field_flow",
+];
+
+impl FrameMoves {
+    /// As host arrays, for a checkpoint (one read).
+    pub(super) fn to_arrays(&self) -> HostArrays {
+        let [n, _] = self.moves.dims();
+        let both = read_floats(Tensor::cat(
+            vec![self.moves.clone(), self.grid_part.clone()],
+            0,
+        ));
+        let (moves, grid_part) = both.split_at(3 * n);
+        let field = |values: &Vec<f32>| (vec![values.len()], values.clone());
+        HostArrays::from([
+            (SAVED[0].into(), (vec![n, 3], moves.to_vec())),
+            (SAVED[1].into(), (vec![n, 3], grid_part.to_vec())),
+            (SAVED[2].into(), field(&self.field.moves)),
+            (SAVED[3].into(), field(&self.field.flow)),
+        ])
+    }
+
+    /// What [`Self::to_arrays`] wrote, `None` when `arrays` holds none of it.
+    pub(super) fn from_arrays(arrays: &HostArrays, device: &Device) -> Option<Self> {
+        let [moves, grid_part, field, flow] = SAVED.map(|name| arrays.get(name));
+        let tensor = |(shape, values): &(Vec<usize>, Vec<f32>)| {
+            Tensor::<2>::from_data(TensorData::new(values.clone(), [shape[0], 3]), device)
+        };
+        Some(Self {
+            moves: tensor(moves?),
+            grid_part: tensor(grid_part?),
+            field: RefineMoveField {
+                moves: field?.1.clone(),
+                flow: flow?.1.clone(),
+            },
+        })
+    }
 }
 
 /// [`RefineMoves`] of `moves` (`[n, 3]`, in cells), against the frame before's where there

@@ -193,6 +193,21 @@ fn the_estimate_is_the_blobs_motion_and_a_stale_one_is_refused() {
     let shift = Vec3::new(0.05, 0.07, -0.03);
     let (folder, config) = moving_blob_run(dir.path(), shift, 3);
     let run = folder.root();
+    // Exports as training leaves them, with an array the estimate does not write.
+    let grid = config.grid(Vec3::ZERO, Vec3::ONE).unwrap();
+    std::fs::create_dir_all(folder.exports_dir()).unwrap();
+    for t in 1..3 {
+        let state = folder.read_frame_state(t, &grid).unwrap().unwrap();
+        let moves = vec![t as f32; state.velocity.len()];
+        crate::export::write_npz(
+            &folder.exports_dir().join(format!("grid_{t:03}.npz")),
+            &grid,
+            &state.density,
+            &state.velocity,
+            &[("refine_move", &moves)],
+        )
+        .unwrap();
+    }
     let mut reported = Vec::new();
     let summary = estimate_run_velocity(run, &EstimateOptions::default(), &device(), |d, n| {
         reported.push((d, n))
@@ -202,24 +217,33 @@ fn the_estimate_is_the_blobs_motion_and_a_stale_one_is_refused() {
     assert_eq!(summary.frames.len(), 2);
     // What a person looks at: frame 2 is the last (the default cadence writes all), the
     // charts span both frames, and the run's velocity (zero here) is slower than the blob.
+    // The run's exports carry the estimate as their velocity, the grid velocity beside it,
+    // and keep their other arrays.
     let dir = estimate_dir(run);
     for t in 1..3 {
-        for file in [
-            format!("exports/grid_{t:03}.vti"),
-            format!("exports/grid_{t:03}.npz"),
-            format!("slices/frame_{t:03}.png"),
-        ] {
-            assert!(dir.join(&file).is_file(), "{file}");
-        }
+        assert!(dir.join(format!("slices/frame_{t:03}.png")).is_file());
+        let exports = folder.exports_dir();
+        let vti = std::fs::read(exports.join(format!("grid_{t:03}.vti"))).unwrap();
+        assert!(String::from_utf8_lossy(&vti).contains("Name=\"grid_velocity\""));
+        let npz = crate::export::read_npz(&exports.join(format!("grid_{t:03}.npz")));
+        let estimate = read_arrays(&estimate_path(run, t)).unwrap();
+        assert_eq!(
+            crate::export::floats(&npz["velocity"].1),
+            estimate["velocity"].1
+        );
+        assert!(
+            crate::export::floats(&npz["grid_velocity"].1)
+                .iter()
+                .all(|&v| v == 0.0)
+        );
+        assert_eq!(
+            crate::export::floats(&npz["refine_move"].1),
+            vec![t as f32; estimate["velocity"].1.len()],
+        );
     }
-    for file in ["exports/grid.pvd", "slices.mp4", "speed.png", "misfit.png"] {
+    for file in ["slices.mp4", "speed.png", "misfit.png"] {
         assert!(dir.join(file).is_file(), "{file}");
     }
-    let pvd = std::fs::read_to_string(dir.join("exports/grid.pvd")).unwrap();
-    assert!(
-        pvd.contains("grid_001.vti") && pvd.contains("grid_002.vti"),
-        "{pvd}"
-    );
     let slice = crate::visuals::Picture::open_png(&dir.join("slices/frame_002.png")).unwrap();
     // Three 256-pixel panels (density and two speeds) and the gaps between them.
     assert!((768..800).contains(&slice.width) && slice.height == 256);
@@ -232,7 +256,6 @@ fn the_estimate_is_the_blobs_motion_and_a_stale_one_is_refused() {
             frame.frame
         );
     }
-    let grid = config.grid(Vec3::ZERO, Vec3::ONE).unwrap();
     let state = |t| folder.read_frame_state(t, &grid).unwrap().unwrap().density;
     let stored = StoredEstimate::open(run).unwrap().expect("an estimate");
     for t in 1..3 {
