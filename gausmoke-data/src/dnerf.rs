@@ -1,8 +1,8 @@
 //! D-NeRF / 4D-GS / Deformable-GS / NeuSmoke style data sets: `transforms_train.json`
 //! (required), `transforms_val.json` and `transforms_test.json` (optional), each with
 //! `camera_angle_x` and `frames[{file_path, time, transform_matrix}]`. `file_path` is relative
-//! to the folder and, as in D-NeRF, given without the `.png` extension (a path that already
-//! names an existing file is accepted too). RGBA PNGs are composited over the background
+//! to the folder and, as in D-NeRF, given without the `.png` extension (`.jpg` is tried next,
+//! and a path that already names an existing file is accepted too). RGBA PNGs are composited over the background
 //! (black unless [`LoadOptions::background`] says otherwise, as 4D-GS does without
 //! `--white_background`). In D-NeRF's own layout every frame has its own pose and time, and
 //! each split becomes one [`View`]. Blender-style multi-view sets (fixed cameras filmed
@@ -23,7 +23,7 @@ use crate::dataset::{
     scale_intrinsics, time_indices,
 };
 use crate::error::{DataError, Result};
-use crate::image::read_png_over;
+use crate::image::read_image_over;
 use crate::json::{Node, read_aabb, read_json, read_obstacles};
 
 struct Item {
@@ -168,7 +168,7 @@ pub fn load_dnerf(dir: &Path, options: &LoadOptions) -> Result<Dataset> {
             let selected: Vec<&Item> = indices.iter().map(|&i| &items[i]).collect();
             let images = selected
                 .par_iter()
-                .map(|it| read_png_over(&it.image, background))
+                .map(|it| read_image_over(&it.image, background))
                 .collect::<Result<Vec<_>>>()?;
             let mut frames = Vec::with_capacity(images.len());
             for (it, image) in selected.iter().zip(images) {
@@ -240,15 +240,19 @@ fn read_item(node: Node<'_>, dir: &Path) -> Result<Item> {
     let path_owned = node.get("file_path")?;
     let rel = path_owned.node().str()?;
     let with_png = dir.join(format!("{rel}.png"));
+    let with_jpg = dir.join(format!("{rel}.jpg"));
     let as_is = dir.join(rel);
     let image = if with_png.is_file() {
         with_png
+    } else if with_jpg.is_file() {
+        with_jpg
     } else if !rel.is_empty() && as_is.is_file() {
         as_is
     } else {
         return Err(path_owned.node().err(format!(
-            "the path of an existing image (neither {} nor {} exists)",
+            "the path of an existing image (none of {}, {} and {} exists)",
             with_png.display(),
+            with_jpg.display(),
             as_is.display()
         )));
     };

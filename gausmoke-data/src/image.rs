@@ -84,7 +84,7 @@ impl Image {
     }
 
     /// This image with straight `alpha` (one per pixel) composited over `background`, as
-    /// [`read_png_over`] does.
+    /// [`read_image_over`] does.
     pub fn over(&self, alpha: &[f32], background: [f32; 3]) -> Image {
         assert_eq!(alpha.len(), self.data.len() / 3, "one alpha per pixel");
         let data = self
@@ -122,9 +122,10 @@ pub(crate) fn to_u8(v: f32) -> u8 {
     (v.clamp(0.0, 1.0) * 255.0).round() as u8
 }
 
-/// Reads a PNG (8 or 16 bit, grey, grey+alpha, RGB or RGBA) and composites it over
-/// `background`: `rgb * alpha + background * (1 - alpha)`. Files without alpha are opaque.
-pub fn read_png_over(path: &Path, background: [f32; 3]) -> Result<Image> {
+/// Reads a PNG (8 or 16 bit, grey, grey+alpha, RGB or RGBA) or a JPEG (8-bit, opaque) and
+/// composites it over `background`: `rgb * alpha + background * (1 - alpha)`. Files without
+/// alpha are opaque.
+pub fn read_image_over(path: &Path, background: [f32; 3]) -> Result<Image> {
     let decoded = image::ImageReader::open(path)
         .map_err(crate::error::io_err(path))?
         .with_guessed_format()

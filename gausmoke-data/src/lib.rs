@@ -35,7 +35,7 @@ pub use camera_file::read_camera_path;
 pub use dataset::{Aabb, Dataset, Format, Frame, LoadOptions, Obstacle, PlannedView, Split, View};
 pub use dnerf::{load_dnerf, plan_dnerf};
 pub use error::{DataError, Result};
-pub use image::{Image, read_png_over, resize_area};
+pub use image::{Image, read_image_over, resize_area};
 pub use nerfstudio::{is_nerfstudio, load_nerfstudio, plan_nerfstudio};
 pub use pinf::{load_pinf, plan_pinf};
 

@@ -33,7 +33,7 @@ use crate::dataset::{
     scale_intrinsics, time_indices,
 };
 use crate::error::{DataError, Result};
-use crate::image::read_png_over;
+use crate::image::read_image_over;
 use crate::json::{Node, read_aabb, read_json};
 
 const DISTORTION: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
@@ -275,7 +275,7 @@ pub fn load_nerfstudio(dir: &Path, options: &LoadOptions) -> Result<Dataset> {
         let selected: Vec<&Item> = items.iter().filter(|f| kept.contains(&f.time)).collect();
         let images = selected
             .par_iter()
-            .map(|it| read_png_over(&it.image, background))
+            .map(|it| read_image_over(&it.image, background))
             .collect::<Result<Vec<_>>>()?;
         let mut frames = Vec::with_capacity(selected.len());
         for (it, image) in selected.iter().zip(images) {

@@ -11,9 +11,9 @@
 //! the 8 mapped cube corners.
 //!
 //! Frames come from the video named by `file_name` (H.264 MP4, decoded in-process), or from a
-//! folder of PNG frames: `file_name` itself when it is a folder, else the folder named like
-//! the file without its extension (`train00.mp4` -> `train00/`). PNGs are taken in numeric
-//! order of the digits in their names (`000.png`, `001.png`, ...).
+//! folder of PNG or JPEG frames: `file_name` itself when it is a folder, else the folder named
+//! like the file without its extension (`train00.mp4` -> `train00/`). Frames are taken in
+//! numeric order of the digits in their names (`000.png`, `001.png`, ... or `000.jpg`, ...).
 
 use std::path::{Path, PathBuf};
 
@@ -26,7 +26,7 @@ use crate::dataset::{
     scale_intrinsics, time_indices,
 };
 use crate::error::{DataError, Result, io_err};
-use crate::image::read_png_over;
+use crate::image::read_image_over;
 use crate::json::{Node, read_json, read_obstacles};
 use crate::video;
 
@@ -344,7 +344,7 @@ fn load_entry(e: &Entry, info: &Path, options: &LoadOptions, background: [f32; 3
             (path.clone(), decoded.frames)
         }
         Source::Pngs(dir) => {
-            let files = png_frames(dir)?;
+            let files = image_frames(dir)?;
             if files.len() < e.frame_num {
                 return Err(too_few(dir, files.len()));
             }
@@ -352,7 +352,7 @@ fn load_entry(e: &Entry, info: &Path, options: &LoadOptions, background: [f32; 3
                 .par_iter()
                 .enumerate()
                 .map(|(i, file)| {
-                    let img = read_png_over(file, background)?;
+                    let img = read_image_over(file, background)?;
                     expected_size(file, range.start + i, img.width(), img.height())?;
                     resize_to(img, target)
                 })
@@ -396,13 +396,20 @@ fn load_entry(e: &Entry, info: &Path, options: &LoadOptions, background: [f32; 3
     })
 }
 
-/// PNG files of a frame folder, in numeric order of the digits in their stems (ties and
-/// names without digits: by name).
-fn png_frames(dir: &Path) -> Result<Vec<PathBuf>> {
+/// PNG and JPEG files of a frame folder, in numeric order of the digits in their stems (ties
+/// and names without digits: by name).
+fn image_frames(dir: &Path) -> Result<Vec<PathBuf>> {
     let mut files: Vec<(u64, String, PathBuf)> = std::fs::read_dir(dir)
         .map_err(io_err(dir))?
         .filter_map(|entry| entry.ok().map(|e| e.path()))
-        .filter(|p| p.is_file() && p.extension().is_some_and(|x| x.eq_ignore_ascii_case("png")))
+        .filter(|p| {
+            p.is_file()
+                && p.extension().is_some_and(|x| {
+                    ["png", "jpg", "jpeg"]
+                        .iter()
+                        .any(|known| x.eq_ignore_ascii_case(known))
+                })
+        })
         .map(|p| {
             let stem = p
                 .file_stem()

@@ -117,6 +117,62 @@ fn loads_pngs_with_cameras_box_and_split() {
     assert!((w - Vec3::new(0.0, 0.0, 1.0)).length() < 1e-6, "{w}");
 }
 
+/// A 16-bit value 1/65535 off the 8-bit value `b`, which an 8-bit read would lose.
+fn sixteen_bit(b: u8) -> u16 {
+    (u16::from(b) * 257) ^ 1
+}
+
+/// Frame folders of JPEGs (what many capture rigs write) and of 16-bit PNGs load as PNGs do:
+/// JPEG to within its compression error, 16-bit PNG to 1/65535.
+#[test]
+fn loads_jpeg_and_16_bit_png_frames() {
+    let (dir, path) = fixture(&info());
+    for (folder, write) in [("front", "jpeg"), ("side", "png16")] {
+        let frames = dir.path().join(folder);
+        std::fs::remove_dir_all(&frames).unwrap();
+        std::fs::create_dir_all(&frames).unwrap();
+        for t in 0..FRAMES {
+            if write == "jpeg" {
+                let raw: Vec<u8> = (0..H)
+                    .flat_map(|y| (0..W).flat_map(move |x| pattern(x, y, t)))
+                    .collect();
+                let picture = image::RgbImage::from_raw(W, H, raw).unwrap();
+                let file = std::fs::File::create(frames.join(format!("{t:03}.jpg"))).unwrap();
+                image::codecs::jpeg::JpegEncoder::new_with_quality(file, 100)
+                    .encode_image(&picture)
+                    .unwrap();
+            } else {
+                let raw: Vec<u16> = (0..H)
+                    .flat_map(|y| (0..W).flat_map(move |x| pattern(x, y, t)))
+                    .map(sixteen_bit)
+                    .collect();
+                let picture =
+                    image::ImageBuffer::<image::Rgb<u16>, _>::from_raw(W, H, raw).unwrap();
+                picture.save(frames.join(format!("{t:03}.png"))).unwrap();
+            }
+        }
+    }
+    let ds = load_pinf(&path, &LoadOptions::default()).unwrap();
+    for (name, tolerance) in [("front", 0.06), ("side", 1.5 / 65535.0)] {
+        let view = ds.view(name).unwrap();
+        assert_eq!(view.frames.len(), FRAMES, "{name}");
+        let mut worst = 0.0f32;
+        for (t, frame) in view.frames.iter().enumerate() {
+            for (x, y) in [(0, 0), (17, 3), (199, 99), (120, 40), (60, 60)] {
+                let expected = if name == "side" {
+                    pattern(x, y, t).map(|b| f32::from(sixteen_bit(b)) / 65535.0)
+                } else {
+                    pattern(x, y, t).map(|b| b as f32 / 255.0)
+                };
+                for (a, b) in frame.image.pixel(x, y).iter().zip(expected) {
+                    worst = worst.max((a - b).abs());
+                }
+            }
+        }
+        assert!(worst <= tolerance, "{name}: off by {worst}");
+    }
+}
+
 #[test]
 fn known_world_points_project_to_hand_computed_pixels() {
     let (_dir, path) = fixture(&info());
