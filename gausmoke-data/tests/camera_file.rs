@@ -56,3 +56,42 @@ fn bad_camera_paths_name_the_field() {
         );
     }
 }
+
+/// nerfstudio's camera_path.json (ns-render's input) gives the same camera as the NeRF layout
+/// with the field of view converted from vertical degrees.
+#[test]
+fn a_nerfstudio_camera_path_gives_its_poses_and_field_of_view() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = write(
+        dir.path(),
+        r#"{"camera_type": "perspective", "render_width": 40, "render_height": 30, "fps": 24,
+            "seconds": 1, "keyframes": [], "camera_path": [
+            {"camera_to_world": [1,0,0,0.5, 0,1,0,1, 0,0,1,4, 0,0,0,1], "fov": 50, "aspect": 1.33},
+            {"camera_to_world": [0,0,1,4, 0,1,0,1, -1,0,0,0, 0,0,0,1], "fov": 50}]}"#,
+    );
+    let cameras = read_camera_path(&path).unwrap();
+    assert_eq!(cameras.len(), 2);
+    assert_eq!(cameras[0].position().to_array(), [0.5, 1.0, 4.0]);
+    assert_eq!(cameras[1].position().to_array(), [4.0, 1.0, 0.0]);
+    assert_eq!((cameras[1].width(), cameras[1].height()), (40, 30));
+    let intrinsics = cameras[0].intrinsics();
+    let fov_y = 2.0 * (15.0 / intrinsics.fy).atan();
+    assert!((fov_y.to_degrees() - 50.0).abs() < 1e-3, "{fov_y}");
+    assert!((intrinsics.fx - intrinsics.fy).abs() < 1e-3);
+    for (text, field) in [
+        (
+            r#"{"render_width": 4, "render_height": 4, "camera_path": [{"camera_to_world": [1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1], "fov": 190}]}"#,
+            "camera_path[0].fov",
+        ),
+        (
+            r#"{"render_width": 4, "render_height": 4, "camera_path": [{"camera_to_world": [1,0,0,0], "fov": 50}]}"#,
+            "camera_path[0].camera_to_world",
+        ),
+        (r#"{"render_height": 4, "camera_path": []}"#, "render_width"),
+    ] {
+        let err = read_camera_path(&write(dir.path(), text))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains(field), "{text}: {err}");
+    }
+}

@@ -4,15 +4,20 @@
 //! Cameras ([`CameraPath`]):
 //! * the data set's own views (train and held-out), one video per view;
 //! * an orbit around the smoke box: `steps` cameras evenly spaced on a circle about the box
-//!   centre, at the data set cameras' mean distance and height, with their mean up direction,
-//!   starting at the held-out camera's bearing (so picture 0 can be compared with it) and
-//!   with its field of view;
+//!   centre, at the data set cameras' mean elevation and up direction, starting at the
+//!   held-out camera's bearing, with its field of view, and as far from the centre as frames
+//!   the box (its bounding sphere fills [`ORBIT_FILL`] of the narrower side of the picture);
+//!   the picture is the held-out camera's shape, [`ORBIT_LONG_SIDE`] pixels on its long side,
+//!   unless a size is given;
 //! * a camera-path file (see [`gausmoke_data::read_camera_path`]).
 //!
-//! A moving camera and a moving scene go together like this: picture `i` shows time frame
-//! `frames[min(i, len - 1)]` through camera `i mod cameras`, and there are
-//! `max(len, cameras)` pictures. So 120 frames with a 120-step orbit make one turn while the
-//! smoke evolves, and a single frame with a 90-step orbit is a frozen-time turn.
+//! A moving camera and a moving scene go together like this: with `len` frames and `cameras`
+//! cameras there are `P = max(len, cameras)` pictures, and picture `i` shows time frame
+//! `frames[i * len / P]` through camera `i * cameras / P`: time and camera both span the
+//! video. So 120 frames with a 120-step orbit make one turn while the smoke evolves, 8 frames
+//! with a 60-step orbit one turn with each frame held for 7 or 8 pictures, and a single frame
+//! with a 90-step orbit a frozen-time turn. The data set's own views pair frame `t` with the
+//! view's camera at `t`.
 
 use std::ops::Range;
 use std::path::{Path, PathBuf};
@@ -47,7 +52,8 @@ pub struct RenderRequest {
     pub cameras: CameraPath,
     /// Time frames to show; `None`: every frame the run has finished.
     pub frames: Option<Range<usize>>,
-    /// Picture size for orbits (default: the held-out camera's), width then height.
+    /// Picture size for orbits, width then height (default: the held-out camera's shape,
+    /// [`ORBIT_LONG_SIDE`] pixels on its long side).
     pub size: Option<[u32; 2]>,
     /// Pictures per second of the videos.
     pub fps: u32,
@@ -67,6 +73,10 @@ pub struct RenderedVideo {
     pub frames: Vec<usize>,
     /// Camera centre of each picture (world units).
     pub camera_positions: Vec<[f32; 3]>,
+    /// On an orbit, each picture's angle about the box's vertical axis from the held-out
+    /// camera's bearing, in degrees.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub orbit_degrees: Option<Vec<f32>>,
 }
 
 /// Everything [`render_run`] wrote, also saved as `OUT/render.json`.
@@ -87,6 +97,11 @@ fn config_error(origin: &str, reason: impl Into<String>) -> TrainError {
         reason: reason.into(),
     }
 }
+
+/// The share of the picture's narrower side the smoke box's bounding sphere fills on an orbit.
+pub const ORBIT_FILL: f32 = 0.9;
+/// An orbit's picture size on its long side, unless one is given.
+pub const ORBIT_LONG_SIDE: u32 = 720;
 
 /// The orbit described in the module docs.
 pub fn orbit_cameras(
@@ -111,14 +126,14 @@ pub fn orbit_cameras(
     up = up.normalize();
     let offsets: Vec<Vec3> = all.iter().map(|c| c.position() - centre).collect();
     let height = offsets.iter().map(|o| o.dot(up)).sum::<f32>() / offsets.len() as f32;
-    let radius = offsets
+    let across = offsets
         .iter()
         .map(|o| (*o - up * o.dot(up)).length())
         .sum::<f32>()
         / offsets.len() as f32;
     let bearing = reference.position() - centre;
     let mut e1 = bearing - up * bearing.dot(up);
-    if e1.length() < 1e-6 || radius < 1e-6 {
+    if e1.length() < 1e-6 || across < 1e-6 {
         return Err(config_error(
             "--orbit",
             "the held-out camera sits on the box's vertical axis; no circle to orbit on",
@@ -126,16 +141,38 @@ pub fn orbit_cameras(
     }
     e1 = e1.normalize();
     let e2 = up.cross(e1);
-    let [width, height_px] = size.unwrap_or([reference.width(), reference.height()]);
+    let [width, height_px] = size.unwrap_or_else(|| {
+        let (w, h) = (reference.width() as f32, reference.height() as f32);
+        let scale = ORBIT_LONG_SIDE as f32 / w.max(h);
+        // Even sides, as H.264 players expect.
+        [w, h].map(|side| ((side * scale / 2.0).round() as u32 * 2).max(2))
+    });
     let Intrinsics { fx, .. } = reference.intrinsics();
     let fov_x = 2.0 * (reference.width() as f32 / (2.0 * fx)).atan();
+    // The narrower half-angle of the picture the orbit renders (square pixels).
+    let focal = width as f32 / 2.0 / (fov_x / 2.0).tan();
+    let half_angle = (width.min(height_px) as f32 / 2.0 / focal).atan();
+    let sphere = (hi - lo).length() / 2.0;
+    let distance = sphere / (ORBIT_FILL * half_angle.tan()).atan().sin();
+    // The data set cameras' elevation, at the distance that frames the box.
+    let elevation = height.atan2(across);
+    let (along, rise) = (distance * elevation.cos(), distance * elevation.sin());
     (0..steps)
         .map(|k| {
             let angle = std::f32::consts::TAU * k as f32 / steps as f32;
-            let eye = centre + up * height + (e1 * angle.cos() + e2 * angle.sin()) * radius;
+            let eye = centre + up * rise + (e1 * angle.cos() + e2 * angle.sin()) * along;
             Camera::look_at(eye, centre, up, width, height_px, fov_x)
                 .map_err(|e| config_error("--orbit", e.to_string()))
         })
+        .collect()
+}
+
+/// Picture `i` of a video of `frames` time frames through `cameras` cameras: its frame's index
+/// into `frames` and its camera's, both spanning the video (see the module docs).
+pub fn schedule(frames: usize, cameras: usize) -> Vec<(usize, usize)> {
+    let pictures = frames.max(cameras);
+    (0..pictures)
+        .map(|i| (i * frames / pictures, i * cameras / pictures))
         .collect()
 }
 
@@ -240,23 +277,17 @@ pub fn render_run(
         source,
     })?;
     let frame_list: Vec<usize> = frames.clone().collect();
-    let schedule = |cameras: usize| -> Vec<(usize, usize)> {
-        (0..frame_list.len().max(cameras))
-            .map(|i| (frame_list[i.min(frame_list.len() - 1)], i % cameras))
-            .collect()
-    };
     let total: usize = paths
         .iter()
-        .map(|(_, c)| schedule(c.len()).len())
-        .sum::<usize>()
-        + frame_list.len();
+        .map(|(_, c)| frame_list.len().max(c.len()))
+        .sum::<usize>();
     let bar = if request.progress {
         ProgressBar::new(total as u64)
     } else {
         ProgressBar::hidden()
     };
     bar.set_style(
-        ProgressStyle::with_template("{msg:>12} [{bar:40}] {pos}/{len} pictures, eta {eta}")
+        ProgressStyle::with_template("{msg:>20} [{bar:40}] {pos}/{len}, eta {eta}")
             .expect("valid template")
             .progress_chars("=> "),
     );
@@ -264,7 +295,7 @@ pub fn render_run(
     let mut loaded: Option<(usize, gausmoke_render::GaussianTensors)> = None;
     let mut videos = Vec::new();
     for (name, cameras) in &paths {
-        bar.set_message(name.clone());
+        bar.set_message(format!("{name} pictures"));
         let first = &cameras[0];
         let (width, height) = (first.width(), first.height());
         if let Some(other) = cameras
@@ -293,7 +324,12 @@ pub fn render_run(
         let mut writer = VideoWriter::create(&video_path, width, height, request.fps)?;
         let mut shown = Vec::new();
         let mut positions = Vec::new();
-        for (i, (t, c)) in schedule(cameras.len()).into_iter().enumerate() {
+        let mut degrees = Vec::new();
+        for (i, (f, c)) in schedule(frame_list.len(), cameras.len())
+            .into_iter()
+            .enumerate()
+        {
+            let t = frame_list[f];
             if loaded.as_ref().is_none_or(|(f, _)| *f != t) {
                 let state = folder.read_frame_state(t, &grid)?.ok_or_else(|| {
                     config_error(
@@ -315,6 +351,7 @@ pub fn render_run(
             }
             shown.push(t);
             positions.push(camera.position().to_array());
+            degrees.push(360.0 * c as f32 / cameras.len() as f32);
             bar.inc(1);
         }
         let video = writer.finish()?;
@@ -324,10 +361,14 @@ pub fn render_run(
             pictures: shown.len(),
             frames: shown,
             camera_positions: positions,
+            orbit_degrees: matches!(request.cameras, CameraPath::Orbit { .. }).then_some(degrees),
         });
     }
 
-    bar.set_message("slices");
+    // The slices count on a bar of their own: they are grid frames, not pictures.
+    bar.set_length(frame_list.len() as u64);
+    bar.set_position(0);
+    bar.set_message("grid slices");
     let slices_video = out.join("slices.mp4");
     let mut writer: Option<VideoWriter> = None;
     let [nx, ny, _] = grid.resolution();

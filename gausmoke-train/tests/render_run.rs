@@ -123,8 +123,23 @@ fn the_data_sets_views_reproduce_the_runs_own_renders() {
     assert_eq!(listing["videos"][2]["pictures"], 2);
 }
 
+/// Time and angle both span the video (the schedule of the module docs).
 #[test]
-fn an_orbit_circles_the_box_and_plays_time_then_holds_the_last_frame() {
+fn a_schedule_spans_both_time_and_cameras() {
+    use gausmoke_train::novel_views::schedule;
+    assert_eq!(
+        schedule(2, 6),
+        [(0, 0), (0, 1), (0, 2), (1, 3), (1, 4), (1, 5)]
+    );
+    assert_eq!(schedule(3, 3), [(0, 0), (1, 1), (2, 2)]);
+    assert_eq!(schedule(4, 1), [(0, 0), (1, 0), (2, 0), (3, 0)]);
+    let long = schedule(8, 60);
+    assert_eq!(long.len(), 60);
+    assert_eq!((long[7], long[8], long[59]), ((0, 7), (1, 8), (7, 59)));
+}
+
+#[test]
+fn an_orbit_circles_the_box_framing_it_while_time_plays() {
     let run = trained_run();
     let out = tempfile::tempdir().unwrap();
     let device = device_by_name("flex").unwrap();
@@ -134,7 +149,16 @@ fn an_orbit_circles_the_box_and_plays_time_then_holds_the_last_frame() {
     let summary = render_run(run, out.path(), &ask, &device).unwrap();
     let orbit = &summary.videos[0];
     assert_eq!(orbit.name, "orbit");
-    assert_eq!(orbit.frames, [0, 1, 1, 1, 1, 1]);
+    assert_eq!(orbit.frames, [0, 0, 0, 1, 1, 1]);
+    assert_eq!(
+        orbit.orbit_degrees.as_deref(),
+        Some(&[0.0, 60.0, 120.0, 180.0, 240.0, 300.0][..])
+    );
+    let listing: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.path().join("render.json")).unwrap())
+            .unwrap();
+    assert_eq!(listing["videos"][0]["orbit_degrees"][3], 180.0);
+    assert_eq!(listing["videos"][0]["frames"][3], 1);
     let scene = run_scene(run);
     let centre = (scene.lo + scene.hi) * 0.5;
     let distances: Vec<f32> = orbit
@@ -148,6 +172,25 @@ fn an_orbit_circles_the_box_and_plays_time_then_holds_the_last_frame() {
             .all(|d| (d - distances[0]).abs() < 1e-3 * distances[0]),
         "one circle about the box centre: {distances:?}"
     );
+    // Framed: the box's bounding sphere seen under 90% of the narrower half-angle.
+    let camera = &scene.test[0][0].camera;
+    let fov_x = 2.0 * (camera.width() as f32 / (2.0 * camera.intrinsics().fx)).atan();
+    let focal = 48.0 / 2.0 / (fov_x / 2.0).tan();
+    let half_angle = (48.0f32 / 2.0 / focal).atan();
+    let sphere = (scene.hi - scene.lo).length() / 2.0;
+    let seen = (sphere / distances[0]).asin();
+    assert!(
+        (seen.tan() / half_angle.tan() - 0.9).abs() < 1e-3,
+        "{seen} against {half_angle}"
+    );
+    // Without a size, the held-out camera's shape at 720 pixels on its long side.
+    let cameras =
+        gausmoke_train::novel_views::orbit_cameras(camera, &[camera], scene.lo, scene.hi, 2, None)
+            .unwrap();
+    let (w, h) = (camera.width() as f32, camera.height() as f32);
+    assert_eq!(cameras[0].width().max(cameras[0].height()), 720);
+    let ratio = cameras[0].width() as f32 / cameras[0].height() as f32;
+    assert!((ratio - w / h).abs() < 0.02, "{ratio} against {}", w / h);
     let decoded = decode_mp4(&orbit.video, 0..6, None).unwrap();
     assert_eq!((decoded.info.width, decoded.info.height), (48, 64));
     for (i, frame) in decoded.frames.iter().enumerate() {

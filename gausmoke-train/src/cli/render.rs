@@ -14,8 +14,9 @@ pub(super) struct RenderArgs {
     /// Cameras: every train and held-out view of the run's data set, one video each.
     #[arg(long, conflicts_with = "cameras", requires = "run")]
     pub(super) views: bool,
-    /// Cameras: a NeRF-style camera-path JSON (camera_angle_x, w, h,
-    /// frames[].transform_matrix camera-to-world, OpenGL axes).
+    /// Cameras: a camera-path JSON, NeRF-style (camera_angle_x, w, h,
+    /// frames[].transform_matrix camera-to-world, OpenGL axes) or nerfstudio's
+    /// camera_path.json (what ns-render reads).
     #[arg(long, value_name = "FILE", requires = "run")]
     pub(super) cameras: Option<PathBuf>,
     /// Time frames to show: `T`, `A-B` or `A..=B` (both ends), `A:B` or `A..B` (B excluded);
@@ -23,7 +24,7 @@ pub(super) struct RenderArgs {
     #[arg(long, value_name = "RANGE", requires = "run")]
     pub(super) frames: Option<String>,
     /// Picture size WIDTHxHEIGHT, each side 1 to 8192 (orbit: default the held-out
-    /// camera's; demo: 270x480).
+    /// camera's shape at 720 pixels on its long side; demo: 270x480).
     #[arg(long, value_name = "WxH")]
     pub(super) size: Option<String>,
     /// Pictures per second of the videos, 1 to 240.
