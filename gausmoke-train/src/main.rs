@@ -255,6 +255,8 @@ struct TrainArgs {
     max_memory: Option<String>,
 }
 
+#[path = "cli/eval.rs"]
+mod eval_summary;
 #[path = "cli/render.rs"]
 mod render;
 #[path = "cli/velocity.rs"]
@@ -345,56 +347,11 @@ fn run_command(cli: Cli) -> Result<()> {
             let device = backends::device_by_name(&device).map_err(anyhow::Error::msg)?;
             let weights = gausmoke_train::lpips::weights_to_use(lpips_weights.as_deref());
             let report = eval::evaluate(&run, &device, weights.as_deref())?;
-            let show = |v: Option<f64>| v.map_or("n/a".to_string(), |v| format!("{v:.4}"));
-            println!("frames evaluated     {}", report.frames.len());
-            println!("held-out PSNR (dB)   {}", show(report.test_psnr_mean));
-            println!("held-out SSIM        {}", show(report.test_ssim_mean));
-            println!("mean |div u| (1/frame) {:.3e}", report.mean_abs_divergence);
-            println!(
-                "velocity rel. error  {}",
-                show(report.velocity_relative_error_mean)
+            print!(
+                "{}",
+                eval_summary::table(&eval_summary::summary_rows(&report))
             );
-            println!("velocity cosine      {}", show(report.velocity_cosine_mean));
-            println!(
-                "density rel. error   {}",
-                show(report.density_relative_error_mean)
-            );
-            println!(
-                "density correlation  {}",
-                show(report.density_correlation_mean)
-            );
-            if report.density_scaled_relative_error_mean.is_some() {
-                println!(
-                    "density rel. error, best scale {} (x{}); share outside the smoke {}",
-                    show(report.density_scaled_relative_error_mean),
-                    show(report.density_best_scale_mean),
-                    show(report.density_outside_smoke_fraction_mean)
-                );
-            }
-            if report.velocity_estimate_relative_error_mean.is_some() {
-                println!(
-                    "estimate rel. error  {} (velocity_estimate/)",
-                    show(report.velocity_estimate_relative_error_mean)
-                );
-                println!(
-                    "estimate cosine      {}",
-                    show(report.velocity_estimate_cosine_mean)
-                );
-            }
-            if report.obstacle_normal_flow_mean.is_some() {
-                println!(
-                    "obstacle normal flow {}",
-                    show(report.obstacle_normal_flow_mean)
-                );
-            }
-            if report.velocity_estimate_obstacle_normal_flow_mean.is_some() {
-                println!(
-                    "estimate normal flow {}",
-                    show(report.velocity_estimate_obstacle_normal_flow_mean)
-                );
-            }
-            println!("held-out LPIPS       {}", show(report.test_lpips_mean));
-            println!("  ({})", report.lpips);
+            println!("(LPIPS: {})", report.lpips);
             println!("wrote {}", run.join("eval.json").display());
             Ok(())
         }
