@@ -24,12 +24,15 @@ pub enum Format {
     DNerf,
     /// nerfstudio `transforms.json`.
     Nerfstudio,
+    /// A COLMAP-calibrated rig: `rig.json`, COLMAP's `cameras` and `images`, a frame folder
+    /// per camera.
+    Colmap,
 }
 
 impl Format {
     /// The format of the data set in the folder `path`, from the file that describes it: PINF
-    /// for `info.json`, D-NeRF for `transforms_train.json`, nerfstudio for `transforms.json`;
-    /// the first that the folder holds, in that order.
+    /// for `info.json`, D-NeRF for `transforms_train.json`, nerfstudio for `transforms.json`,
+    /// a COLMAP rig for `rig.json`; the first that the folder holds, in that order.
     pub fn detect(path: &Path) -> Option<Self> {
         if path.join("info.json").is_file() {
             Some(Self::Pinf)
@@ -37,6 +40,8 @@ impl Format {
             Some(Self::DNerf)
         } else if path.join("transforms.json").is_file() {
             Some(Self::Nerfstudio)
+        } else if path.join("rig.json").is_file() {
+            Some(Self::Colmap)
         } else {
             None
         }

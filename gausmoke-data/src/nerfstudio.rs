@@ -39,21 +39,27 @@ use crate::json::{Node, read_aabb, read_json};
 const DISTORTION: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
 const INTRINSICS: [&str; 6] = ["fl_x", "fl_y", "cx", "cy", "w", "h"];
 
-struct Item {
-    image: PathBuf,
-    relative: String,
-    time: f32,
-    pose: Mat4,
+/// One picture of a camera rig as a description lists it (also COLMAP's, see
+/// [`crate::colmap`]).
+pub(crate) struct Item {
+    pub(crate) image: PathBuf,
+    pub(crate) relative: String,
+    pub(crate) time: f32,
+    /// Camera-to-world, OpenGL convention.
+    pub(crate) pose: Mat4,
     /// fl_x, fl_y, cx, cy, w, h.
-    intrinsics: [f64; 6],
-    camera: Option<String>,
-    field: String,
+    pub(crate) intrinsics: [f64; 6],
+    pub(crate) camera: Option<String>,
+    /// Where the picture is described, for messages (a JSON field path, a line).
+    pub(crate) field: String,
 }
 
-struct Description {
-    json: PathBuf,
-    views: Vec<(String, Split, Vec<Item>)>,
-    bbox: Option<Aabb>,
+/// A rig's views and box as a description gives them, before any picture is read.
+pub(crate) struct Description {
+    /// The file the description came from, named in messages.
+    pub(crate) json: PathBuf,
+    pub(crate) views: Vec<(String, Split, Vec<Item>)>,
+    pub(crate) bbox: Option<Aabb>,
 }
 
 /// Whether `dir` holds a nerfstudio data set.
@@ -233,7 +239,8 @@ fn kept_times(description: &Description, options: &LoadOptions) -> Result<(Vec<f
         .flat_map(|(_, _, frames)| frames.iter().map(|f| f.time))
         .collect();
     let (times, _) = time_indices(&all);
-    let range = options.frame_range(times.len(), "transforms.json's distinct times")?;
+    let origin = format!("the distinct times of {}", description.json.display());
+    let range = options.frame_range(times.len(), &origin)?;
     let kept = times[range].to_vec();
     Ok((times, kept))
 }
@@ -241,8 +248,15 @@ fn kept_times(description: &Description, options: &LoadOptions) -> Result<(Vec<f
 /// What [`load_nerfstudio`] would load, without decoding an image.
 pub fn plan_nerfstudio(dir: &Path, options: &LoadOptions) -> Result<Vec<PlannedView>> {
     options.validate()?;
-    let description = describe(dir)?;
-    let (_, kept) = kept_times(&description, options)?;
+    plan_described(&describe(dir)?, options)
+}
+
+/// The views `description` holds, as [`crate::plan`] gives them.
+pub(crate) fn plan_described(
+    description: &Description,
+    options: &LoadOptions,
+) -> Result<Vec<PlannedView>> {
+    let (_, kept) = kept_times(description, options)?;
     Ok(description
         .views
         .iter()
@@ -266,8 +280,17 @@ pub fn plan_nerfstudio(dir: &Path, options: &LoadOptions) -> Result<Vec<PlannedV
 /// Loads a nerfstudio data set from its folder (see the module docs).
 pub fn load_nerfstudio(dir: &Path, options: &LoadOptions) -> Result<Dataset> {
     options.validate()?;
+    load_described(dir, describe(dir)?, options, Format::Nerfstudio)
+}
+
+/// Reads the pictures `description` lists (a rig's, in the `format` it came from).
+pub(crate) fn load_described(
+    dir: &Path,
+    description: Description,
+    options: &LoadOptions,
+    format: Format,
+) -> Result<Dataset> {
     let background = options.background.unwrap_or([0.0; 3]);
-    let description = describe(dir)?;
     let (_, kept) = kept_times(&description, options)?;
     let (times, _) = time_indices(&kept);
     let mut views = Vec::new();
@@ -329,7 +352,7 @@ pub fn load_nerfstudio(dir: &Path, options: &LoadOptions) -> Result<Dataset> {
         });
     }
     Ok(Dataset {
-        format: Format::Nerfstudio,
+        format,
         source: dir.to_path_buf(),
         views,
         times,

@@ -398,7 +398,7 @@ fn load_entry(e: &Entry, info: &Path, options: &LoadOptions, background: [f32; 3
 
 /// PNG and JPEG files of a frame folder, in numeric order of the digits in their stems (ties
 /// and names without digits: by name).
-fn image_frames(dir: &Path) -> Result<Vec<PathBuf>> {
+pub(crate) fn image_frames(dir: &Path) -> Result<Vec<PathBuf>> {
     let mut files: Vec<(u64, String, PathBuf)> = std::fs::read_dir(dir)
         .map_err(io_err(dir))?
         .filter_map(|entry| entry.ok().map(|e| e.path()))

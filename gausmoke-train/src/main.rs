@@ -20,7 +20,7 @@ use burn::tensor::{Tensor, TensorData};
 use clap::{Args, Parser, Subcommand};
 use gausmoke_core::glam::Vec3;
 use gausmoke_data::synth::{self, SynthConfig};
-use gausmoke_data::{LoadOptions, inspect, load_dnerf, load_pinf};
+use gausmoke_data::{LoadOptions, inspect};
 use gausmoke_render::{Camera, RasterOptions, backends, procedural, render_volume};
 use gausmoke_train::config_docs;
 use gausmoke_train::memory::{self, MemoryEstimate};
@@ -582,13 +582,7 @@ fn inspect_dataset(dataset: &Path, out: &Path, size: Option<String>) -> Result<(
         ..Default::default()
     };
     let start = Instant::now();
-    let loaded = if dataset.join("transforms_train.json").is_file() {
-        load_dnerf(dataset, &options)?
-    } else if gausmoke_data::is_nerfstudio(dataset) {
-        gausmoke_data::load_nerfstudio(dataset, &options)?
-    } else {
-        load_pinf(dataset, &options)?
-    };
+    let loaded = gausmoke_data::load(dataset, &options)?;
     let seconds = start.elapsed().as_secs_f64();
     print!("{}", inspect::summary(&loaded));
     println!(

@@ -5,9 +5,7 @@ use std::path::{Path, PathBuf};
 
 use gausmoke_core::Camera;
 use gausmoke_core::glam::Vec3;
-use gausmoke_data::{
-    Dataset, Format, Image, LoadOptions, Obstacle, PlannedView, Split, load_dnerf, load_pinf,
-};
+use gausmoke_data::{Dataset, Format, Image, LoadOptions, Obstacle, PlannedView, Split};
 
 use crate::hash::Fnv1a;
 use crate::{TrainConfig, TrainError};
@@ -76,23 +74,19 @@ impl Sequence {
         hash.hex()
     }
 
-    /// Loads a PINF/HyFluid folder (`info.json`) or a D-NeRF folder (`transforms_train.json`)
-    /// at the configured image size and frame count, and splits views as configured.
+    /// Loads the data set in the folder `path` (any format [`Format::detect`] knows) at the
+    /// configured image size and frame count, and splits views as configured.
     pub fn open(path: &Path, config: &TrainConfig) -> Result<Self, TrainError> {
         let options = Self::load_options(config);
-        let dataset = match Format::detect(path) {
-            Some(Format::Pinf) => load_pinf(path, &options)?,
-            Some(Format::DNerf) => load_dnerf(path, &options)?,
-            Some(Format::Nerfstudio) => gausmoke_data::load_nerfstudio(path, &options)?,
-            None => {
-                return Err(TrainError::Dataset {
-                    path: path.to_path_buf(),
-                    reason: "neither info.json (PINF/HyFluid), transforms_train.json (D-NeRF) \
-                             nor transforms.json (nerfstudio) found"
-                        .into(),
-                });
-            }
-        };
+        if Format::detect(path).is_none() {
+            return Err(TrainError::Dataset {
+                path: path.to_path_buf(),
+                reason: "none of info.json (PINF/HyFluid), transforms_train.json (D-NeRF), \
+                         transforms.json (nerfstudio) and rig.json (a COLMAP rig) found"
+                    .into(),
+            });
+        }
+        let dataset = gausmoke_data::load(path, &options)?;
         Self::from_dataset(path, &dataset, config)
     }
 
