@@ -54,17 +54,7 @@ pub fn read_camera_path(path: &Path) -> Result<Vec<Camera>> {
         .map(|item| {
             let pose_owned = item.node().get("transform_matrix")?;
             let pose = pose_owned.node().mat4_rows()?;
-            Camera::new(
-                width,
-                height,
-                Intrinsics::from_fov_x(fov as f32, width, height),
-                pose,
-            )
-            .map_err(|source| DataError::Camera {
-                path: path.to_path_buf(),
-                field: pose_owned.node().field_path().to_string(),
-                source,
-            })
+            camera(path, pose_owned.node(), [width, height], fov, pose)
         })
         .collect()
 }
@@ -109,17 +99,24 @@ fn read_nerfstudio_path(path: &Path, root: Node<'_>) -> Result<Vec<Camera>> {
             let pose_owned = item.node().get("camera_to_world")?;
             let rows = pose_owned.node().f64_array::<16>()?;
             let pose = Mat4::from_cols_array(&rows.map(|v| v as f32)).transpose();
-            Camera::new(
-                width,
-                height,
-                Intrinsics::from_fov_x(fov_x as f32, width, height),
-                pose,
-            )
-            .map_err(|source| DataError::Camera {
-                path: path.to_path_buf(),
-                field: pose_owned.node().field_path().to_string(),
-                source,
-            })
+            camera(path, pose_owned.node(), [width, height], fov_x, pose)
         })
         .collect()
+}
+
+/// A camera of `size` with horizontal field of view `fov_x` (radians) at `pose`, a refusal
+/// naming the pose's `field` of the file at `path`.
+fn camera(path: &Path, field: Node<'_>, size: [u32; 2], fov_x: f64, pose: Mat4) -> Result<Camera> {
+    let [width, height] = size;
+    Camera::new(
+        width,
+        height,
+        Intrinsics::from_fov_x(fov_x as f32, width, height),
+        pose,
+    )
+    .map_err(|source| DataError::Camera {
+        path: path.to_path_buf(),
+        field: field.field_path().to_string(),
+        source,
+    })
 }

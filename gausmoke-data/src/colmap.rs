@@ -435,7 +435,7 @@ fn describe(dir: &Path) -> Result<Description> {
         return Err(layout(&images_path, "registers no image"));
     }
     let mut images = images;
-    images.sort_by(|a, b| camera_name(&a.name).cmp(&camera_name(&b.name)));
+    images.sort_by_key(|image| camera_name(&image.name));
     let mut views = Vec::new();
     for image in &images {
         let name = camera_name(&image.name);

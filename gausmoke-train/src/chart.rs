@@ -1,9 +1,8 @@
 //! Line charts a person can read without the code: a title, axes with tick marks and tick
-//! labels, axis titles with units, a light grid and a legend. Text is drawn with the public
-//! 8x8 bitmap font of `font8x8`, so no font file or system library is involved.
+//! labels, axis titles with units, a light grid, a legend, and optional marks along x (where
+//! frames begin). Text is DejaVu Sans ([`crate::text`]).
 
-use font8x8::UnicodeFonts;
-
+use crate::text;
 use crate::visuals::Picture;
 
 /// Distinct colours of the series, in order (matplotlib's "tab10").
@@ -22,7 +21,11 @@ pub const SERIES_COLOURS: [[u8; 3]; 10] = [
 
 const INK: [u8; 3] = [40, 40, 40];
 const GRID: [u8; 3] = [228, 228, 228];
-const GLYPH: i64 = 8;
+const MARK: [u8; 3] = [196, 206, 232];
+/// The height of a line of label text, in pixels.
+fn glyph() -> i64 {
+    text::line_height(text::LABEL)
+}
 
 /// One curve: `(x, y)` points in order; non-finite points (and non-positive ones on a log
 /// axis) break the line.
@@ -39,6 +42,9 @@ pub struct Chart {
     pub y_label: String,
     pub log_y: bool,
     pub series: Vec<Series>,
+    /// x positions marked by light vertical lines (where each frame begins, on a chart of
+    /// steps; the x axis's title says what they mark).
+    pub marks: Vec<f64>,
 }
 
 /// "Nice" tick positions (1, 2 or 5 times a power of ten) covering `[lo, hi]`.
@@ -79,7 +85,7 @@ fn tick_label(v: f64, log: bool) -> String {
     text.trim_end_matches('0').trim_end_matches('.').to_string()
 }
 
-/// Draws `text` with its top-left corner at `(x, y)`; `vertical` writes bottom to top.
+/// Draws label text with its top-left corner at `(x, y)`; `vertical` writes bottom to top.
 pub fn draw_text(
     picture: &mut Picture,
     x: i64,
@@ -88,29 +94,11 @@ pub fn draw_text(
     colour: [u8; 3],
     vertical: bool,
 ) {
-    for (n, c) in text.chars().enumerate() {
-        let glyph = font8x8::BASIC_FONTS
-            .get(c)
-            .or_else(|| font8x8::LATIN_FONTS.get(c))
-            .unwrap_or([0; 8]);
-        for (row, bits) in glyph.iter().enumerate() {
-            for col in 0..8 {
-                if bits & (1 << col) != 0 {
-                    let (gx, gy) = (col as i64, row as i64);
-                    let offset = n as i64 * GLYPH;
-                    if vertical {
-                        picture.put(x + gy, y - offset - gx, colour);
-                    } else {
-                        picture.put(x + offset + gx, y + gy, colour);
-                    }
-                }
-            }
-        }
-    }
+    text::draw(picture, x, y, text, colour, text::LABEL, vertical);
 }
 
-fn text_width(text: &str) -> i64 {
-    text.chars().count() as i64 * GLYPH
+fn text_width(label: &str) -> i64 {
+    text::width(label, text::LABEL)
 }
 
 fn line(picture: &mut Picture, (x0, y0): (i64, i64), (x1, y1): (i64, i64), colour: [u8; 3]) {
@@ -177,7 +165,8 @@ pub fn draw(chart: &Chart, width: u32, height: u32) -> Picture {
         .unwrap_or(0);
     let has_legend =
         chart.series.len() > 1 || chart.series.first().is_some_and(|s| !s.label.is_empty());
-    let (left, right) = (label_width + 8 + GLYPH + 10, width as i64 - 12);
+    let (left, right) = (label_width + 8 + glyph() + 10, width as i64 - 12);
+    let title_height = text::line_height(text::TITLE);
     let entry = |label: &str| text_width(label) + 30;
     let legend = if has_legend {
         let widths: Vec<i64> = chart.series.iter().map(|s| entry(&s.label)).collect();
@@ -187,11 +176,11 @@ pub fn draw(chart: &Chart, width: u32, height: u32) -> Picture {
     };
     let (top, bottom) = (
         if has_legend {
-            GLYPH + 10 + legend.len() as i64 * (GLYPH + 10)
+            title_height + 10 + legend.len() as i64 * (glyph() + 10)
         } else {
-            GLYPH + 16
+            title_height + 16
         },
-        height as i64 - (2 * GLYPH + 18),
+        height as i64 - (2 * glyph() + 18),
     );
     if right - left < 20 || bottom - top < 20 {
         return picture;
@@ -207,7 +196,7 @@ pub fn draw(chart: &Chart, width: u32, height: u32) -> Picture {
         draw_text(
             &mut picture,
             left - 6 - text_width(&label),
-            y - GLYPH / 2,
+            y - glyph() / 2,
             &label,
             INK,
             false,
@@ -232,7 +221,7 @@ pub fn draw(chart: &Chart, width: u32, height: u32) -> Picture {
     draw_text(
         &mut picture,
         (left + right) / 2 - text_width(&chart.x_label) / 2,
-        height as i64 - GLYPH - 4,
+        height as i64 - glyph() - 4,
         &chart.x_label,
         INK,
         false,
@@ -245,14 +234,19 @@ pub fn draw(chart: &Chart, width: u32, height: u32) -> Picture {
         INK,
         true,
     );
-    draw_text(
+    text::draw(
         &mut picture,
-        (width as i64 - text_width(&chart.title)) / 2,
+        (width as i64 - text::width(&chart.title, text::TITLE)) / 2,
         4,
         &chart.title,
         INK,
+        text::TITLE,
         false,
     );
+    for &mark in chart.marks.iter().filter(|m| (x_lo..=x_hi).contains(*m)) {
+        let x = px(mark);
+        line(&mut picture, (x, top), (x, bottom), MARK);
+    }
 
     // The first series is drawn last, on top: it is the one a chart is about.
     for (s, series) in chart.series.iter().enumerate().rev() {
@@ -283,10 +277,10 @@ pub fn draw(chart: &Chart, width: u32, height: u32) -> Picture {
     for (row, range) in legend.iter().enumerate() {
         let series = &chart.series[range.clone()];
         let mut x = right - series.iter().map(|s| entry(&s.label)).sum::<i64>();
-        let y = GLYPH + 10 + row as i64 * (GLYPH + 10);
+        let y = title_height + 10 + row as i64 * (glyph() + 10);
         for (s, one) in range.clone().zip(series) {
             let colour = SERIES_COLOURS[s % SERIES_COLOURS.len()];
-            for dy in 3..5 {
+            for dy in glyph() / 2 - 1..glyph() / 2 + 1 {
                 line(&mut picture, (x, y + dy), (x + 16, y + dy), colour);
             }
             draw_text(&mut picture, x + 20, y, &one.label, INK, false);
@@ -361,6 +355,7 @@ mod tests {
                     points: vec![(0.0, 29.0), (25.0, f64::NAN), (49.0, 28.0)],
                 },
             ],
+            marks: vec![10.0, 20.0],
         };
         let picture = draw(&chart, 400, 240);
         let count = |colour: [u8; 3]| picture.pixels.chunks(3).filter(|p| *p == colour).count();
@@ -370,5 +365,6 @@ mod tests {
             count(SERIES_COLOURS[1]) > 10,
             "the second series and its legend"
         );
+        assert!(count(MARK) > 100, "the marks are drawn");
     }
 }

@@ -16,7 +16,8 @@ use gausmoke_model::GridSpec;
 use crate::TrainError;
 use crate::chart::{self, Chart, Series};
 use crate::export::{rewrite_npz, write_vti};
-use crate::visuals::{self, Picture};
+use crate::slices::{GridSlice, SliceScale};
+use crate::visuals;
 
 /// Pictures per second of `slices.mp4`, as the run's own `slices.mp4`.
 const FPS: u32 = 10;
@@ -53,7 +54,8 @@ pub(crate) struct EstimateOutputs<'a> {
     grid: &'a GridSpec,
     every: usize,
     last: usize,
-    slices: Vec<Picture>,
+    /// Each output frame's number and slice, drawn on one scale at the end.
+    slices: Vec<(usize, GridSlice)>,
 }
 
 impl<'a> EstimateOutputs<'a> {
@@ -90,13 +92,10 @@ impl<'a> EstimateOutputs<'a> {
         grid_velocity: &[f32],
         estimate: &[f32],
     ) -> Result<(), TrainError> {
-        let slices = self.dir.join("slices");
-        for dir in [&self.exports, &slices] {
-            std::fs::create_dir_all(dir).map_err(|source| TrainError::Io {
-                path: dir.clone(),
-                source,
-            })?;
-        }
+        std::fs::create_dir_all(&self.exports).map_err(|source| TrainError::Io {
+            path: self.exports.clone(),
+            source,
+        })?;
         let grid_field = [("grid_velocity", grid_velocity)];
         write_vti(
             &self.exports.join(format!("grid_{t:03}.vti")),
@@ -112,12 +111,10 @@ impl<'a> EstimateOutputs<'a> {
             estimate,
             &grid_field,
         )?;
-        let [nx, ny, _] = self.grid.resolution();
-        let scale = (256 / nx.max(ny)).max(1) as u32;
-        let (picture, _) =
-            visuals::grid_slices(self.grid, density, &[grid_velocity, estimate], scale);
-        picture.save_png(&slices.join(format!("frame_{t:03}.png")))?;
-        self.slices.push(picture);
+        self.slices.push((
+            t,
+            GridSlice::middle(self.grid, density, &[grid_velocity, estimate]),
+        ));
         Ok(())
     }
 
@@ -125,7 +122,31 @@ impl<'a> EstimateOutputs<'a> {
     /// each fit started (the misfit chart's legend).
     pub(crate) fn finish(self, frames: &[FrameFigures], start: &str) -> Result<(), TrainError> {
         if !self.slices.is_empty() {
-            visuals::save_mp4(&self.dir.join("slices.mp4"), &self.slices, FPS)?;
+            let dir = self.dir.join("slices");
+            std::fs::create_dir_all(&dir).map_err(|source| TrainError::Io {
+                path: dir.clone(),
+                source,
+            })?;
+            let scale = SliceScale::over(self.slices.iter().map(|(_, slice)| slice));
+            let note = format!(
+                "colour scales: one for the whole video (density 0-{:.3}, speed 0-{:.4})",
+                scale.density, scale.speed
+            );
+            let mut pictures = Vec::with_capacity(self.slices.len());
+            for (t, slice) in &self.slices {
+                let [k, nz] = slice.layer;
+                let picture = crate::slices::figure(
+                    slice,
+                    &scale,
+                    &["density", "speed: grid velocity", "speed: the estimate"],
+                    &format!("frame {t}: middle z slice (layer {k} of {nz}), +y up"),
+                    &note,
+                    crate::slices::cell_pixels(self.grid),
+                );
+                picture.save_png(&dir.join(format!("frame_{t:03}.png")))?;
+                pictures.push(picture);
+            }
+            visuals::save_mp4(&self.dir.join("slices.mp4"), &pictures, FPS)?;
         }
         let series = |label: &str, value: fn(&FrameFigures) -> f64| Series {
             label: label.into(),
@@ -143,6 +164,7 @@ impl<'a> EstimateOutputs<'a> {
                         series("the run's velocity", |f| f.run_speed),
                         series("the estimate", |f| f.speed),
                     ],
+                    marks: Vec::new(),
                 },
             ),
             (
@@ -156,11 +178,12 @@ impl<'a> EstimateOutputs<'a> {
                         series(&format!("start ({start})"), |f| f.misfit_start),
                         series("fit", |f| f.misfit_fitted),
                     ],
+                    marks: Vec::new(),
                 },
             ),
         ];
         for (name, figure) in &charts {
-            chart::draw(figure, 640, 320).save_png(&self.dir.join(name))?;
+            chart::draw(figure, 960, 480).save_png(&self.dir.join(name))?;
         }
         Ok(())
     }

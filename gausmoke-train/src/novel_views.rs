@@ -33,7 +33,8 @@ use serde::Serialize;
 use crate::TrainError;
 use crate::run_folder::RunFolder;
 use crate::sequence::Sequence;
-use crate::visuals::{self, Picture};
+use crate::slices::{GridSlice, SliceScale};
+use crate::visuals::Picture;
 
 /// Where the cameras come from.
 #[derive(Debug, Clone, PartialEq)]
@@ -370,15 +371,13 @@ pub fn render_run(
     bar.set_position(0);
     bar.set_message("grid slices");
     let slices_video = out.join("slices.mp4");
-    let mut writer: Option<VideoWriter> = None;
-    let [nx, ny, _] = grid.resolution();
-    let scale = (256 / nx.max(ny)).max(1) as u32;
     let estimate = crate::velocity_estimate::StoredEstimate::open(run)?;
+    let mut slices = Vec::with_capacity(frame_list.len());
     for &t in &frame_list {
         let state = folder
             .read_frame_state(t, &grid)?
             .expect("frames before `finished` exist");
-        let picture = match &estimate {
+        slices.push(match &estimate {
             Some(estimate) => {
                 // Frame 0 has no estimate: the smoke starts at rest.
                 let estimated = match t.checked_sub(1) {
@@ -391,10 +390,37 @@ pub fn render_run(
                     None => None,
                 }
                 .unwrap_or_else(|| vec![0.0; state.velocity.len()]);
-                visuals::grid_slices(&grid, &state.density, &[&state.velocity, &estimated], scale).0
+                GridSlice::middle(&grid, &state.density, &[&state.velocity, &estimated])
             }
-            None => visuals::grid_slices(&grid, &state.density, &[&state.velocity], scale).0,
-        };
+            None => GridSlice::middle(&grid, &state.density, &[&state.velocity]),
+        });
+        bar.inc(1);
+    }
+    let scale = SliceScale::over(&slices);
+    let labels: &[&str] = if estimate.is_some() {
+        &[
+            "density",
+            "speed: grid velocity",
+            "speed: velocity estimate",
+        ]
+    } else {
+        &["density", "speed: grid velocity"]
+    };
+    let note = format!(
+        "colour scales: one for the whole video (density 0-{:.3}, speed 0-{:.4})",
+        scale.density, scale.speed
+    );
+    let mut writer: Option<VideoWriter> = None;
+    for (slice, &t) in slices.iter().zip(&frame_list) {
+        let [k, nz] = slice.layer;
+        let picture = crate::slices::figure(
+            slice,
+            &scale,
+            labels,
+            &format!("frame {t}: middle z slice (layer {k} of {nz}), +y up"),
+            &note,
+            crate::slices::cell_pixels(&grid),
+        );
         let writer = match &mut writer {
             Some(w) => w,
             None => writer.insert(VideoWriter::create(
@@ -405,7 +431,6 @@ pub fn render_run(
             )?),
         };
         writer.push_rgb(&picture.pixels)?;
-        bar.inc(1);
     }
     writer.expect("at least one frame").finish()?;
     bar.finish_and_clear();

@@ -624,6 +624,7 @@ impl Run {
     pub fn write_summary(&self) -> Result<(), TrainError> {
         self.folder.write_losses(&self.losses)?;
         self.folder.write_summary_pictures(
+            &self.trainer.grid,
             &self.losses,
             &self.reports,
             self.trainer.sequence.frames(),

@@ -11,6 +11,7 @@ use serde::{Deserialize, Serialize};
 use crate::arrays::{HostArrays, read_arrays, take_array, write_arrays};
 use crate::config::{PlyAxes, TrainConfig};
 use crate::export::{self, write_atomic};
+use crate::slices::{GridSlice, SliceScale};
 pub use crate::state::PhaseSeconds;
 use crate::state::{FrameReport, LossRow, RefineMoveField};
 use crate::visuals::{self, Picture};
@@ -399,21 +400,28 @@ impl RunFolder {
         }
         // Held-out (or first training) view: reference | render, for the GIF.
         if let Some(view) = renders.iter().find(|v| v.held_out).or(renders.first()) {
-            let comparison = Picture::side_by_side(&[
+            let comparison = visuals::labelled_pair(
                 &Picture::from_rgb(view.reference, view.width, view.height),
                 &Picture::from_rgb(view.render, view.width, view.height),
-            ]);
+                [&format!("{}: reference", view.name), "ours"],
+                &format!("frame {t}"),
+            );
             let dir = self.root.join("comparison");
             Self::create_dir(&dir)?;
             comparison.save_png(&dir.join(frame_file(t, "png")))?;
         }
-        let [nx, ny, _] = grid.resolution();
         let dir = self.root.join("slices");
         Self::create_dir(&dir)?;
-        let scale = (256 / nx.max(ny)).max(1) as u32;
-        visuals::grid_slices(grid, &state.density, &[&state.velocity], scale)
-            .0
-            .save_png(&dir.join(frame_file(t, "png")))?;
+        let slice = GridSlice::middle(grid, &state.density, &[&state.velocity]);
+        run_slice_figure(
+            t,
+            &slice,
+            &SliceScale::over([&slice]),
+            "colour scales: this frame's own, until training ends and redraws every frame on \
+             one scale",
+            grid,
+        )
+        .save_png(&dir.join(frame_file(t, "png")))?;
         let dir = self.exports_dir();
         Self::create_dir(&dir)?;
         export::write_ply(
@@ -472,10 +480,40 @@ impl RunFolder {
         write_atomic(&self.root.join("losses.csv"), csv.as_bytes())
     }
 
+    /// Every finished frame's slice redrawn on one colour scale (the largest density and
+    /// speed of the run), as `slices/frame_TTT.png` and `slices.mp4`.
+    fn write_slices(&self, grid: &GridSpec, frames: usize) -> Result<(), TrainError> {
+        let mut slices = Vec::new();
+        for t in 0..frames.min(self.finished_frames()) {
+            let Some(state) = self.read_frame_state(t, grid)? else {
+                break;
+            };
+            slices.push(GridSlice::middle(grid, &state.density, &[&state.velocity]));
+        }
+        if slices.is_empty() {
+            return Ok(());
+        }
+        let scale = SliceScale::over(&slices);
+        let note = format!(
+            "colour scales: one for the whole video (density 0-{:.3}, speed 0-{:.4})",
+            scale.density, scale.speed
+        );
+        let dir = self.root.join("slices");
+        Self::create_dir(&dir)?;
+        let mut pictures = Vec::with_capacity(slices.len());
+        for (t, slice) in slices.iter().enumerate() {
+            let picture = run_slice_figure(t, slice, &scale, &note, grid);
+            picture.save_png(&dir.join(frame_file(t, "png")))?;
+            pictures.push(picture);
+        }
+        visuals::save_mp4(&self.root.join("slices.mp4"), &pictures, 10)
+    }
+
     /// Loss, speed and PSNR charts, the comparison and slice videos, the ParaView series and
     /// the folder's `README.txt`.
     pub fn write_summary_pictures(
         &self,
+        grid: &GridSpec,
         losses: &[LossRow],
         reports: &[FrameReport],
         frames: usize,
@@ -496,76 +534,88 @@ impl RunFolder {
                 .map(|r| (r.frame as f64, f(r).unwrap_or(f64::NAN)))
                 .collect(),
         };
-        let charts = [
-            (
-                "losses.png",
-                [900, 420],
-                Chart {
-                    title: "Training losses (init, then K joint + K' refine per frame)".into(),
-                    x_label: "optimisation step".into(),
-                    y_label: "loss (log scale)".into(),
-                    log_y: true,
-                    series: vec![
-                        loss("total", |r| r.total),
-                        loss("L_render", |r| r.render),
-                        loss("L_div", |r| r.divergence),
-                        loss("L_adv", |r| r.advection),
-                        loss("L_refine", |r| r.refine),
-                    ],
-                },
-            ),
-            (
-                "speed.png",
-                [640, 320],
-                Chart {
-                    title: "Recovered velocity".into(),
-                    x_label: "frame".into(),
-                    y_label: "speed (world units / frame)".into(),
-                    log_y: false,
-                    series: vec![
-                        per_frame("mean", |r| Some(r.mean_speed)),
-                        per_frame("max", |r| Some(r.max_speed)),
-                    ],
-                },
-            ),
-            (
-                "refine_moves.png",
-                [640, 320],
-                Chart {
-                    title: "Refinement's moves: grid-scale share, persistence, flow share".into(),
-                    x_label: "frame".into(),
-                    y_label: "share of mean square; correlation".into(),
-                    log_y: false,
-                    series: vec![
-                        per_frame("grid-scale share", |r| r.refine_move_grid_share),
-                        per_frame("same moves shuffled", |r| r.refine_move_grid_share_shuffled),
-                        per_frame("persistence", |r| r.refine_move_persistence),
-                        per_frame("grid-scale persistence", |r| r.refine_move_grid_persistence),
-                        per_frame("share a flow can make", |r| r.refine_move_flow_share),
-                        per_frame("field's flow part's persistence", |r| {
-                            r.refine_move_flow_persistence
-                        }),
-                        per_frame("field's gathering part's persistence", |r| {
-                            r.refine_move_gathering_persistence
-                        }),
-                    ],
-                },
-            ),
-            (
-                "psnr.png",
-                [640, 320],
-                Chart {
-                    title: "Held-out view".into(),
-                    x_label: "frame".into(),
-                    y_label: "PSNR (dB)".into(),
-                    log_y: false,
-                    series: vec![per_frame("held-out PSNR", |r| r.test_psnr)],
-                },
-            ),
-        ];
-        for (name, [width, height], figure) in &charts {
-            chart::draw(figure, *width, *height).save_png(&self.root.join(name))?;
-        }
+        // Where each frame's steps begin, marked on the loss chart.
+        let frame_starts: Vec<f64> = losses
+            .iter()
+            .enumerate()
+            .filter(|(step, r)| *step == 0 || losses[step - 1].frame != r.frame)
+            .map(|(step, _)| step as f64)
+            .collect();
+        let chart = |title: &str, x: &str, y: &str, log_y: bool, series: Vec<Series>| Chart {
+            title: title.into(),
+            x_label: x.into(),
+            y_label: y.into(),
+            log_y,
+            series,
+            marks: Vec::new(),
+        };
+        let losses_chart = Chart {
+            marks: frame_starts,
+            ..chart(
+                "Training losses (frame 0's fit, then K joint and K' refinement steps a frame)",
+                "optimisation step (light lines: where each frame begins)",
+                "loss (log scale)",
+                true,
+                vec![
+                    loss("total", |r| r.total),
+                    loss("L_render", |r| r.render),
+                    loss("L_div", |r| r.divergence),
+                    loss("L_adv", |r| r.advection),
+                    loss("L_refine", |r| r.refine),
+                ],
+            )
+        };
+        let speed = chart(
+            "Recovered velocity (the grid's)",
+            "frame",
+            "speed (world units / frame)",
+            false,
+            vec![
+                per_frame("mean", |r| Some(r.mean_speed)),
+                per_frame("max", |r| Some(r.max_speed)),
+            ],
+        );
+        // Shares and correlations are different quantities: one chart each.
+        let move_shares = chart(
+            "Refinement's moves: shares",
+            "frame",
+            "share of the moves' mean square",
+            false,
+            vec![
+                per_frame("grid-scale share", |r| r.refine_move_grid_share),
+                per_frame("same moves shuffled", |r| r.refine_move_grid_share_shuffled),
+                per_frame("share a flow can make", |r| r.refine_move_flow_share),
+            ],
+        );
+        let move_persistence = chart(
+            "Refinement's moves: persistence (correlation with the frame before's)",
+            "frame",
+            "correlation",
+            false,
+            vec![
+                per_frame("moves", |r| r.refine_move_persistence),
+                per_frame("grid-scale part", |r| r.refine_move_grid_persistence),
+                per_frame("field's flow part", |r| r.refine_move_flow_persistence),
+                per_frame("field's gathering part", |r| {
+                    r.refine_move_gathering_persistence
+                }),
+            ],
+        );
+        let psnr = chart(
+            "Held-out view",
+            "frame",
+            "PSNR (dB)",
+            false,
+            vec![per_frame("held-out PSNR", |r| r.test_psnr)],
+        );
+        chart::draw(&losses_chart, 1400, 640).save_png(&self.root.join("losses.png"))?;
+        chart::draw(&speed, 960, 480).save_png(&self.root.join("speed.png"))?;
+        chart::draw(&psnr, 960, 480).save_png(&self.root.join("psnr.png"))?;
+        Picture::stacked(&[
+            &chart::draw(&move_shares, 960, 420),
+            &chart::draw(&move_persistence, 960, 420),
+        ])
+        .save_png(&self.root.join("refine_moves.png"))?;
         let pictures: Vec<Picture> = (0..frames)
             .filter_map(|t| {
                 Picture::open_png(&self.root.join("comparison").join(frame_file(t, "png")))
@@ -575,12 +625,7 @@ impl RunFolder {
             visuals::save_gif(&self.root.join("comparison.gif"), &pictures, 100)?;
             visuals::save_mp4(&self.root.join("comparison.mp4"), &pictures, 10)?;
         }
-        let slices: Vec<Picture> = (0..frames)
-            .filter_map(|t| Picture::open_png(&self.root.join("slices").join(frame_file(t, "png"))))
-            .collect();
-        if !slices.is_empty() {
-            visuals::save_mp4(&self.root.join("slices.mp4"), &slices, 10)?;
-        }
+        self.write_slices(grid, frames)?;
         // Frame t of the run is time step t (the data set's frame first_frame + t).
         let grids: Vec<(f64, String)> = (0..frames)
             .map(|t| (t as f64, format!("grid_{t:03}.vti")))
@@ -591,6 +636,25 @@ impl RunFolder {
         }
         write_atomic(&self.root.join("README.txt"), RUN_README.as_bytes())
     }
+}
+
+/// A run's slice of frame `t` as a figure (see [`crate::slices::figure`]).
+fn run_slice_figure(
+    t: usize,
+    slice: &GridSlice,
+    scale: &SliceScale,
+    note: &str,
+    grid: &GridSpec,
+) -> Picture {
+    let [k, nz] = slice.layer;
+    crate::slices::figure(
+        slice,
+        scale,
+        &["density", "speed of the grid velocity"],
+        &format!("frame {t}: middle z slice (layer {k} of {nz}), +y up"),
+        note,
+        crate::slices::cell_pixels(grid),
+    )
 }
 
 /// One camera's render of a frame, for the pictures of [`RunFolder::write_frame_outputs`].
@@ -612,20 +676,21 @@ run.json           data set, grid box and resolution, device
 metrics.json       per-frame and mean metrics: held-out PSNR/SSIM, mean |div u| (1/frame),
                    projection solver iterations/residual, speeds, seconds per frame
 losses.csv         every optimisation step: frame, phase (init/advect/refine), loss terms
-losses.png         loss curves over the optimisation steps (log scale, legend in the chart)
+losses.png         loss curves over the optimisation steps (log scale, legend in the chart,
+                   light lines where each frame begins)
 speed.png          per frame: mean and max speed of the velocity (world units per frame)
 psnr.png           per frame: held-out PSNR (dB)
-refine_moves.png   per frame: share of the refinement's move at the velocity grid's scale,
-                   the share the same moves shuffled among the Gaussians reach, and the
+refine_moves.png   per frame, two charts. Shares: of the refinement's move at the velocity
+                   grid's scale, of the same moves shuffled among the Gaussians, and of
+                   their grid-scale field a divergence-free flow can make. Persistence: the
                    moves' correlation with the frame before's (whole and grid-scale part),
-                   the share of their grid-scale field a divergence-free flow can make, and
-                   that field's flow and gathering parts' correlations with the frame before's
+                   and that of the field's flow and gathering parts
 renders/VIEW/      per-frame renders of every camera (train and held-out)
-comparison/        per frame: held-out reference | render; comparison.gif and
+comparison/        per frame: held-out reference | render, labelled; comparison.gif and
                    comparison.mp4 (H.264, 10 frames per second) animate them
-slices/            per frame, middle z slice: density (grey) | speed (viridis, each frame
-                   scaled to its own maximum);
-                   slices.mp4 animates them
+slices/            per frame, middle z slice: density (grey) | speed (viridis), labelled,
+                   with colour bars in the grids' units, all on one scale for the whole
+                   run (redrawn when training ends); slices.mp4 animates them
 exports/           per frame: gaussians_TTT.ply (3DGS layout; world axes, or y down for
                    splat viewers with ply_axes = 'y-down'), grid_TTT.vti (ParaView;
                    open grid.pvd to play them as a time series, time = frame index),

@@ -3,8 +3,6 @@
 
 use std::path::Path;
 
-use gausmoke_model::GridSpec;
-
 use crate::TrainError;
 
 /// An 8-bit RGB picture.
@@ -56,11 +54,40 @@ impl Picture {
         out
     }
 
+    /// Pictures one above the other on white, left-aligned.
+    pub fn stacked(parts: &[&Picture]) -> Self {
+        let width = parts.iter().map(|p| p.width).max().unwrap_or(0);
+        let height = parts.iter().map(|p| p.height).sum::<u32>();
+        let mut out = Self::blank(width, height, [255, 255, 255]);
+        let mut y0 = 0;
+        for part in parts {
+            for y in 0..part.height {
+                let src = (y * part.width * 3) as usize;
+                let dst = (((y0 + y) * width) * 3) as usize;
+                out.pixels[dst..dst + (part.width * 3) as usize]
+                    .copy_from_slice(&part.pixels[src..src + (part.width * 3) as usize]);
+            }
+            y0 += part.height;
+        }
+        out
+    }
+
     /// Sets one pixel; coordinates outside the picture are ignored.
     pub fn put(&mut self, x: i64, y: i64, colour: [u8; 3]) {
         if x >= 0 && y >= 0 && (x as u32) < self.width && (y as u32) < self.height {
             let at = ((y as u32 * self.width + x as u32) * 3) as usize;
             self.pixels[at..at + 3].copy_from_slice(&colour);
+        }
+    }
+
+    /// Mixes `colour` into pixel `(x, y)` by `coverage` in [0, 1] (anti-aliased text).
+    pub fn blend(&mut self, x: i64, y: i64, colour: [u8; 3], coverage: f32) {
+        if x >= 0 && y >= 0 && (x as u32) < self.width && (y as u32) < self.height {
+            let at = ((y as u32 * self.width + x as u32) * 3) as usize;
+            let a = coverage.clamp(0.0, 1.0);
+            for (old, new) in self.pixels[at..at + 3].iter_mut().zip(colour) {
+                *old = (f32::from(*old) * (1.0 - a) + f32::from(new) * a).round() as u8;
+            }
         }
     }
 
@@ -89,50 +116,50 @@ impl Picture {
     }
 }
 
-/// The middle z-slice of the density (grey, left) and of the speed |u| of each of
-/// `velocities` (viridis, to its right, in order, all on one colour scale: the largest speed in
-/// any of them), +y up, each cell `scale` pixels wide. Returns the picture and that largest
-/// speed.
-pub fn grid_slices(
-    grid: &GridSpec,
-    density: &[f32],
-    velocities: &[&[f32]],
-    scale: u32,
-) -> (Picture, f32) {
-    let [nx, ny, nz] = grid.resolution();
-    let k = nz / 2;
-    let cell = |i: usize, j: usize| (i * ny + j) * nz + k;
-    let speed = |velocity: &[f32], i: usize, j: usize| {
-        let c = cell(i, j);
-        (velocity[3 * c].powi(2) + velocity[3 * c + 1].powi(2) + velocity[3 * c + 2].powi(2)).sqrt()
+/// `left` and `right` side by side, each scaled up by a whole factor to about 256 pixels
+/// high (nearest neighbour, so pixels stay pixels), under `title` and with `labels` above
+/// them: a comparison a person can read.
+pub fn labelled_pair(left: &Picture, right: &Picture, labels: [&str; 2], title: &str) -> Picture {
+    let factor = (256 / left.height.max(right.height).max(1)).max(1);
+    let grow = |p: &Picture| {
+        let mut out = Picture::blank(p.width * factor, p.height * factor, [0, 0, 0]);
+        for y in 0..out.height {
+            for x in 0..out.width {
+                let at = (((y / factor) * p.width + x / factor) * 3) as usize;
+                out.put(
+                    i64::from(x),
+                    i64::from(y),
+                    [p.pixels[at], p.pixels[at + 1], p.pixels[at + 2]],
+                );
+            }
+        }
+        out
     };
-    let mut max_density = 1e-12f32;
-    let mut max_speed = 1e-12f32;
-    for i in 0..nx {
-        for j in 0..ny {
-            max_density = max_density.max(density[cell(i, j)]);
-            for velocity in velocities {
-                max_speed = max_speed.max(speed(velocity, i, j));
-            }
-        }
+    let (left, right) = (grow(left), grow(right));
+    let line = crate::text::line_height(crate::text::LABEL);
+    let header = 6 + 2 * line + 8;
+    let pair = Picture::side_by_side(&[&left, &right]);
+    let mut out = Picture::blank(pair.width, pair.height + header as u32, [255, 255, 255]);
+    let ink = [30, 30, 30];
+    crate::text::draw(&mut out, 4, 4, title, ink, crate::text::LABEL, false);
+    for (x, label) in [(0, labels[0]), (i64::from(left.width) + 4, labels[1])] {
+        crate::text::draw(
+            &mut out,
+            x + 4,
+            6 + line,
+            label,
+            ink,
+            crate::text::LABEL,
+            false,
+        );
     }
-    let (w, h) = (nx as u32 * scale, ny as u32 * scale);
-    let mut panels: Vec<Picture> = (0..=velocities.len())
-        .map(|_| Picture::blank(w, h, [0, 0, 0]))
-        .collect();
-    for y in 0..h {
-        for x in 0..w {
-            let (i, j) = ((x / scale) as usize, ny - 1 - (y / scale) as usize);
-            let d = to_u8(density[cell(i, j)] / max_density);
-            panels[0].put(x as i64, y as i64, [d, d, d]);
-            for (panel, velocity) in panels[1..].iter_mut().zip(velocities) {
-                let colour = crate::viridis::viridis(speed(velocity, i, j) / max_speed);
-                panel.put(x as i64, y as i64, colour);
-            }
-        }
+    for y in 0..pair.height {
+        let src = (y * pair.width * 3) as usize;
+        let dst = (((y + header as u32) * pair.width) * 3) as usize;
+        out.pixels[dst..dst + (pair.width * 3) as usize]
+            .copy_from_slice(&pair.pixels[src..src + (pair.width * 3) as usize]);
     }
-    let parts: Vec<&Picture> = panels.iter().collect();
-    (Picture::side_by_side(&parts), max_speed)
+    out
 }
 
 /// An H.264 MP4 of equally sized pictures at `fps` per second (see

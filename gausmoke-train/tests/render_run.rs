@@ -110,10 +110,13 @@ fn the_data_sets_views_reproduce_the_runs_own_renders() {
     }
     let slices = decode_mp4(&summary.slices_video, 0..2, None).unwrap();
     assert_eq!(slices.frames.len(), 2);
-    // Density | the grid velocity's speed | the estimate's speed: three square panels.
+    // Density | the grid velocity's speed | the estimate's speed: three panels of the 12^3
+    // grid at 21 pixels a cell, with margins, labels and colour bars around them.
     assert!(summary.slices_show_estimate);
+    let panel = 12 * (256 / 12);
     assert!(
-        slices.info.width > 5 * slices.info.height / 2,
+        (3 * panel..3 * panel + 100).contains(&slices.info.width)
+            && slices.info.height > panel + 60,
         "{:?}",
         slices.info
     );

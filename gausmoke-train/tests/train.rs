@@ -877,6 +877,35 @@ fn brief_config(frames: usize) -> TrainConfig {
     }
 }
 
+/// A finished run of [`brief_config`] on the tiny scene, and what made it.
+struct BriefRun {
+    data: PathBuf,
+    config: TrainConfig,
+    device: burn::tensor::Device,
+    out: PathBuf,
+    scene: Sequence,
+}
+
+fn brief_run(dir: &Path, frames: usize) -> BriefRun {
+    let data = tiny_scene(dir);
+    let config = brief_config(frames);
+    let device = device_by_name("flex").unwrap().autodiff();
+    let out = dir.join("run");
+    let scene = Sequence::open(&data, &config).unwrap();
+    Run::new(scene.clone(), config.clone(), device.clone(), &out, false)
+        .unwrap()
+        .quiet(true)
+        .run()
+        .unwrap();
+    BriefRun {
+        data,
+        config,
+        device,
+        out,
+        scene,
+    }
+}
+
 /// A second run on a folder another run is training into is refused, naming the holder; the
 /// lock goes with the first run.
 #[test]
@@ -916,16 +945,13 @@ fn flip_bytes(path: &Path) {
 #[test]
 fn a_damaged_checkpoint_falls_back_to_the_one_before() {
     let dir = tempfile::tempdir().unwrap();
-    let data = tiny_scene(dir.path());
-    let config = brief_config(3);
-    let device = device_by_name("flex").unwrap().autodiff();
-    let out = dir.path().join("run");
-    let scene = Sequence::open(&data, &config).unwrap();
-    let mut run = Run::new(scene.clone(), config.clone(), device.clone(), &out, false)
-        .unwrap()
-        .quiet(true);
-    run.run().unwrap();
-    drop(run);
+    let BriefRun {
+        config,
+        device,
+        out,
+        scene,
+        ..
+    } = brief_run(dir.path(), 3);
     let checkpoints = out.join("checkpoints");
     assert!(checkpoints.join("frame_001").is_dir() && checkpoints.join("frame_002").is_dir());
     let intact = std::fs::read(checkpoints.join("frame_002/gaussians.bpk")).unwrap();
@@ -988,16 +1014,13 @@ fn a_damaged_checkpoint_falls_back_to_the_one_before() {
 #[test]
 fn a_lost_frame_file_is_refused_by_eval_and_resume() {
     let dir = tempfile::tempdir().unwrap();
-    let data = tiny_scene(dir.path());
-    let config = brief_config(3);
-    let device = device_by_name("flex").unwrap().autodiff();
-    let out = dir.path().join("run");
-    let scene = Sequence::open(&data, &config).unwrap();
-    let mut run = Run::new(scene.clone(), config.clone(), device.clone(), &out, false)
-        .unwrap()
-        .quiet(true);
-    run.run().unwrap();
-    drop(run);
+    let BriefRun {
+        data,
+        config,
+        device,
+        out,
+        scene,
+    } = brief_run(dir.path(), 3);
     let flex = device_by_name("flex").unwrap();
     for lost in [1, 2] {
         let path = out.join(format!("frames/frame_{lost:03}.safetensors"));

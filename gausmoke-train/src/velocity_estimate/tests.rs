@@ -245,8 +245,9 @@ fn the_estimate_is_the_blobs_motion_and_a_stale_one_is_refused() {
         assert!(dir.join(file).is_file(), "{file}");
     }
     let slice = crate::visuals::Picture::open_png(&dir.join("slices/frame_002.png")).unwrap();
-    // Three 256-pixel panels (density and two speeds) and the gaps between them.
-    assert!((768..800).contains(&slice.width) && slice.height == 256);
+    // Three 256-pixel panels (density and two speeds) with the margins and gaps between
+    // them, and room above and below for the title, labels, colour bars and the note.
+    assert!((768..860).contains(&slice.width) && slice.height > 256 + 60);
     for frame in &summary.frames {
         assert_eq!(frame.run_smoke_speed, 0.0);
         let speed = frame.smoke_speed / shift.length() as f64;
