@@ -85,36 +85,153 @@ fn tick_label(v: f64, log: bool) -> String {
     text.trim_end_matches('0').trim_end_matches('.').to_string()
 }
 
-/// Draws label text with its top-left corner at `(x, y)`; `vertical` writes bottom to top.
-pub fn draw_text(
-    picture: &mut Picture,
-    x: i64,
-    y: i64,
-    text: &str,
-    colour: [u8; 3],
-    vertical: bool,
-) {
-    text::draw(picture, x, y, text, colour, text::LABEL, vertical);
+/// What a chart is drawn on: a raster [`Picture`] or an [`Svg`] document.
+pub trait Canvas {
+    /// A one-pixel line from `a` to `b`.
+    fn line(&mut self, a: (i64, i64), b: (i64, i64), colour: [u8; 3]);
+    /// A filled square of side `2 * radius + 1` centred on `centre`.
+    fn dot(&mut self, centre: (i64, i64), radius: i64, colour: [u8; 3]);
+    /// Text at `size` with its top-left corner at `(x, y)`; `vertical` writes it bottom to top
+    /// with that corner at its bottom-left.
+    fn text(&mut self, at: (i64, i64), text: &str, colour: [u8; 3], size: f32, vertical: bool);
+}
+
+impl Canvas for Picture {
+    fn line(&mut self, (x0, y0): (i64, i64), (x1, y1): (i64, i64), colour: [u8; 3]) {
+        let steps = (x1 - x0).abs().max((y1 - y0).abs()).max(1);
+        for t in 0..=steps {
+            self.put(
+                x0 + (x1 - x0) * t / steps,
+                y0 + (y1 - y0) * t / steps,
+                colour,
+            );
+        }
+    }
+
+    fn dot(&mut self, (x, y): (i64, i64), radius: i64, colour: [u8; 3]) {
+        for dy in -radius..=radius {
+            for dx in -radius..=radius {
+                self.put(x + dx, y + dy, colour);
+            }
+        }
+    }
+
+    fn text(
+        &mut self,
+        (x, y): (i64, i64),
+        label: &str,
+        colour: [u8; 3],
+        size: f32,
+        vertical: bool,
+    ) {
+        text::draw(self, x, y, label, colour, size, vertical);
+    }
+}
+
+/// A chart as an SVG document (vector, for papers and slides), with the raster's layout.
+pub struct Svg {
+    width: u32,
+    height: u32,
+    body: String,
+}
+
+impl Svg {
+    pub fn new(width: u32, height: u32) -> Self {
+        Self {
+            width,
+            height,
+            body: String::new(),
+        }
+    }
+
+    /// The document's text.
+    pub fn finish(&self) -> String {
+        format!(
+            "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" \
+             viewBox=\"0 0 {w} {h}\" font-family=\"DejaVu Sans, sans-serif\">\n\
+             <rect width=\"{w}\" height=\"{h}\" fill=\"white\"/>\n{}</svg>\n",
+            self.body,
+            w = self.width,
+            h = self.height,
+        )
+    }
+}
+
+fn hex([r, g, b]: [u8; 3]) -> String {
+    format!("#{r:02x}{g:02x}{b:02x}")
+}
+
+fn escape(text: &str) -> String {
+    text.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+}
+
+impl Canvas for Svg {
+    fn line(&mut self, (x0, y0): (i64, i64), (x1, y1): (i64, i64), colour: [u8; 3]) {
+        self.body += &format!(
+            "<line x1=\"{}\" y1=\"{}\" x2=\"{}\" y2=\"{}\" stroke=\"{}\"/>\n",
+            x0 as f64 + 0.5,
+            y0 as f64 + 0.5,
+            x1 as f64 + 0.5,
+            y1 as f64 + 0.5,
+            hex(colour)
+        );
+    }
+
+    fn dot(&mut self, (x, y): (i64, i64), radius: i64, colour: [u8; 3]) {
+        let side = 2 * radius + 1;
+        self.body += &format!(
+            "<rect x=\"{}\" y=\"{}\" width=\"{side}\" height=\"{side}\" fill=\"{}\"/>\n",
+            x - radius,
+            y - radius,
+            hex(colour)
+        );
+    }
+
+    fn text(
+        &mut self,
+        (x, y): (i64, i64),
+        label: &str,
+        colour: [u8; 3],
+        size: f32,
+        vertical: bool,
+    ) {
+        // SVG places text by its baseline: the raster's top plus the font's ascent.
+        let ascent = text::ascent(size);
+        let (transform, bx, by) = if vertical {
+            (format!(" transform=\"rotate(-90 {x} {y})\""), x, y + ascent)
+        } else {
+            (String::new(), x, y + ascent)
+        };
+        self.body += &format!(
+            "<text x=\"{bx}\" y=\"{by}\" font-size=\"{size}\" fill=\"{}\"{transform}>{}</text>\n",
+            hex(colour),
+            escape(label)
+        );
+    }
 }
 
 fn text_width(label: &str) -> i64 {
     text::width(label, text::LABEL)
 }
 
-fn line(picture: &mut Picture, (x0, y0): (i64, i64), (x1, y1): (i64, i64), colour: [u8; 3]) {
-    let steps = (x1 - x0).abs().max((y1 - y0).abs()).max(1);
-    for t in 0..=steps {
-        picture.put(
-            x0 + (x1 - x0) * t / steps,
-            y0 + (y1 - y0) * t / steps,
-            colour,
-        );
-    }
-}
-
 /// The chart on a white `width` x `height` picture.
 pub fn draw(chart: &Chart, width: u32, height: u32) -> Picture {
     let mut picture = Picture::blank(width, height, [255, 255, 255]);
+    draw_on(chart, &mut picture, width, height);
+    picture
+}
+
+/// The chart as an SVG document of `width` x `height`.
+pub fn svg(chart: &Chart, width: u32, height: u32) -> String {
+    let mut document = Svg::new(width, height);
+    draw_on(chart, &mut document, width, height);
+    document.finish()
+}
+
+/// Draws the chart on `canvas`, `width` x `height`.
+fn draw_on(chart: &Chart, canvas: &mut impl Canvas, width: u32, height: u32) {
     let map_y = |v: f64| if chart.log_y { v.log10() } else { v };
     let usable = |&(x, y): &(f64, f64)| x.is_finite() && y.is_finite() && (!chart.log_y || y > 0.0);
     let points = || {
@@ -183,61 +300,61 @@ pub fn draw(chart: &Chart, width: u32, height: u32) -> Picture {
         height as i64 - (2 * glyph() + 18),
     );
     if right - left < 20 || bottom - top < 20 {
-        return picture;
+        return;
     }
     let px = |x: f64| left + ((x - x_lo) / (x_hi - x_lo) * (right - left) as f64).round() as i64;
     let py = |y: f64| bottom - ((y - y_lo) / (y_hi - y_lo) * (bottom - top) as f64).round() as i64;
 
     for &v in &y_ticks {
         let y = py(v);
-        line(&mut picture, (left, y), (right, y), GRID);
-        line(&mut picture, (left - 4, y), (left, y), INK);
+        canvas.line((left, y), (right, y), GRID);
+        canvas.line((left - 4, y), (left, y), INK);
         let label = tick_label(v, chart.log_y);
-        draw_text(
-            &mut picture,
-            left - 6 - text_width(&label),
-            y - glyph() / 2,
+        canvas.text(
+            (left - 6 - text_width(&label), y - glyph() / 2),
             &label,
             INK,
+            text::LABEL,
             false,
         );
     }
     for &v in &x_ticks {
         let x = px(v);
-        line(&mut picture, (x, top), (x, bottom), GRID);
-        line(&mut picture, (x, bottom), (x, bottom + 4), INK);
+        canvas.line((x, top), (x, bottom), GRID);
+        canvas.line((x, bottom), (x, bottom + 4), INK);
         let label = tick_label(v, false);
-        draw_text(
-            &mut picture,
-            x - text_width(&label) / 2,
-            bottom + 7,
+        canvas.text(
+            (x - text_width(&label) / 2, bottom + 7),
             &label,
             INK,
+            text::LABEL,
             false,
         );
     }
-    line(&mut picture, (left, top), (left, bottom), INK);
-    line(&mut picture, (left, bottom), (right, bottom), INK);
-    draw_text(
-        &mut picture,
-        (left + right) / 2 - text_width(&chart.x_label) / 2,
-        height as i64 - glyph() - 4,
+    canvas.line((left, top), (left, bottom), INK);
+    canvas.line((left, bottom), (right, bottom), INK);
+    canvas.text(
+        (
+            (left + right) / 2 - text_width(&chart.x_label) / 2,
+            height as i64 - glyph() - 4,
+        ),
         &chart.x_label,
         INK,
+        text::LABEL,
         false,
     );
-    draw_text(
-        &mut picture,
-        2,
-        (top + bottom) / 2 + text_width(&chart.y_label) / 2,
+    canvas.text(
+        (2, (top + bottom) / 2 + text_width(&chart.y_label) / 2),
         &chart.y_label,
         INK,
+        text::LABEL,
         true,
     );
-    text::draw(
-        &mut picture,
-        (width as i64 - text::width(&chart.title, text::TITLE)) / 2,
-        4,
+    canvas.text(
+        (
+            (width as i64 - text::width(&chart.title, text::TITLE)) / 2,
+            4,
+        ),
         &chart.title,
         INK,
         text::TITLE,
@@ -245,7 +362,7 @@ pub fn draw(chart: &Chart, width: u32, height: u32) -> Picture {
     );
     for &mark in chart.marks.iter().filter(|m| (x_lo..=x_hi).contains(*m)) {
         let x = px(mark);
-        line(&mut picture, (x, top), (x, bottom), MARK);
+        canvas.line((x, top), (x, bottom), MARK);
     }
 
     // The first series is drawn last, on top: it is the one a chart is about.
@@ -261,14 +378,9 @@ pub fn draw(chart: &Chart, width: u32, height: u32) -> Picture {
             }
             let here = (px(point.0), py(map_y(point.1)));
             if let Some(p) = previous {
-                line(&mut picture, p, here, colour);
+                canvas.line(p, here, colour);
             }
-            let radius = if marked { 2 } else { 0 };
-            for dy in -radius..=radius {
-                for dx in -radius..=radius {
-                    picture.put(here.0 + dx, here.1 + dy, colour);
-                }
-            }
+            canvas.dot(here, if marked { 2 } else { 0 }, colour);
             previous = Some(here);
         }
     }
@@ -281,13 +393,12 @@ pub fn draw(chart: &Chart, width: u32, height: u32) -> Picture {
         for (s, one) in range.clone().zip(series) {
             let colour = SERIES_COLOURS[s % SERIES_COLOURS.len()];
             for dy in glyph() / 2 - 1..glyph() / 2 + 1 {
-                line(&mut picture, (x, y + dy), (x + 16, y + dy), colour);
+                canvas.line((x, y + dy), (x + 16, y + dy), colour);
             }
-            draw_text(&mut picture, x + 20, y, &one.label, INK, false);
+            canvas.text((x + 20, y), &one.label, INK, text::LABEL, false);
             x += entry(&one.label);
         }
     }
-    picture
 }
 
 /// The legend's entries (of `widths`, in pixels) split into rows no wider than `available`,
@@ -366,5 +477,38 @@ mod tests {
             "the second series and its legend"
         );
         assert!(count(MARK) > 100, "the marks are drawn");
+    }
+
+    /// The SVG has the raster's layout: well-formed XML of the given size, the title as text,
+    /// a line per grid line, tick and axis, and a dot per marked point.
+    #[test]
+    fn the_svg_is_well_formed_and_carries_the_chart() {
+        let chart = Chart {
+            title: "held-out view <dB> & frames".into(),
+            x_label: "frame".into(),
+            y_label: "PSNR (dB)".into(),
+            log_y: false,
+            series: vec![Series {
+                label: "sequential".into(),
+                points: (0..10).map(|t| (t as f64, 30.0 + t as f64)).collect(),
+            }],
+            marks: Vec::new(),
+        };
+        let text = svg(&chart, 400, 240);
+        let doc = roxmltree::Document::parse(&text).expect("well-formed SVG");
+        let root = doc.root_element();
+        assert_eq!(root.tag_name().name(), "svg");
+        assert_eq!(root.attribute("width"), Some("400"));
+        let texts: Vec<&str> = root
+            .descendants()
+            .filter(|n| n.has_tag_name("text"))
+            .filter_map(|n| n.text())
+            .collect();
+        assert!(texts.contains(&"held-out view <dB> & frames"), "{texts:?}");
+        assert!(texts.contains(&"PSNR (dB)") && texts.contains(&"sequential"));
+        let count = |tag: &str| root.descendants().filter(|n| n.has_tag_name(tag)).count();
+        assert!(count("line") > 20, "{}", count("line"));
+        // Ten marked points and the legend's swatch lines.
+        assert!(count("rect") >= 11, "{}", count("rect"));
     }
 }

@@ -184,6 +184,11 @@ impl<'a> EstimateOutputs<'a> {
         ];
         for (name, figure) in &charts {
             chart::draw(figure, 960, 480).save_png(&self.dir.join(name))?;
+            let svg = chart::svg(figure, 960, 480);
+            crate::export::write_atomic(
+                &self.dir.join(name).with_extension("svg"),
+                svg.as_bytes(),
+            )?;
         }
         Ok(())
     }

@@ -608,9 +608,21 @@ impl RunFolder {
             false,
             vec![per_frame("held-out PSNR", |r| r.test_psnr)],
         );
-        chart::draw(&losses_chart, 1400, 640).save_png(&self.root.join("losses.png"))?;
-        chart::draw(&speed, 960, 480).save_png(&self.root.join("speed.png"))?;
-        chart::draw(&psnr, 960, 480).save_png(&self.root.join("psnr.png"))?;
+        // Each chart as a PNG and, for papers and slides, an SVG of the same layout.
+        for (name, figure, [width, height]) in [
+            ("losses", &losses_chart, [1400, 640]),
+            ("speed", &speed, [960, 480]),
+            ("psnr", &psnr, [960, 480]),
+            ("refine_moves_shares", &move_shares, [960, 420]),
+            ("refine_moves_persistence", &move_persistence, [960, 420]),
+        ] {
+            let svg = chart::svg(figure, width, height);
+            write_atomic(&self.root.join(format!("{name}.svg")), svg.as_bytes())?;
+            if !name.starts_with("refine_moves") {
+                chart::draw(figure, width, height)
+                    .save_png(&self.root.join(format!("{name}.png")))?;
+            }
+        }
         Picture::stacked(&[
             &chart::draw(&move_shares, 960, 420),
             &chart::draw(&move_persistence, 960, 420),
@@ -677,7 +689,7 @@ metrics.json       per-frame and mean metrics: held-out PSNR/SSIM, mean |div u| 
                    projection solver iterations/residual, speeds, seconds per frame
 losses.csv         every optimisation step: frame, phase (init/advect/refine), loss terms
 losses.png         loss curves over the optimisation steps (log scale, legend in the chart,
-                   light lines where each frame begins)
+                   light lines where each frame begins); every chart also as .svg
 speed.png          per frame: mean and max speed of the velocity (world units per frame)
 psnr.png           per frame: held-out PSNR (dB)
 refine_moves.png   per frame, two charts. Shares: of the refinement's move at the velocity

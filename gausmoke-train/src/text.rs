@@ -24,6 +24,11 @@ pub fn line_height(size: f32) -> i64 {
     (font.ascent() - font.descent()).ceil() as i64
 }
 
+/// The height of the font's tallest letters above the baseline at `size`, in pixels.
+pub fn ascent(size: f32) -> i64 {
+    font().as_scaled(PxScale::from(size)).ascent().round() as i64
+}
+
 /// The width of `text` at `size`, in pixels.
 pub fn width(text: &str, size: f32) -> i64 {
     let font = font().as_scaled(PxScale::from(size));
