@@ -411,30 +411,29 @@ fn describe(dir: &Path) -> Result<Description> {
     };
     let (folder, text) = calibration(dir)?;
     let ext = if text { "txt" } else { "bin" };
-    let read = |name: &str| -> Result<Vec<u8>> {
-        let path = folder.join(format!("{name}.{ext}"));
-        std::fs::read(&path).map_err(io_err(&path))
-    };
+    let read = |path: &Path| -> Result<Vec<u8>> { std::fs::read(path).map_err(io_err(path)) };
     let cameras_path = folder.join(format!("cameras.{ext}"));
     let images_path = folder.join(format!("images.{ext}"));
-    let (cameras, images) = if text {
+    let (cameras, mut images) = if text {
         let as_text = |path: &Path, bytes: Vec<u8>| {
             String::from_utf8(bytes).map_err(|_| layout(path, "not UTF-8 text"))
         };
         (
-            cameras_text(&cameras_path, &as_text(&cameras_path, read("cameras")?)?)?,
-            images_text(&images_path, &as_text(&images_path, read("images")?)?)?,
+            cameras_text(
+                &cameras_path,
+                &as_text(&cameras_path, read(&cameras_path)?)?,
+            )?,
+            images_text(&images_path, &as_text(&images_path, read(&images_path)?)?)?,
         )
     } else {
         (
-            cameras_binary(&cameras_path, &read("cameras")?)?,
-            images_binary(&images_path, &read("images")?)?,
+            cameras_binary(&cameras_path, &read(&cameras_path)?)?,
+            images_binary(&images_path, &read(&images_path)?)?,
         )
     };
     if images.is_empty() {
         return Err(layout(&images_path, "registers no image"));
     }
-    let mut images = images;
     images.sort_by_key(|image| camera_name(&image.name));
     let mut views = Vec::new();
     for image in &images {

@@ -2,6 +2,10 @@
 //! labels, axis titles with units, a light grid, a legend, and optional marks along x (where
 //! frames begin). Text is DejaVu Sans ([`crate::text`]).
 
+use std::path::Path;
+
+use crate::TrainError;
+use crate::export::write_atomic;
 use crate::text;
 use crate::visuals::Picture;
 
@@ -228,6 +232,15 @@ pub fn svg(chart: &Chart, width: u32, height: u32) -> String {
     let mut document = Svg::new(width, height);
     draw_on(chart, &mut document, width, height);
     document.finish()
+}
+
+/// Writes the chart, `width` x `height`, as `stem.png` and `stem.svg`.
+pub fn save(chart: &Chart, width: u32, height: u32, stem: &Path) -> Result<(), TrainError> {
+    draw(chart, width, height).save_png(&stem.with_extension("png"))?;
+    write_atomic(
+        &stem.with_extension("svg"),
+        svg(chart, width, height).as_bytes(),
+    )
 }
 
 /// Draws the chart on `canvas`, `width` x `height`.

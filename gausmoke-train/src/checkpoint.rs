@@ -361,9 +361,14 @@ pub struct Restored {
     pub meta: CheckpointMeta,
 }
 
-/// Restores `state` (freshly built with the same configuration) from checkpoint `dir`.
-pub fn load(dir: &Path, state: TrainState, device: &Device) -> Result<Restored, TrainError> {
-    let meta = read_meta(dir)?;
+/// Restores `state` (freshly built with the same configuration) from checkpoint `dir`, whose
+/// `state.json` [`read_meta`] read as `meta`.
+pub fn load(
+    dir: &Path,
+    meta: CheckpointMeta,
+    state: TrainState,
+    device: &Device,
+) -> Result<Restored, TrainError> {
     verify(dir, &meta)?;
     let (gaussians, gaussian_optim) = load_with_optim(
         dir,

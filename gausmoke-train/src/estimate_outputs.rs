@@ -128,20 +128,15 @@ impl<'a> EstimateOutputs<'a> {
                 source,
             })?;
             let scale = SliceScale::over(self.slices.iter().map(|(_, slice)| slice));
-            let note = format!(
-                "colour scales: one for the whole video (density 0-{:.3}, speed 0-{:.4})",
-                scale.density, scale.speed
-            );
+            let note = scale.video_note();
             let mut pictures = Vec::with_capacity(self.slices.len());
             for (t, slice) in &self.slices {
-                let [k, nz] = slice.layer;
                 let picture = crate::slices::figure(
+                    *t,
                     slice,
                     &scale,
                     &["density", "speed: grid velocity", "speed: the estimate"],
-                    &format!("frame {t}: middle z slice (layer {k} of {nz}), +y up"),
                     &note,
-                    crate::slices::cell_pixels(self.grid),
                 );
                 picture.save_png(&dir.join(format!("frame_{t:03}.png")))?;
                 pictures.push(picture);
@@ -154,7 +149,7 @@ impl<'a> EstimateOutputs<'a> {
         };
         let charts = [
             (
-                "speed.png",
+                "speed",
                 Chart {
                     title: "Speed where the smoke is (density-weighted mean)".into(),
                     x_label: "frame".into(),
@@ -168,7 +163,7 @@ impl<'a> EstimateOutputs<'a> {
                 },
             ),
             (
-                "misfit.png",
+                "misfit",
                 Chart {
                     title: "Frame t-1's density carried onto frame t's: residual".into(),
                     x_label: "frame".into(),
@@ -183,12 +178,7 @@ impl<'a> EstimateOutputs<'a> {
             ),
         ];
         for (name, figure) in &charts {
-            chart::draw(figure, 960, 480).save_png(&self.dir.join(name))?;
-            let svg = chart::svg(figure, 960, 480);
-            crate::export::write_atomic(
-                &self.dir.join(name).with_extension("svg"),
-                svg.as_bytes(),
-            )?;
+            chart::save(figure, 960, 480, &self.dir.join(name))?;
         }
         Ok(())
     }

@@ -373,23 +373,30 @@ pub fn render_run(
     let slices_video = out.join("slices.mp4");
     let estimate = crate::velocity_estimate::StoredEstimate::open(run)?;
     let mut slices = Vec::with_capacity(frame_list.len());
+    // The density of the frame before, which the estimate of a frame is checked against: read
+    // once, for the first frame shown, and carried from frame to frame after that.
+    let mut before: Option<Vec<f32>> = None;
     for &t in &frame_list {
         let state = folder
             .read_frame_state(t, &grid)?
             .expect("frames before `finished` exist");
         slices.push(match &estimate {
             Some(estimate) => {
+                if before.is_none() && t > 0 {
+                    let previous = folder
+                        .read_frame_state(t - 1, &grid)?
+                        .expect("frames before `finished` exist");
+                    before = Some(previous.density);
+                }
                 // Frame 0 has no estimate: the smoke starts at rest.
-                let estimated = match t.checked_sub(1) {
-                    Some(before) => {
-                        let previous = folder
-                            .read_frame_state(before, &grid)?
-                            .expect("frames before `finished` exist");
-                        estimate.frame(t, grid.resolution(), [&previous.density, &state.density])?
+                let estimated = match &before {
+                    Some(previous) => {
+                        estimate.frame(t, grid.resolution(), [previous, &state.density])?
                     }
                     None => None,
                 }
                 .unwrap_or_else(|| vec![0.0; state.velocity.len()]);
+                before = Some(state.density.clone());
                 GridSlice::middle(&grid, &state.density, &[&state.velocity, &estimated])
             }
             None => GridSlice::middle(&grid, &state.density, &[&state.velocity]),
@@ -406,21 +413,10 @@ pub fn render_run(
     } else {
         &["density", "speed: grid velocity"]
     };
-    let note = format!(
-        "colour scales: one for the whole video (density 0-{:.3}, speed 0-{:.4})",
-        scale.density, scale.speed
-    );
+    let note = scale.video_note();
     let mut writer: Option<VideoWriter> = None;
     for (slice, &t) in slices.iter().zip(&frame_list) {
-        let [k, nz] = slice.layer;
-        let picture = crate::slices::figure(
-            slice,
-            &scale,
-            labels,
-            &format!("frame {t}: middle z slice (layer {k} of {nz}), +y up"),
-            &note,
-            crate::slices::cell_pixels(&grid),
-        );
+        let picture = crate::slices::figure(t, slice, &scale, labels, &note);
         let writer = match &mut writer {
             Some(w) => w,
             None => writer.insert(VideoWriter::create(

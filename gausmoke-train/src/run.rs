@@ -112,8 +112,7 @@ impl Run {
         let fingerprint = sequence.fingerprint();
         let data = resolved;
         if resume && !existing.is_empty() {
-            run.check_same_data(&data, &fingerprint, &existing)?;
-            run.restore(&existing)?;
+            run.restore(&existing, &data, &fingerprint)?;
             run.check_outputs_before_resume()?;
         }
         run.folder.write_config(&run.trainer.config)?;

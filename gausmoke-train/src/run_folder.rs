@@ -413,13 +413,13 @@ impl RunFolder {
         let dir = self.root.join("slices");
         Self::create_dir(&dir)?;
         let slice = GridSlice::middle(grid, &state.density, &[&state.velocity]);
-        run_slice_figure(
+        crate::slices::figure(
             t,
             &slice,
             &SliceScale::over([&slice]),
+            &RUN_SLICE_LABELS,
             "colour scales: this frame's own, until training ends and redraws every frame on \
              one scale",
-            grid,
         )
         .save_png(&dir.join(frame_file(t, "png")))?;
         let dir = self.exports_dir();
@@ -494,15 +494,12 @@ impl RunFolder {
             return Ok(());
         }
         let scale = SliceScale::over(&slices);
-        let note = format!(
-            "colour scales: one for the whole video (density 0-{:.3}, speed 0-{:.4})",
-            scale.density, scale.speed
-        );
+        let note = scale.video_note();
         let dir = self.root.join("slices");
         Self::create_dir(&dir)?;
         let mut pictures = Vec::with_capacity(slices.len());
         for (t, slice) in slices.iter().enumerate() {
-            let picture = run_slice_figure(t, slice, &scale, &note, grid);
+            let picture = crate::slices::figure(t, slice, &scale, &RUN_SLICE_LABELS, &note);
             picture.save_png(&dir.join(frame_file(t, "png")))?;
             pictures.push(picture);
         }
@@ -608,20 +605,23 @@ impl RunFolder {
             false,
             vec![per_frame("held-out PSNR", |r| r.test_psnr)],
         );
-        // Each chart as a PNG and, for papers and slides, an SVG of the same layout.
+        // Each chart as a PNG and, for papers and slides, an SVG of the same layout; the
+        // refinement's two charts as SVGs, and one above the other in refine_moves.png.
         for (name, figure, [width, height]) in [
             ("losses", &losses_chart, [1400, 640]),
             ("speed", &speed, [960, 480]),
             ("psnr", &psnr, [960, 480]),
-            ("refine_moves_shares", &move_shares, [960, 420]),
-            ("refine_moves_persistence", &move_persistence, [960, 420]),
         ] {
-            let svg = chart::svg(figure, width, height);
-            write_atomic(&self.root.join(format!("{name}.svg")), svg.as_bytes())?;
-            if !name.starts_with("refine_moves") {
-                chart::draw(figure, width, height)
-                    .save_png(&self.root.join(format!("{name}.png")))?;
-            }
+            chart::save(figure, width, height, &self.root.join(name))?;
+        }
+        for (name, figure) in [
+            ("refine_moves_shares.svg", &move_shares),
+            ("refine_moves_persistence.svg", &move_persistence),
+        ] {
+            write_atomic(
+                &self.root.join(name),
+                chart::svg(figure, 960, 420).as_bytes(),
+            )?;
         }
         Picture::stacked(&[
             &chart::draw(&move_shares, 960, 420),
@@ -650,24 +650,8 @@ impl RunFolder {
     }
 }
 
-/// A run's slice of frame `t` as a figure (see [`crate::slices::figure`]).
-fn run_slice_figure(
-    t: usize,
-    slice: &GridSlice,
-    scale: &SliceScale,
-    note: &str,
-    grid: &GridSpec,
-) -> Picture {
-    let [k, nz] = slice.layer;
-    crate::slices::figure(
-        slice,
-        scale,
-        &["density", "speed of the grid velocity"],
-        &format!("frame {t}: middle z slice (layer {k} of {nz}), +y up"),
-        note,
-        crate::slices::cell_pixels(grid),
-    )
-}
+/// The panels of a run's slices.
+const RUN_SLICE_LABELS: [&str; 2] = ["density", "speed of the grid velocity"];
 
 /// One camera's render of a frame, for the pictures of [`RunFolder::write_frame_outputs`].
 pub struct ViewRender<'a> {

@@ -67,6 +67,14 @@ impl SliceScale {
         }
         scale
     }
+
+    /// The note of a video's slices drawn on this one scale.
+    pub fn video_note(&self) -> String {
+        format!(
+            "colour scales: one for the whole video (density 0-{:.3}, speed 0-{:.4})",
+            self.density, self.speed
+        )
+    }
 }
 
 const MARGIN: i64 = 14;
@@ -126,19 +134,20 @@ fn colour_bar(
     );
 }
 
-/// The slice as a figure: `title` on top, a panel per field labelled by `labels` (the
-/// density's, then each speed's), the cells `cell` pixels wide with +y up, a grey bar under
-/// the density and one viridis bar under the speeds, both from 0 to `scale`, and `note` (which
-/// scale this is) at the bottom.
+/// Frame `frame`'s slice as a figure: a title naming the frame and layer, a panel per field
+/// labelled by `labels` (the density's, then each speed's), about 256 pixels across with +y
+/// up, a grey bar under the density and one viridis bar under the speeds, both from 0 to
+/// `scale`, and `note` (which scale this is, e.g. [`SliceScale::video_note`]) at the bottom.
 pub fn figure(
+    frame: usize,
     slice: &GridSlice,
     scale: &SliceScale,
     labels: &[&str],
-    title: &str,
     note: &str,
-    cell: u32,
 ) -> Picture {
-    let cell = i64::from(cell.max(1));
+    let [k, nz] = slice.layer;
+    let title = format!("frame {frame}: middle z slice (layer {k} of {nz}), +y up");
+    let cell = (256 / slice.nx.max(slice.ny)).max(1) as i64;
     let (pw, ph) = (slice.nx as i64 * cell, slice.ny as i64 * cell);
     let panels = 1 + slice.speeds.len() as i64;
     let line = text::line_height(text::LABEL);
@@ -148,7 +157,15 @@ pub fn figure(
     let bar_top = panel_top + ph + 10;
     let height = bar_top + BAR + 7 + 2 * line + 10 + line + MARGIN;
     let mut picture = Picture::blank(width.max(1) as u32, height as u32, [255, 255, 255]);
-    text::draw(&mut picture, MARGIN, MARGIN, title, INK, text::TITLE, false);
+    text::draw(
+        &mut picture,
+        MARGIN,
+        MARGIN,
+        &title,
+        INK,
+        text::TITLE,
+        false,
+    );
     let left_of = |p: i64| MARGIN + p * (pw + GAP);
     for (p, label) in labels.iter().enumerate().take(panels as usize) {
         text::draw(
@@ -209,12 +226,6 @@ pub fn figure(
     picture
 }
 
-/// The pixels per cell that make a slice's panels about 256 pixels across.
-pub fn cell_pixels(grid: &GridSpec) -> u32 {
-    let [nx, ny, _] = grid.resolution();
-    (256 / nx.max(ny)).max(1) as u32
-}
-
 #[cfg(test)]
 mod tests {
     use gausmoke_core::glam::Vec3;
@@ -239,13 +250,13 @@ mod tests {
         let scale = SliceScale::over([&first, &second]);
         assert_eq!(scale.density, 2.0);
         assert_eq!(scale.speed, 0.5);
+        // A 4x4 slice's panels are 256 pixels across: 64 pixels a cell.
         let picture = figure(
+            3,
             &first,
             &scale,
             &["density", "speed"],
-            "frame 3",
             "one scale for the whole video",
-            10,
         );
         let at = |x: i64, y: i64| {
             let i = ((y * i64::from(picture.width) + x) * 3) as usize;
@@ -258,14 +269,14 @@ mod tests {
         let line = text::line_height(text::LABEL);
         let panel_top = MARGIN + text::line_height(text::TITLE) + 8 + line + 4;
         // Cell (1, 3) is in the top row of the panels: white density, the top of viridis.
-        assert_eq!(at(MARGIN + 15, panel_top + 5), [255, 255, 255]);
-        assert_eq!(at(MARGIN + 40 + GAP + 15, panel_top + 5), viridis(1.0));
-        assert_eq!(at(MARGIN + 15, panel_top + 35), [0, 0, 0]);
+        assert_eq!(at(MARGIN + 96, panel_top + 32), [255, 255, 255]);
+        assert_eq!(at(MARGIN + 256 + GAP + 96, panel_top + 32), viridis(1.0));
+        assert_eq!(at(MARGIN + 96, panel_top + 224), [0, 0, 0]);
         // The bars' ends.
-        let bar = panel_top + 40 + 10 + BAR / 2;
+        let bar = panel_top + 256 + 10 + BAR / 2;
         assert_eq!(at(MARGIN, bar), [0, 0, 0]);
-        assert_eq!(at(MARGIN + 39, bar), [255, 255, 255]);
-        assert_eq!(at(MARGIN + 40 + GAP + 39, bar), viridis(1.0));
+        assert_eq!(at(MARGIN + 255, bar), [255, 255, 255]);
+        assert_eq!(at(MARGIN + 256 + GAP + 255, bar), viridis(1.0));
         assert_eq!(tick(0.5), "0.500");
         assert_eq!(tick(12.345), "12.3");
     }

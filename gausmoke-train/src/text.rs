@@ -29,20 +29,28 @@ pub fn ascent(size: f32) -> i64 {
     font().as_scaled(PxScale::from(size)).ascent().round() as i64
 }
 
-/// The width of `text` at `size`, in pixels.
-pub fn width(text: &str, size: f32) -> i64 {
-    let font = font().as_scaled(PxScale::from(size));
+/// Each glyph of `text` at `scale` with its pen position along the line, kerned, and the
+/// pen's position after the last one (the line's advance).
+fn layout(text: &str, scale: PxScale) -> (Vec<(ab_glyph::GlyphId, f32)>, f32) {
+    let font = font().as_scaled(scale);
+    let mut glyphs = Vec::with_capacity(text.len());
+    let mut caret = 0.0f32;
     let mut previous = None;
-    let mut x = 0.0;
     for c in text.chars() {
         let id = font.glyph_id(c);
         if let Some(p) = previous {
-            x += font.kern(p, id);
+            caret += font.kern(p, id);
         }
-        x += font.h_advance(id);
+        glyphs.push((id, caret));
+        caret += font.h_advance(id);
         previous = Some(id);
     }
-    x.ceil() as i64
+    (glyphs, caret)
+}
+
+/// The width of `text` at `size`, in pixels.
+pub fn width(text: &str, size: f32) -> i64 {
+    layout(text, PxScale::from(size)).1.ceil() as i64
 }
 
 /// Draws `text` at `size` with its top-left corner at `(x, y)`; `vertical` writes it bottom
@@ -57,18 +65,9 @@ pub fn draw(
     vertical: bool,
 ) {
     let scale = PxScale::from(size);
-    let scaled = font().as_scaled(scale);
-    let ascent = scaled.ascent();
-    let mut caret = 0.0f32;
-    let mut previous = None;
-    for c in text.chars() {
-        let id = scaled.glyph_id(c);
-        if let Some(p) = previous {
-            caret += scaled.kern(p, id);
-        }
+    let ascent = font().as_scaled(scale).ascent();
+    for (id, caret) in layout(text, scale).0 {
         let glyph = id.with_scale_and_position(scale, ab_glyph::point(caret, ascent));
-        caret += scaled.h_advance(id);
-        previous = Some(id);
         let Some(outline) = font().outline_glyph(glyph) else {
             continue;
         };

@@ -14,18 +14,15 @@ const DATA_KEYS: &[&str] = &["image_size", "train_views", "test_views", "first_f
 impl Run {
     /// Refuses to resume on other data than the run was trained on (the fingerprint: box,
     /// views, cameras, first images), wherever the data set now lives. The fingerprint is the
-    /// newest readable checkpoint's, else `run.json`'s; with neither, the resume is refused.
-    pub(super) fn check_same_data(
+    /// one `in_checkpoint` recorded (the newest readable checkpoint's), else `run.json`'s; with
+    /// neither, the resume is refused.
+    fn check_same_data(
         &self,
         data: &Path,
         fingerprint: &str,
-        checkpoints: &[PathBuf],
+        in_checkpoint: Option<String>,
     ) -> Result<(), TrainError> {
         let info = self.folder.read_run_info();
-        let in_checkpoint = checkpoints
-            .iter()
-            .find_map(|dir| checkpoint::read_meta(dir).ok())
-            .and_then(|meta| meta.data_fingerprint);
         let run_data = match &info {
             Ok(info) => info.data.display().to_string(),
             Err(_) => "its data".into(),
@@ -126,11 +123,18 @@ impl Run {
         Ok(())
     }
 
-    /// Restores the newest intact checkpoint of `checkpoints` (newest first). A damaged one
-    /// (unreadable, truncated, failing its checksums) is reported and the one before it used;
-    /// it is replaced when its frame is trained again.
-    pub(super) fn restore(&mut self, checkpoints: &[PathBuf]) -> Result<(), TrainError> {
+    /// Restores the newest intact checkpoint of `checkpoints` (newest first), once the newest
+    /// readable one has shown that `data` (fingerprinted `fingerprint`) is the run's
+    /// ([`Run::check_same_data`]). A damaged one (unreadable, truncated, failing its checksums)
+    /// is reported and the one before it used; it is replaced when its frame is trained again.
+    pub(super) fn restore(
+        &mut self,
+        checkpoints: &[PathBuf],
+        data: &Path,
+        fingerprint: &str,
+    ) -> Result<(), TrainError> {
         let mut damaged: Vec<String> = Vec::new();
+        let mut data_checked = false;
         for dir in checkpoints {
             let trained = match checkpoint::read_meta(dir) {
                 Ok(meta) => meta,
@@ -140,9 +144,13 @@ impl Run {
                     continue;
                 }
             };
+            if !data_checked {
+                self.check_same_data(data, fingerprint, trained.data_fingerprint.clone())?;
+                data_checked = true;
+            }
             self.check_resumable(dir, &trained)?;
             let fresh = self.trainer.fresh_state_for_resume();
-            match checkpoint::load(dir, fresh, &self.trainer.device) {
+            match checkpoint::load(dir, trained, fresh, &self.trainer.device) {
                 Ok(checkpoint::Restored {
                     state,
                     extras,
