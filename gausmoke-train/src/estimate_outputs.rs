@@ -1,5 +1,5 @@
 //! What the velocity estimate leaves to look at. It becomes the run's velocity in the run's
-//! own exports: at the run's output cadence (`output_every`, and the last frame)
+//! own exports: at the run's output cadence (`output.every`, and the last frame)
 //! `RUN/exports/grid_TTT.vti` and `.npz` are rewritten with `velocity` the estimate and
 //! `grid_velocity` the grid velocity training fitted (the `.npz`'s other arrays kept), so
 //! ParaView's `grid.pvd` and NumPy read the estimate by the same names as before. Beside its

@@ -468,7 +468,7 @@ pub fn evaluate(
         lpips: match lpips_weights {
             Some(path) => format!("AlexNet LPIPS v0.1, weights from {}", path.display()),
             None => format!(
-                "not computed: no LPIPS weights; `cargo xtask lpips-weights` writes them to {} \
+                "not computed: no LPIPS weights; `gausmoke-train lpips-weights` writes them to {} \
                  where eval finds them, or pass --lpips-weights FILE",
                 crate::lpips::cached_weights_path()
                     .map_or("the cache".into(), |p| p.display().to_string())

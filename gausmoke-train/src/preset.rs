@@ -4,7 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::config::{TrainConfig, VelocityEstimate};
+use crate::config::{InertiaConfig, RecycleConfig, TrainConfig, VelocityEstimate};
 
 /// How Algorithm 1 updates a frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
@@ -20,7 +20,7 @@ pub enum Preset {
     /// The paper's Algorithm 1 as written: `u^t = Pi(u^{t-1} + Phi(...))`, K joint
     /// iterations and K' refinement iterations of every view. `Pi` is the exact projection
     /// the paper's Eq. 10 defines, not the penalty steps its implementation describes
-    /// (`--set projection=penalty`): the penalty form has solid walls only, so a plume could
+    /// (`--set projection.kind=penalty`): the penalty form has solid walls only, so a plume could
     /// not leave the box through its open top.
     Paper,
 }
@@ -48,19 +48,22 @@ impl Scale {
     fn sizes(self) -> TrainConfig {
         match self {
             Scale::Paper => TrainConfig::default(),
-            Scale::Quick => TrainConfig {
-                gaussians: 8000,
-                grid_resolution: 32,
-                init_iterations: 400,
-                advect_iterations: 20,
-                refine_iterations: 5,
-                lr_velocity: 2e-3,
-                lr_gaussians: 2e-3,
-                unet_channels: 8,
-                time_frequencies: 2,
-                output_every: 4,
-                ..TrainConfig::default()
-            },
+            Scale::Quick => {
+                let mut config = TrainConfig {
+                    gaussians: 8000,
+                    grid_resolution: 32,
+                    unet_channels: 8,
+                    time_frequencies: 2,
+                    ..TrainConfig::default()
+                };
+                config.init.iterations = 400;
+                config.joint.iterations = 20;
+                config.refine.iterations = 5;
+                config.learning_rates.velocity = 2e-3;
+                config.learning_rates.gaussians = 2e-3;
+                config.output.every = 4;
+                config
+            }
         }
     }
 }
@@ -76,26 +79,31 @@ impl Preset {
     pub fn apply(self, sizes: TrainConfig) -> TrainConfig {
         match self {
             Preset::Paper => sizes,
-            Preset::Ours => TrainConfig {
+            Preset::Ours => {
+                let mut config = sizes;
                 // The joint step: half the iterations pay for the look-ahead's second render
                 // and U-Net pass.
-                advect_iterations: sizes.advect_iterations / 2,
-                lambda_lookahead: 1.0,
-                transport_velocity: true,
-                lambda_increment: 0.01,
-                increment_horizontal_weight: 3.0,
+                config.joint.iterations /= 2;
+                config.joint.look_ahead.weight = 1.0;
+                config.joint.transport_velocity = true;
+                config.joint.inertia = InertiaConfig {
+                    weight: 0.01,
+                    horizontal_weight: 3.0,
+                };
                 // The population: up to 2% recycled into the inflow, 1% split, a frame.
-                respawn_fraction: 0.02,
-                respawn_threshold: 0.01,
-                split_fraction: 0.01,
+                config.population.recycle = RecycleConfig {
+                    fraction: 0.02,
+                    threshold: 0.01,
+                };
+                config.population.split.fraction = 0.01;
                 // The refinement: one view a step, the grid-scale move tied.
-                refine_iterations: sizes.refine_iterations * ONE_VIEW_STEPS_PER_STEP,
-                refine_views_per_step: 1,
-                lambda_refine_grid: 3.0,
+                config.refine.iterations *= ONE_VIEW_STEPS_PER_STEP;
+                config.refine.views_per_step = 1;
+                config.refine.lambda_grid = 3.0;
                 // The run's velocity also read off its densities, with a smoke step.
-                velocity_estimate: VelocityEstimate::Forces,
-                ..sizes
-            },
+                config.velocity_estimate = VelocityEstimate::Forces;
+                config
+            }
         }
     }
 
@@ -128,22 +136,22 @@ mod tests {
             assert_eq!(
                 changed,
                 [
-                    "advect_iterations",
-                    "increment_horizontal_weight",
-                    "lambda_increment",
-                    "lambda_lookahead",
-                    "lambda_refine_grid",
-                    "refine_iterations",
-                    "refine_views_per_step",
-                    "respawn_fraction",
-                    "respawn_threshold",
-                    "split_fraction",
-                    "transport_velocity",
+                    "joint.inertia.horizontal_weight",
+                    "joint.inertia.weight",
+                    "joint.iterations",
+                    "joint.look_ahead.weight",
+                    "joint.transport_velocity",
+                    "population.recycle.fraction",
+                    "population.recycle.threshold",
+                    "population.split.fraction",
+                    "refine.iterations",
+                    "refine.lambda_grid",
+                    "refine.views_per_step",
                     "velocity_estimate",
                 ]
             );
-            assert_eq!(ours.advect_iterations * 2, paper.advect_iterations);
-            assert_eq!(ours.refine_iterations, 8 * paper.refine_iterations);
+            assert_eq!(ours.joint.iterations * 2, paper.joint.iterations);
+            assert_eq!(ours.refine.iterations, 8 * paper.refine.iterations);
         }
         assert_eq!(Preset::Paper.config(Scale::Paper), TrainConfig::default());
         let quick = Preset::Paper.config(Scale::Quick);
@@ -151,7 +159,7 @@ mod tests {
             (
                 quick.gaussians,
                 quick.grid_resolution,
-                quick.advect_iterations
+                quick.joint.iterations
             ),
             (8000, 32, 20)
         );

@@ -4,11 +4,11 @@
 //! The paper keeps one fixed set of Gaussians and only advects it. On a real plume that set
 //! runs out: smoke rises through the box's top face (where advection clamps it) while fresh
 //! smoke enters at the source, where no Gaussian is. This is our design choice for the gap,
-//! off by default (`respawn_fraction = 0`, the paper's method):
+//! off by default (`population.recycle.fraction = 0`, the paper's method):
 //!
 //! - **Which to recycle.** Gaussians clamped onto a face of the box first, then those whose
 //!   largest possible opacity `1 - exp(-sigma sqrt(2 pi) max_std)` is below 1/255 (they add
-//!   nothing to any image), least visible first; at most `respawn_fraction` of all per frame.
+//!   nothing to any image), least visible first; at most `population.recycle.fraction` of all per frame.
 //! - **When.** After frame t's joint iterations, before its refinement: the Gaussians have
 //!   been carried from frame t-1 by the new velocity, so what frame t's views show and they
 //!   do not is smoke that entered (or was never fitted), and the refinement fits the recycled
@@ -18,7 +18,7 @@
 //!   training view. Its score is the smallest, over the views, of the pixel's *smoke
 //!   deficit*: how much further the observation is from the background than the render is
 //!   (mean over channels, clamped at 0). A point missing from the reconstruction in every
-//!   view is a visual-hull argument for smoke there. Cells above `respawn_threshold` are
+//!   view is a visual-hull argument for smoke there. Cells above `population.recycle.threshold` are
 //!   drawn without replacement with probability proportional to the score and jittered
 //!   within the cell. An optional limit: cells inside a box (`scene.inflow`, such as the
 //!   inflow where a source feeds the plume, where the views pin the depth down).

@@ -38,7 +38,7 @@ pub struct Run {
     phase_times: Vec<PhaseTime>,
     /// Phase totals of earlier sessions of a resumed run.
     phases_before: BTreeMap<String, PhaseSeconds>,
-    /// TensorBoard events (`tensorboard = true`), opened at the first frame of this session.
+    /// TensorBoard events (`output.tensorboard = true`), opened at the first frame of this session.
     events: Option<EventWriter>,
     /// Keeps a second process from training into the same folder.
     _lock: RunLock,
@@ -85,7 +85,7 @@ impl Run {
         checkpoint::remove_partials(out)?;
         if let Some(totals) = PhaseTotals::current() {
             let _ = totals.take();
-            totals.set_sync(trainer.config.sync_phase_timings.then(|| {
+            totals.set_sync(trainer.config.device.sync_phase_timings.then(|| {
                 let device = trainer.device.clone();
                 let hook: phases::SyncHook = std::sync::Arc::new(move || {
                     // A failed wait only blurs the phase boundaries; the work itself reports
@@ -336,7 +336,7 @@ impl Run {
 
         self.folder.write_frame_state(t, &grid, &state)?;
         let frames = trainer.sequence.frames();
-        if t.is_multiple_of(trainer.config.output_every) || t + 1 == frames {
+        if t.is_multiple_of(trainer.config.output.every) || t + 1 == frames {
             let train_renders = trainer.render_host(train)?;
             let views: Vec<ViewRender> = train
                 .iter()
@@ -357,7 +357,7 @@ impl Run {
                 &grid,
                 &state,
                 &views,
-                self.trainer.config.ply_axes,
+                self.trainer.config.output.ply_axes,
                 outcome.refine_move_field.as_ref(),
             )?;
         }
@@ -372,7 +372,7 @@ impl Run {
             eta_seconds = format!("{:.0}", report.seconds * (frames - 1 - t) as f64),
             "frame done"
         );
-        if self.trainer.config.tensorboard {
+        if self.trainer.config.output.tensorboard {
             self.log_events(t, &outcome.losses, &report)?;
         }
         self.losses.extend(outcome.losses);

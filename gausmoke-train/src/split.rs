@@ -1,4 +1,4 @@
-//! Splitting the largest Gaussians under a fixed count (`split_fraction`, ours).
+//! Splitting the largest Gaussians under a fixed count (`population.split.fraction`, ours).
 //!
 //! Over a video the mass gathers into fewer, larger Gaussians (on the long synthetic plume
 //! 90% of it sits in 544 of 4000 by frame 71, against 1404 in a frame fitted alone), and a

@@ -123,10 +123,10 @@ pub struct FrameReport {
     /// Gaussians whose advected centre left the box and was clamped back onto it.
     pub clamped_to_box: usize,
     /// Gaussians recycled in this frame, between its joint iterations and its refinement
-    /// (`respawn_fraction`).
+    /// (`population.recycle.fraction`).
     #[serde(default)]
     pub respawned: usize,
-    /// Gaussians split in this frame, after recycling (`split_fraction`).
+    /// Gaussians split in this frame, after recycling (`population.split.fraction`).
     #[serde(default)]
     pub split: usize,
     /// The refinement's move of the centres (mass-weighted; `None` without refinement):

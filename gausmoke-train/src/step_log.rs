@@ -1,5 +1,5 @@
 //! The losses and checks of the optimisation steps, kept on the device and read back together
-//! every `log_every` steps: a read-back makes the host wait until the GPU has drained its
+//! every `output.log_every` steps: a read-back makes the host wait until the GPU has drained its
 //! queue, so reading four loss terms, the largest speed and the renderer's input checks at
 //! every step would stall the loop once per number.
 //!

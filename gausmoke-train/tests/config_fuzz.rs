@@ -15,41 +15,41 @@ const KEYS: &[(&str, bool)] = &[
     ("gaussians", false),
     ("grid_resolution", false),
     ("frames", false),
-    ("init_iterations", false),
-    ("init_learning_rates.means", true),
-    ("init_learning_rates.rotations", true),
-    ("init_learning_rates.log_scales", true),
-    ("init_learning_rates.raw_densities", true),
-    ("init_learning_rates.colors", true),
-    ("advect_iterations", false),
-    ("refine_iterations", false),
-    ("refine_views_per_step", true),
-    ("lr_velocity", true),
-    ("lr_gaussians", true),
-    ("lr_log_scales", true),
-    ("lr_decay", true),
-    ("lr_decay_every", true),
-    ("lambda_div", true),
-    ("lambda_adv", true),
-    ("lambda_refine", true),
-    ("lambda_refine_grid", true),
-    ("lambda_lookahead", true),
-    ("lambda_increment", true),
-    ("increment_horizontal_weight", true),
+    ("init.iterations", false),
+    ("init.learning_rates.means", true),
+    ("init.learning_rates.rotations", true),
+    ("init.learning_rates.log_scales", true),
+    ("init.learning_rates.raw_densities", true),
+    ("init.learning_rates.colors", true),
+    ("joint.iterations", false),
+    ("refine.iterations", false),
+    ("refine.views_per_step", true),
+    ("learning_rates.velocity", true),
+    ("learning_rates.gaussians", true),
+    ("learning_rates.log_scales", true),
+    ("learning_rates.decay", true),
+    ("learning_rates.decay_every", true),
+    ("joint.lambda_div", true),
+    ("joint.lambda_adv", true),
+    ("refine.lambda", true),
+    ("refine.lambda_grid", true),
+    ("joint.look_ahead.weight", true),
+    ("joint.inertia.weight", true),
+    ("joint.inertia.horizontal_weight", true),
     ("dt", true),
     ("unet_channels", false),
     ("time_frequencies", true),
-    ("projection_tolerance", true),
-    ("projection_max_iterations", false),
-    ("penalty_steps", false),
+    ("projection.tolerance", true),
+    ("projection.max_iterations", false),
+    ("projection.penalty_steps", false),
     ("scene.open_face_flow", true),
-    ("respawn_fraction", true),
-    ("respawn_threshold", true),
-    ("split_fraction", true),
+    ("population.recycle.fraction", true),
+    ("population.recycle.threshold", true),
+    ("population.split.fraction", true),
     ("seed", true),
-    ("output_every", true),
-    ("log_every", true),
-    ("tile_list_headroom", true),
+    ("output.every", true),
+    ("output.log_every", true),
+    ("device.tile_list_headroom", true),
 ];
 
 const VALUES: &[&str] = &[
@@ -64,16 +64,19 @@ const VALUES: &[&str] = &[
 ];
 
 fn tiny_config() -> TrainConfig {
-    TrainConfig {
-        gaussians: 200,
-        grid_resolution: 8,
-        frames: Some(2),
-        init_iterations: 3,
-        advect_iterations: 2,
-        refine_iterations: 1,
-        unet_channels: 4,
-        time_frequencies: 2,
-        ..TrainConfig::default()
+    {
+        let mut config = TrainConfig {
+            gaussians: 200,
+            grid_resolution: 8,
+            frames: Some(2),
+            unet_channels: 4,
+            time_frequencies: 2,
+            ..TrainConfig::default()
+        };
+        config.init.iterations = 3;
+        config.joint.iterations = 2;
+        config.refine.iterations = 1;
+        config
     }
 }
 

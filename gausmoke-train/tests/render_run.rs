@@ -20,18 +20,20 @@ fn trained_run() -> &'static Path {
         let dir = tempfile::tempdir().unwrap().keep();
         let data = dir.join("data");
         generate(&SynthConfig::tiny(), &data).unwrap();
-        let config = TrainConfig {
-            gaussians: 800,
-            grid_resolution: 12,
-            frames: Some(2),
-            init_iterations: 60,
-            advect_iterations: 5,
-            refine_iterations: 2,
-            unet_channels: 8,
-            time_frequencies: 2,
-            // So the slices show the estimate beside the grid velocity.
-            velocity_estimate: VelocityEstimate::Density,
-            ..TrainConfig::default()
+        let config = {
+            let mut config = TrainConfig {
+                gaussians: 800,
+                grid_resolution: 12,
+                frames: Some(2),
+                unet_channels: 8,
+                time_frequencies: 2,
+                velocity_estimate: VelocityEstimate::Density,
+                ..TrainConfig::default()
+            };
+            config.init.iterations = 60;
+            config.joint.iterations = 5;
+            config.refine.iterations = 2;
+            config
         };
         let scene = Sequence::open(&data, &config).unwrap();
         let device = device_by_name("flex").unwrap().autodiff();

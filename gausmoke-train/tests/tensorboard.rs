@@ -1,4 +1,4 @@
-//! `tensorboard = true`: the run's event file reads back as TFRecords with valid CRCs holding
+//! `output.tensorboard = true`: the run's event file reads back as TFRecords with valid CRCs holding
 //! Event protocol buffers with the scalars and the comparison picture TensorBoard shows.
 //! Decoded here independently of the writer (protobuf wire format by hand).
 
@@ -58,17 +58,20 @@ fn a_runs_event_file_holds_its_scalars_and_pictures() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
     generate(&SynthConfig::tiny(), &data).unwrap();
-    let config = TrainConfig {
-        gaussians: 400,
-        grid_resolution: 8,
-        frames: Some(2),
-        init_iterations: 10,
-        advect_iterations: 3,
-        refine_iterations: 1,
-        unet_channels: 4,
-        time_frequencies: 2,
-        tensorboard: true,
-        ..TrainConfig::default()
+    let config = {
+        let mut config = TrainConfig {
+            gaussians: 400,
+            grid_resolution: 8,
+            frames: Some(2),
+            unet_channels: 4,
+            time_frequencies: 2,
+            ..TrainConfig::default()
+        };
+        config.init.iterations = 10;
+        config.joint.iterations = 3;
+        config.refine.iterations = 1;
+        config.output.tensorboard = true;
+        config
     };
     let scene = Sequence::open(&data, &config).unwrap();
     let device = device_by_name("flex").unwrap().autodiff();

@@ -18,18 +18,21 @@ use gausmoke_train::{Phase, Run, TrainConfig, eval};
 
 /// Small enough for CI in a debug build, large enough that the plume moves and is fitted.
 fn test_config() -> TrainConfig {
-    TrainConfig {
-        gaussians: 1500,
-        grid_resolution: 16,
-        frames: Some(4),
-        init_iterations: 100,
-        advect_iterations: 15,
-        refine_iterations: 5,
-        lr_velocity: 2e-3,
-        lr_gaussians: 2e-3,
-        unet_channels: 8,
-        time_frequencies: 2,
-        ..TrainConfig::default()
+    {
+        let mut config = TrainConfig {
+            gaussians: 1500,
+            grid_resolution: 16,
+            frames: Some(4),
+            unet_channels: 8,
+            time_frequencies: 2,
+            ..TrainConfig::default()
+        };
+        config.init.iterations = 100;
+        config.joint.iterations = 15;
+        config.refine.iterations = 5;
+        config.learning_rates.velocity = 2e-3;
+        config.learning_rates.gaussians = 2e-3;
+        config
     }
 }
 
@@ -329,16 +332,16 @@ fn train_command(data: &Path, out: &Path) -> Command {
         ("gaussians", config.gaussians.to_string()),
         ("grid_resolution", config.grid_resolution.to_string()),
         ("frames", "4".to_string()),
-        ("init_iterations", "60".to_string()),
-        ("advect_iterations", "10".to_string()),
-        ("refine_iterations", "4".to_string()),
+        ("init.iterations", "60".to_string()),
+        ("joint.iterations", "10".to_string()),
+        ("refine.iterations", "4".to_string()),
         ("unet_channels", config.unet_channels.to_string()),
         ("time_frequencies", config.time_frequencies.to_string()),
-        ("output_every", "100".to_string()),
+        ("output.every", "100".to_string()),
         // Recycling and splitting on, so the resume test also covers them.
-        ("respawn_fraction", "0.02".to_string()),
-        ("respawn_threshold", "0.01".to_string()),
-        ("split_fraction", "0.02".to_string()),
+        ("population.recycle.fraction", "0.02".to_string()),
+        ("population.recycle.threshold", "0.01".to_string()),
+        ("population.split.fraction", "0.02".to_string()),
     ] {
         command.arg("--set").arg(format!("{key}={value}"));
     }
@@ -584,14 +587,14 @@ fn a_diverging_run_stops_naming_the_quantity_and_keeps_the_last_frame() {
     let data = tiny_scene(dir.path());
     let run = dir.path().join("run");
     let out = train_command(&data, &run)
-        .args(["--set", "frames=2", "--set", "init_iterations=5"])
+        .args(["--set", "frames=2", "--set", "init.iterations=5"])
         .args([
             "--set",
-            "lr_velocity=1",
+            "learning_rates.velocity=1",
             "--set",
             "dt=10",
             "--set",
-            "output_every=1",
+            "output.every=1",
         ])
         .output()
         .unwrap();
@@ -628,25 +631,24 @@ fn the_ablations_train_and_fit_the_held_out_view() {
                 ..test_config()
             },
         ),
-        (
-            "penalty",
-            TrainConfig {
-                projection: gausmoke_train::config::ProjectionKind::Penalty,
+        ("penalty", {
+            let mut config = TrainConfig {
                 frames: Some(2),
-                // The penalty form has solid walls only; the scene's open top is refused.
                 scene: walls(),
                 ..test_config()
-            },
-        ),
-        (
-            "respawn",
-            TrainConfig {
-                respawn_fraction: 0.02,
-                respawn_threshold: 0.01,
+            };
+            config.projection.kind = gausmoke_train::config::ProjectionKind::Penalty;
+            config
+        }),
+        ("respawn", {
+            let mut config = TrainConfig {
                 frames: Some(2),
                 ..test_config()
-            },
-        ),
+            };
+            config.population.recycle.fraction = 0.02;
+            config.population.recycle.threshold = 0.01;
+            config
+        }),
     ] {
         let scene = Sequence::open(&data, &config).unwrap();
         let device = device_by_name("flex").unwrap().autodiff();
@@ -703,10 +705,13 @@ fn resume_refuses_other_data_and_names_changed_settings() {
         &other,
     )
     .unwrap();
-    let config = TrainConfig {
-        frames: Some(1),
-        init_iterations: 5,
-        ..test_config()
+    let config = {
+        let mut config = TrainConfig {
+            frames: Some(1),
+            ..test_config()
+        };
+        config.init.iterations = 5;
+        config
     };
     let device = device_by_name("flex").unwrap().autodiff();
     let out = dir.path().join("run");
@@ -776,11 +781,14 @@ fn resume_refuses_other_data_and_names_changed_settings() {
     // The same data through another path (a relative one) resumes, with gentler learning
     // rates and more frames: the settings a diverged or finished run may change.
     let relative = pathdiff_relative(&data);
-    let extended = TrainConfig {
-        frames: Some(2),
-        lr_gaussians: config.lr_gaussians / 2.0,
-        lr_velocity: config.lr_velocity / 2.0,
-        ..config
+    let extended = {
+        let mut config = TrainConfig {
+            frames: Some(2),
+            ..config
+        };
+        config.learning_rates.gaussians /= 2.0;
+        config.learning_rates.velocity /= 2.0;
+        config
     };
     let same = Sequence::open(&relative, &extended).unwrap();
     let mut resumed = Run::new(same, extended.clone(), device.clone(), &out, true)
@@ -868,12 +876,15 @@ fn a_folder_that_is_not_a_run_is_not_written_over() {
 
 /// Tiny settings for the tests of run folders and checkpoints: what is trained hardly matters.
 fn brief_config(frames: usize) -> TrainConfig {
-    TrainConfig {
-        frames: Some(frames),
-        init_iterations: 5,
-        advect_iterations: 3,
-        refine_iterations: 1,
-        ..test_config()
+    {
+        let mut config = TrainConfig {
+            frames: Some(frames),
+            ..test_config()
+        };
+        config.init.iterations = 5;
+        config.joint.iterations = 3;
+        config.refine.iterations = 1;
+        config
     }
 }
 
@@ -1199,16 +1210,19 @@ fn first_frame_starts_the_run_later_in_the_data() {
 
 /// Three frames of the tiny scene at small sizes, for tests of the joint iterations' terms.
 fn joint_terms_config() -> TrainConfig {
-    TrainConfig {
-        gaussians: 400,
-        grid_resolution: 8,
-        frames: Some(3),
-        init_iterations: 10,
-        advect_iterations: 3,
-        refine_iterations: 1,
-        unet_channels: 4,
-        time_frequencies: 2,
-        ..TrainConfig::default()
+    {
+        let mut config = TrainConfig {
+            gaussians: 400,
+            grid_resolution: 8,
+            frames: Some(3),
+            unet_channels: 4,
+            time_frequencies: 2,
+            ..TrainConfig::default()
+        };
+        config.init.iterations = 10;
+        config.joint.iterations = 3;
+        config.refine.iterations = 1;
+        config
     }
 }
 
@@ -1254,9 +1268,10 @@ fn the_look_ahead_changes_the_velocity() {
     let with = velocity_after(
         &data,
         dir.path(),
-        TrainConfig {
-            lambda_lookahead: 1.0,
-            ..base
+        {
+            let mut config = base;
+            config.joint.look_ahead.weight = 1.0;
+            config
         },
         "with",
     );
@@ -1268,17 +1283,20 @@ fn the_look_ahead_changes_the_velocity() {
 }
 
 /// The refinement's move is reported per frame (its length and how much of it is at the
-/// velocity grid's scale), and `lambda_refine_grid` (ours) ties its grid-scale part: the
+/// velocity grid's scale), and `refine.lambda_grid` (ours) ties its grid-scale part: the
 /// tied move is shorter and less of its mean square is grid-scale.
 #[test]
 fn the_refinement_moves_can_be_tied_at_the_grid_scale() {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
     let frame_1 = |set: fn(&mut TrainConfig), name| {
-        let mut config = TrainConfig {
-            frames: Some(2),
-            refine_iterations: 10,
-            ..joint_terms_config()
+        let mut config = {
+            let mut config = TrainConfig {
+                frames: Some(2),
+                ..joint_terms_config()
+            };
+            config.refine.iterations = 10;
+            config
         };
         set(&mut config);
         let mut run = after_frame_0(&data, dir.path(), config, name);
@@ -1297,7 +1315,7 @@ fn the_refinement_moves_can_be_tied_at_the_grid_scale() {
         free.persistence, None,
         "the first frame refined has none before it"
     );
-    let grid_tied = frame_1(|c| c.lambda_refine_grid = 1e4, "grid tied");
+    let grid_tied = frame_1(|c| c.refine.lambda_grid = 1e4, "grid tied");
     assert!(
         grid_tied.grid_share < free.grid_share,
         "tying the grid-scale part: {grid_tied:?} against free {free:?}"
@@ -1307,10 +1325,13 @@ fn the_refinement_moves_can_be_tied_at_the_grid_scale() {
         "{grid_tied:?} against free {free:?}"
     );
     let none = {
-        let config = TrainConfig {
-            frames: Some(2),
-            refinement: false,
-            ..joint_terms_config()
+        let config = {
+            let mut config = TrainConfig {
+                frames: Some(2),
+                ..joint_terms_config()
+            };
+            config.refine.iterations = 0;
+            config
         };
         let mut run = after_frame_0(&data, dir.path(), config, "no refinement");
         run.trainer.advance_to(1).unwrap().refine_moves
@@ -1340,7 +1361,7 @@ fn two_runs_stepped_in_turn_repeat_each_other() {
     assert_eq!(state(&first), state(&second));
 }
 
-/// `refine_views_per_step` (ours): each refinement step renders that many training views in
+/// `refine.views_per_step` (ours): each refinement step renders that many training views in
 /// turn. With no joint iterations the first step starts from frame 0's fit, so its logged L1
 /// is known: view 0's alone with one view per step, the mean over the views with all. More
 /// views per step than the data set has is refused, naming the setting.
@@ -1348,13 +1369,16 @@ fn two_runs_stepped_in_turn_repeat_each_other() {
 fn a_refinement_step_can_render_some_of_the_views() {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
-    let config = |per_step| TrainConfig {
-        frames: Some(2),
-        advect_iterations: 0,
-        refine_iterations: 2,
-        refine_views_per_step: per_step,
-        log_every: 1,
-        ..joint_terms_config()
+    let config = |per_step| {
+        let mut config = TrainConfig {
+            frames: Some(2),
+            ..joint_terms_config()
+        };
+        config.joint.iterations = 0;
+        config.refine.iterations = 2;
+        config.refine.views_per_step = per_step;
+        config.output.log_every = 1;
+        config
     };
     let first_refine_l1 = |per_step, name| {
         let mut run = after_frame_0(&data, dir.path(), config(per_step), name);
@@ -1393,7 +1417,7 @@ fn a_refinement_step_can_render_some_of_the_views() {
     );
     // More views per step than the data set has is refused.
     let err = refusal(&data, dir.path(), config(per_view.len() + 1), "too many");
-    assert!(err.contains("refine_views_per_step"), "{err}");
+    assert!(err.contains("refine.views_per_step"), "{err}");
 }
 
 #[test]
@@ -1404,17 +1428,20 @@ fn the_velocity_is_carried_along_itself_before_phi_when_asked() {
     // Phi's output layer starts at zero and a negligible learning rate (zero is refused)
     // keeps it there, so frame 1's velocity is the projected previous one, carried along
     // itself or not.
-    let config = TrainConfig {
-        frames: Some(2),
-        lr_velocity: 1e-20,
-        // The expected fields below are projected with solid walls.
-        scene: walls(),
-        ..joint_terms_config()
+    let config = {
+        let mut config = TrainConfig {
+            frames: Some(2),
+            scene: walls(),
+            ..joint_terms_config()
+        };
+        config.learning_rates.velocity = 1e-20;
+        config
     };
     let frame_one = |transport: bool, name: &str| {
-        let config = TrainConfig {
-            transport_velocity: transport,
-            ..config.clone()
+        let config = {
+            let mut config = config.clone();
+            config.joint.transport_velocity = transport;
+            config
         };
         let mut run = after_frame_0(&data, dir.path(), config, name);
         let grid = run.trainer.grid;
@@ -1465,13 +1492,11 @@ fn the_inertia_prior_slows_the_velocity() {
         "free",
     ));
     // The velocity starts at zero, so holding Phi's increments back slows it too.
-    let priors = [(
-        "inertia",
-        TrainConfig {
-            lambda_increment: 10.0,
-            ..joint_terms_config()
-        },
-    )];
+    let priors = [("inertia", {
+        let mut config = joint_terms_config();
+        config.joint.inertia.weight = 10.0;
+        config
+    })];
     for (name, config) in priors {
         let held = mean_square(velocity_after(&data, dir.path(), config, name));
         assert!(free > 0.0 && held.is_finite(), "{name}: {free} {held}");
@@ -1499,23 +1524,27 @@ fn obstacles_of_the_data_set_are_solid_in_the_trained_velocity() {
         &data,
     )
     .unwrap();
-    let config = TrainConfig {
-        frames: Some(3),
-        init_iterations: 40,
-        advect_iterations: 8,
-        refine_iterations: 2,
-        scene: gausmoke_train::scene::SceneConfig {
-            open_faces: Some(vec!["y+".into()]),
-            ..Default::default()
-        },
-        ..test_config()
+    let config = {
+        let mut config = TrainConfig {
+            frames: Some(3),
+            scene: gausmoke_train::scene::SceneConfig {
+                open_faces: Some(vec!["y+".into()]),
+                ..Default::default()
+            },
+            ..test_config()
+        };
+        config.init.iterations = 40;
+        config.joint.iterations = 8;
+        config.refine.iterations = 2;
+        config
     };
     let device = device_by_name("flex").unwrap().autodiff();
     let mut inside_speed = Vec::new();
     for obstacles in [Obstacles::Solid, Obstacles::Ignore] {
-        let config = TrainConfig {
-            obstacles,
-            ..config.clone()
+        let config = {
+            let mut config = config.clone();
+            config.projection.obstacles = obstacles;
+            config
         };
         let scene = Sequence::open(&data, &config).unwrap();
         assert_eq!(scene.obstacles.len(), 1);
@@ -1600,13 +1629,16 @@ fn obstacles_of_the_data_set_are_solid_in_the_trained_velocity() {
     assert_eq!(inside_speed[0], 0.0, "velocity inside the solid obstacle");
     assert!(inside_speed[1] > 0.0, "ignored, the obstacle holds no flow");
 
-    let penalty = TrainConfig {
-        projection: ProjectionKind::Penalty,
-        scene: gausmoke_train::scene::SceneConfig {
-            open_faces: Some(Vec::new()),
-            ..Default::default()
-        },
-        ..config.clone()
+    let penalty = {
+        let mut config = TrainConfig {
+            scene: gausmoke_train::scene::SceneConfig {
+                open_faces: Some(Vec::new()),
+                ..Default::default()
+            },
+            ..config.clone()
+        };
+        config.projection.kind = ProjectionKind::Penalty;
+        config
     };
     let scene = Sequence::open(&data, &penalty).unwrap();
     let err = match Run::new(scene, penalty, device, &dir.path().join("penalty"), false) {
@@ -1668,11 +1700,8 @@ fn static_gaussians_fit_the_ball_and_resume() {
         &data,
     )
     .unwrap();
-    let config = TrainConfig {
+    let mut config = TrainConfig {
         frames: Some(3),
-        init_iterations: 60,
-        advect_iterations: 6,
-        refine_iterations: 2,
         scene: gausmoke_train::scene::SceneConfig {
             open_faces: Some(vec!["y+".into()]),
             ..Default::default()
@@ -1682,6 +1711,9 @@ fn static_gaussians_fit_the_ball_and_resume() {
         static_gaussians: 1000,
         ..test_config()
     };
+    config.init.iterations = 60;
+    config.joint.iterations = 6;
+    config.refine.iterations = 2;
     let device = device_by_name("flex").unwrap().autodiff();
     let train = |config: &TrainConfig, run: &Path, resume: bool| {
         let scene = Sequence::open(&data, config).unwrap();
@@ -1869,16 +1901,19 @@ fn a_multi_view_dnerf_scene_groups_its_cameras_and_trains() {
         .collect();
     assert_eq!(planned, loaded);
 
-    let config = TrainConfig {
-        frames: Some(2),
-        init_iterations: 20,
-        advect_iterations: 4,
-        refine_iterations: 2,
-        scene: gausmoke_train::scene::SceneConfig {
-            open_faces: Some(vec!["y+".into()]),
-            ..Default::default()
-        },
-        ..test_config()
+    let config = {
+        let mut config = TrainConfig {
+            frames: Some(2),
+            scene: gausmoke_train::scene::SceneConfig {
+                open_faces: Some(vec!["y+".into()]),
+                ..Default::default()
+            },
+            ..test_config()
+        };
+        config.init.iterations = 20;
+        config.joint.iterations = 4;
+        config.refine.iterations = 2;
+        config
     };
     let sequence = Sequence::open(&data, &config).unwrap();
     assert_eq!((sequence.train[0].len(), sequence.test[0].len()), (2, 1));

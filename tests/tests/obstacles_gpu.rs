@@ -37,21 +37,24 @@ fn trains_on_the_device(preset: SynthConfig) {
         ..preset
     };
     generate(&scene, &data).unwrap();
-    let config = TrainConfig {
-        gaussians: 400,
-        static_gaussians: 100,
-        grid_resolution: 16,
-        frames: Some(3),
-        init_iterations: 10,
-        advect_iterations: 4,
-        refine_iterations: 2,
-        unet_channels: 4,
-        time_frequencies: 2,
-        scene: gausmoke_train::scene::SceneConfig {
-            open_faces: Some(vec!["y+".into()]),
-            ..Default::default()
-        },
-        ..TrainConfig::default()
+    let config = {
+        let mut config = TrainConfig {
+            gaussians: 400,
+            static_gaussians: 100,
+            grid_resolution: 16,
+            frames: Some(3),
+            unet_channels: 4,
+            time_frequencies: 2,
+            scene: gausmoke_train::scene::SceneConfig {
+                open_faces: Some(vec!["y+".into()]),
+                ..Default::default()
+            },
+            ..TrainConfig::default()
+        };
+        config.init.iterations = 10;
+        config.joint.iterations = 4;
+        config.refine.iterations = 2;
+        config
     };
     let sequence = Sequence::open(&data, &config).unwrap();
     let mut trainer = Trainer::new(sequence, config, device.autodiff())

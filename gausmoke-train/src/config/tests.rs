@@ -4,16 +4,16 @@ use super::*;
 fn overrides_reach_nested_keys_and_round_trip_through_toml() {
     let config = TrainConfig::default()
         .with_overrides(&[
-            "lambda_div=0.5".into(),
+            "joint.lambda_div=0.5".into(),
             "image_size=[135, 240]".into(),
-            "init_learning_rates.means=0.01".into(),
-            "projection=penalty".into(),
+            "init.learning_rates.means=0.01".into(),
+            "projection.kind=penalty".into(),
         ])
         .unwrap();
-    assert_eq!(config.lambda_div, 0.5);
+    assert_eq!(config.joint.lambda_div, 0.5);
     assert_eq!(config.image_size, Some([135, 240]));
-    assert_eq!(config.init_learning_rates.means, 0.01);
-    assert_eq!(config.projection, ProjectionKind::Penalty);
+    assert_eq!(config.init.learning_rates.means, 0.01);
+    assert_eq!(config.projection.kind, ProjectionKind::Penalty);
     let back: TrainConfig = toml::from_str(&config.to_toml()).unwrap();
     assert_eq!(back, config);
 }
@@ -26,9 +26,9 @@ fn unknown_keys_and_bad_values_are_named() {
     assert!(err.to_string().contains("lamda_div"), "{err}");
     // A table given as an array is not read as the defaults.
     let err = TrainConfig::default()
-        .with_overrides(&["init_learning_rates=[]".into()])
+        .with_overrides(&["init.learning_rates=[]".into()])
         .unwrap_err();
-    assert!(err.to_string().contains("init_learning_rates"), "{err}");
+    assert!(err.to_string().contains("init.learning_rates"), "{err}");
     // Each invalid configuration is refused naming the setting to change.
     let invalid = [
         (
@@ -39,19 +39,21 @@ fn unknown_keys_and_bad_values_are_named() {
             "grid_resolution",
         ),
         (
-            TrainConfig {
-                increment_horizontal_weight: 10.0,
-                ..TrainConfig::default()
+            {
+                let mut config = TrainConfig::default();
+                config.joint.inertia.horizontal_weight = 10.0;
+                config
             },
-            "lambda_increment",
+            "joint.inertia.weight",
         ),
         (
-            TrainConfig {
-                increment_horizontal_weight: -1.0,
-                lambda_increment: 0.01,
-                ..TrainConfig::default()
+            {
+                let mut config = TrainConfig::default();
+                config.joint.inertia.horizontal_weight = -1.0;
+                config.joint.inertia.weight = 0.01;
+                config
             },
-            "increment_horizontal_weight",
+            "joint.inertia.horizontal_weight",
         ),
         (
             TrainConfig {
@@ -121,33 +123,36 @@ fn gradient_sums_reach_the_rasterizer_and_bad_spellings_are_refused() {
         gausmoke_render::GradientSums::Planes
     );
     let config = TrainConfig::default()
-        .with_overrides(&["gradient_sums=per-pixel".into()])
+        .with_overrides(&["device.gradient_sums=per-pixel".into()])
         .unwrap();
     assert_eq!(
         config.raster_options().gradient_sums,
         gausmoke_render::GradientSums::PerPixel
     );
     let err = TrainConfig::default()
-        .with_overrides(&["gradient_sums=warp".into()])
+        .with_overrides(&["device.gradient_sums=warp".into()])
         .unwrap_err();
     assert!(err.to_string().contains("warp"), "{err}");
 }
 
 #[test]
 fn solver_tests_are_spelled_for_toml_and_bad_spellings_are_refused() {
-    assert_eq!(TrainConfig::default().solver_tests, SolverTests::Deferred);
+    assert_eq!(
+        TrainConfig::default().device.solver_tests,
+        SolverTests::Deferred
+    );
     let config = TrainConfig::default()
-        .with_overrides(&["solver_tests=immediate".into()])
+        .with_overrides(&["device.solver_tests=immediate".into()])
         .unwrap();
     assert_eq!(
-        gausmoke_model::ConvergenceTests::from(config.solver_tests),
+        gausmoke_model::ConvergenceTests::from(config.device.solver_tests),
         gausmoke_model::ConvergenceTests::Immediate
     );
     let err = TrainConfig::default()
-        .with_overrides(&["solver_tests=sometimes".into()])
+        .with_overrides(&["device.solver_tests=sometimes".into()])
         .unwrap_err();
     assert!(err.to_string().contains("sometimes"), "{err}");
-    assert!(RESUMABLE_KEYS.contains(&"solver_tests"));
+    assert!(is_resumable("device.solver_tests"));
 }
 
 /// Values that cannot train are refused naming the key: a decay that grows, learning rates
@@ -155,17 +160,23 @@ fn solver_tests_are_spelled_for_toml_and_bad_spellings_are_refused() {
 #[test]
 fn nonsense_values_are_refused_naming_the_key() {
     for (set, named) in [
-        ("lr_decay=1e12", "lr_decay"),
-        ("lr_velocity=1e12", "lr_velocity"),
-        ("lr_gaussians=2", "lr_gaussians"),
-        ("lr_log_scales=1e12", "lr_log_scales"),
-        ("init_iterations=1000000000000", "init_iterations"),
-        ("refine_iterations=1000000000000", "refine_iterations"),
+        ("learning_rates.decay=1e12", "learning_rates.decay"),
+        ("learning_rates.velocity=1e12", "learning_rates.velocity"),
+        ("learning_rates.gaussians=2", "learning_rates.gaussians"),
+        (
+            "learning_rates.log_scales=1e12",
+            "learning_rates.log_scales",
+        ),
+        ("init.iterations=1000000000000", "init.iterations"),
+        ("refine.iterations=1000000000000", "refine.iterations"),
         ("static_gaussians=1000000000000", "static_gaussians"),
-        ("init_learning_rates.means=5", "init_learning_rates.means"),
+        ("init.learning_rates.means=5", "init.learning_rates.means"),
         ("dt=1e12", "dt"),
-        ("projection_tolerance=1e12", "projection_tolerance"),
-        ("tile_list_headroom=1e12", "tile_list_headroom"),
+        ("projection.tolerance=1e12", "projection.tolerance"),
+        (
+            "device.tile_list_headroom=1e12",
+            "device.tile_list_headroom",
+        ),
         (r#"train_views=["view00", "view00"]"#, "view00"),
     ] {
         let err = TrainConfig::default()

@@ -32,66 +32,72 @@ impl TrainConfig {
         // Positive, and no larger than any value that still trains: a learning rate above 1
         // moves a parameter by more than its own range in one step, a decay above 1 grows.
         let bounded = [
-            ("lr_velocity", self.lr_velocity, 1.0),
-            ("lr_gaussians", self.lr_gaussians, 1.0),
-            ("lr_decay", self.lr_decay, 1.0),
+            ("learning_rates.velocity", self.learning_rates.velocity, 1.0),
+            (
+                "learning_rates.gaussians",
+                self.learning_rates.gaussians,
+                1.0,
+            ),
+            ("learning_rates.decay", self.learning_rates.decay, 1.0),
             ("dt", self.dt as f64, 10.0),
-            ("projection_tolerance", self.projection_tolerance, 0.1),
+            ("projection.tolerance", self.projection.tolerance, 0.1),
         ];
         for (name, value, most) in bounded {
             if !(value.is_finite() && value > 0.0 && value <= most) {
                 return bad(format!("{name} must be in (0, {most}], got {value}"));
             }
         }
-        if let Some(lr) = self.lr_log_scales
+        if let Some(lr) = self.learning_rates.log_scales
             && !(lr.is_finite() && (0.0..=1.0).contains(&lr))
         {
             return bad(format!(
-                "lr_log_scales must be in [0, 1] when set, got {lr}"
+                "learning_rates.log_scales must be in [0, 1] when set, got {lr}"
             ));
         }
         let weights = [
-            ("lambda_div", self.lambda_div),
-            ("lambda_adv", self.lambda_adv),
-            ("lambda_refine", self.lambda_refine),
-            ("lambda_refine_grid", self.lambda_refine_grid),
-            ("lambda_lookahead", self.lambda_lookahead),
-            ("lambda_increment", self.lambda_increment),
+            ("joint.lambda_div", self.joint.lambda_div),
+            ("joint.lambda_adv", self.joint.lambda_adv),
+            ("refine.lambda", self.refine.lambda),
+            ("refine.lambda_grid", self.refine.lambda_grid),
+            ("joint.look_ahead.weight", self.joint.look_ahead.weight),
+            ("joint.inertia.weight", self.joint.inertia.weight),
         ];
         for (name, value) in weights {
             if !(value.is_finite() && value >= 0.0) {
                 return bad(format!("{name} must be >= 0, got {value}"));
             }
         }
-        if !(0.0..=1000.0).contains(&self.increment_horizontal_weight) {
+        if !(0.0..=1000.0).contains(&self.joint.inertia.horizontal_weight) {
             return bad(format!(
-                "increment_horizontal_weight must be in [0, 1000], got {}",
-                self.increment_horizontal_weight
+                "joint.inertia.horizontal_weight must be in [0, 1000], got {}",
+                self.joint.inertia.horizontal_weight
             ));
         }
-        if self.increment_horizontal_weight != 1.0 && self.lambda_increment == 0.0 {
+        if self.joint.inertia.horizontal_weight != 1.0 && self.joint.inertia.weight == 0.0 {
             return bad(
-                "increment_horizontal_weight weighs the inertia prior, which is off: set \
-                 lambda_increment > 0 too"
+                "joint.inertia.horizontal_weight weighs the inertia prior, which is off: set \
+                 joint.inertia.weight > 0 too"
                     .into(),
             );
         }
-        if !(0.0..=1.0).contains(&self.respawn_fraction) {
+        if !(0.0..=1.0).contains(&self.population.recycle.fraction) {
             return bad(format!(
-                "respawn_fraction must be in [0, 1], got {}",
-                self.respawn_fraction
+                "population.recycle.fraction must be in [0, 1], got {}",
+                self.population.recycle.fraction
             ));
         }
-        if !(0.0..=1.0).contains(&self.split_fraction) {
+        if !(0.0..=1.0).contains(&self.population.split.fraction) {
             return bad(format!(
-                "split_fraction must be in [0, 1], got {}",
-                self.split_fraction
+                "population.split.fraction must be in [0, 1], got {}",
+                self.population.split.fraction
             ));
         }
-        if !(self.respawn_threshold.is_finite() && self.respawn_threshold >= 0.0) {
+        if !(self.population.recycle.threshold.is_finite()
+            && self.population.recycle.threshold >= 0.0)
+        {
             return bad(format!(
-                "respawn_threshold must be >= 0, got {}",
-                self.respawn_threshold
+                "population.recycle.threshold must be >= 0, got {}",
+                self.population.recycle.threshold
             ));
         }
         if let Some(region) = self.scene.inflow
@@ -102,19 +108,19 @@ impl TrainConfig {
                  axis (fractions of the smoke box), got {region:?}"
             ));
         }
-        if !(1.0..=100.0).contains(&self.tile_list_headroom) {
+        if !(1.0..=100.0).contains(&self.device.tile_list_headroom) {
             return bad(format!(
-                "tile_list_headroom must be in [1, 100], got {}",
-                self.tile_list_headroom
+                "device.tile_list_headroom must be in [1, 100], got {}",
+                self.device.tile_list_headroom
             ));
         }
-        if self.lr_decay_every == 0
-            || self.output_every == 0
-            || self.log_every == 0
+        if self.learning_rates.decay_every == 0
+            || self.output.every == 0
+            || self.output.log_every == 0
             || self.unet_channels == 0
         {
             return bad(
-                "lr_decay_every, output_every, log_every and unet_channels must be >= 1".into(),
+                "learning_rates.decay_every, output.every, output.log_every and unet_channels must be >= 1".into(),
             );
         }
         if let Some([w, h]) = self.image_size
@@ -122,13 +128,13 @@ impl TrainConfig {
         {
             return bad("image_size must not be empty".into());
         }
-        let rates = &self.init_learning_rates;
+        let rates = &self.init.learning_rates;
         let init_rates = [
-            ("init_learning_rates.means", rates.means),
-            ("init_learning_rates.rotations", rates.rotations),
-            ("init_learning_rates.log_scales", rates.log_scales),
-            ("init_learning_rates.raw_densities", rates.raw_densities),
-            ("init_learning_rates.colors", rates.colors),
+            ("init.learning_rates.means", rates.means),
+            ("init.learning_rates.rotations", rates.rotations),
+            ("init.learning_rates.log_scales", rates.log_scales),
+            ("init.learning_rates.raw_densities", rates.raw_densities),
+            ("init.learning_rates.colors", rates.colors),
         ];
         for (name, value) in init_rates {
             if !(value.is_finite() && value > 0.0 && value <= 1.0) {
@@ -142,17 +148,17 @@ impl TrainConfig {
                 self.time_frequencies
             ));
         }
-        if self.projection_max_iterations == 0 {
-            return bad("projection_max_iterations must be >= 1".into());
+        if self.projection.max_iterations == 0 {
+            return bad("projection.max_iterations must be >= 1".into());
         }
         // Far beyond any useful run (the paper's largest is 2000), and each step keeps a row
         // of losses: a count beyond these is a typo, not a plan, and would exhaust memory.
         for (name, value) in [
-            ("init_iterations", self.init_iterations),
-            ("advect_iterations", self.advect_iterations),
-            ("refine_iterations", self.refine_iterations),
-            ("projection_max_iterations", self.projection_max_iterations),
-            ("penalty_steps", self.penalty_steps),
+            ("init.iterations", self.init.iterations),
+            ("joint.iterations", self.joint.iterations),
+            ("refine.iterations", self.refine.iterations),
+            ("projection.max_iterations", self.projection.max_iterations),
+            ("projection.penalty_steps", self.projection.penalty_steps),
         ] {
             if value > MAX_ITERATIONS {
                 return bad(format!(
@@ -170,8 +176,10 @@ impl TrainConfig {
                 ));
             }
         }
-        if self.projection == ProjectionKind::Penalty && self.penalty_steps == 0 {
-            return bad("penalty_steps must be >= 1 with projection = \"penalty\"".into());
+        if self.projection.kind == ProjectionKind::Penalty && self.projection.penalty_steps == 0 {
+            return bad(
+                "projection.penalty_steps must be >= 1 with projection.kind = \"penalty\"".into(),
+            );
         }
         let open = self.scene.open_face_names();
         if let Err(reason) = OpenFaces::from_names(open) {
@@ -189,9 +197,9 @@ impl TrainConfig {
                  scene.open_faces too, or scene.open_face_flow = 1"
             ));
         }
-        if !open.is_empty() && self.projection != ProjectionKind::Exact {
+        if !open.is_empty() && self.projection.kind != ProjectionKind::Exact {
             return bad(
-                "scene.open_faces needs projection = \"exact\" (the penalty form has solid \
+                "scene.open_faces needs projection.kind = \"exact\" (the penalty form has solid \
                  walls only); with the penalty form, also set scene.open_faces = []"
                     .into(),
             );

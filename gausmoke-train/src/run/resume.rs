@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use super::Run;
 use crate::TrainError;
 use crate::checkpoint::{self, CheckpointMeta};
-use crate::config::RESUMABLE_KEYS;
+use crate::config::{RESUMABLE_KEYS, is_resumable};
 
 /// The settings that choose what a run reads of its data set (and so its fingerprint).
 const DATA_KEYS: &[&str] = &["image_size", "train_views", "test_views", "first_frame"];
@@ -105,7 +105,7 @@ impl Run {
                 ),
             });
         }
-        let every = self.trainer.config.output_every;
+        let every = self.trainer.config.output.every;
         let exports = self.folder.exports_dir();
         let missing: Vec<String> = (0..=frame)
             .filter(|t| t.is_multiple_of(every))
@@ -219,7 +219,7 @@ impl Run {
         let changes = trained.differences(&self.trainer.config);
         let (allowed, refused): (Vec<_>, Vec<_>) = changes
             .into_iter()
-            .partition(|(key, _, _)| RESUMABLE_KEYS.contains(&key.as_str()));
+            .partition(|(key, _, _)| is_resumable(key));
         if !refused.is_empty() {
             let list: Vec<String> = refused
                 .iter()

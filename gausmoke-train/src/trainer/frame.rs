@@ -19,11 +19,11 @@ pub struct FrameStart {
     /// Per attribute, after the decay; the centres' applies to the refinement alone (the
     /// joint iterations leave them to the advection).
     pub rates: Gaussians<f64>,
-    /// `u'`: frame t-1's velocity, carried along itself with `transport_velocity` (ours).
+    /// `u'`: frame t-1's velocity, carried along itself with `joint.transport_velocity` (ours).
     pub previous_velocity: Tensor<4>,
     /// Frame t-1's centres, `p^{t-1}`.
     pub previous_means: Tensor<2>,
-    /// K and K' as this frame runs them (K' is 0 without refinement).
+    /// K and K'.
     pub joint_iterations: usize,
     pub refine_iterations: usize,
 }
@@ -33,9 +33,9 @@ impl FrameStart {
         let config = &trainer.config;
         let (cameras, targets) = trainer.training_views(t);
         let factor = config.lr_factor(t);
-        let lr_gaussians = config.lr_gaussians * factor;
+        let lr_gaussians = config.learning_rates.gaussians * factor;
         let velocity = trainer.state.velocity.clone().detach();
-        let previous_velocity = if config.transport_velocity {
+        let previous_velocity = if config.joint.transport_velocity {
             let _phase = phase!("velocity transport");
             transport_velocity(&trainer.grid, &velocity, config.dt)
         } else {
@@ -46,20 +46,19 @@ impl FrameStart {
             time: t as f32 / (trainer.sequence.frames() - 1).max(1) as f32,
             cameras,
             targets,
-            lr_velocity: config.lr_velocity * factor,
+            lr_velocity: config.learning_rates.velocity * factor,
             lr_gaussians,
             rates: Gaussians {
-                log_scales: config.lr_log_scales.map_or(lr_gaussians, |lr| lr * factor),
+                log_scales: config
+                    .learning_rates
+                    .log_scales
+                    .map_or(lr_gaussians, |lr| lr * factor),
                 ..Gaussians::default().map(|_, ()| lr_gaussians)
             },
             previous_velocity,
             previous_means: trainer.state.gaussians.means.val().detach(),
-            joint_iterations: config.advect_iterations,
-            refine_iterations: if config.refinement {
-                config.refine_iterations
-            } else {
-                0
-            },
+            joint_iterations: config.joint.iterations,
+            refine_iterations: config.refine.iterations,
         }
     }
 

@@ -15,7 +15,7 @@ use indicatif::ProgressBar;
 use super::losses::{ListCapacities, read_log};
 use super::{FrameStart, Trainer, ViewTargets};
 use crate::TrainError;
-use crate::config::TrainConfig;
+use crate::config::InertiaConfig;
 use crate::state::{LoopTraffic, LossRow, Phase};
 use crate::step_log::{StepLog, StepLosses};
 
@@ -31,10 +31,10 @@ pub(super) struct JointResult {
     pub traffic: LoopTraffic,
 }
 
-/// Ours (`lambda_lookahead`): the Gaussians carried to frame t are carried one frame further,
-/// along Phi's projected prediction for frame t+1 from their density there, and rendered against frame t+1's training
-/// views with their other attributes held: `u^t` must also explain the next frame's
-/// pictures. Not applied at the last frame.
+/// Ours (`[joint.look_ahead]`): the Gaussians carried to frame t are carried one frame
+/// further, along Phi's projected prediction for frame t+1 from their density there, and
+/// rendered against frame t+1's training views with their other attributes held: `u^t` must
+/// also explain the next frame's pictures. Not applied at the last frame.
 pub(super) struct LookAhead {
     weight: f32,
     /// Phi's time input at frame t+1.
@@ -47,11 +47,11 @@ impl LookAhead {
     pub fn for_frame(trainer: &Trainer, frame: &FrameStart) -> Option<Self> {
         let config = &trainer.config;
         let next = frame.t + 1;
-        (config.lambda_lookahead > 0.0 && next < trainer.sequence.frames()).then(|| Self {
-            weight: config.lambda_lookahead,
+        (config.joint.look_ahead.weight > 0.0 && next < trainer.sequence.frames()).then(|| Self {
+            weight: config.joint.look_ahead.weight,
             time: next as f32 / (trainer.sequence.frames() - 1) as f32,
             views: trainer.training_views(next),
-            lists: ListCapacities::new(config.tile_list_headroom),
+            lists: ListCapacities::new(config.device.tile_list_headroom),
         })
     }
 
@@ -79,10 +79,10 @@ impl LookAhead {
     }
 }
 
-/// Ours (`lambda_increment`): `lambda_increment` times the mean over the grid's cells of
-/// `|Phi's increment|^2` in cells per frame, its horizontal components (x and z, across the
-/// upward y) weighted by `increment_horizontal_weight`: the velocity keeps what it had
-/// unless the pictures ask for a change.
+/// Ours (`[joint.inertia]`): its weight times the mean over the grid's cells of `|Phi's
+/// increment|^2` in cells per frame, the horizontal components (x and z, across the upward y)
+/// weighted by its `horizontal_weight`: the velocity keeps what it had unless the pictures ask
+/// for a change.
 pub(super) struct InertiaPrior {
     weight: f32,
     /// `[x, y, z]`: `sqrt(component weight) / cell size`, `[1, 1, 1, 3]`.
@@ -91,15 +91,15 @@ pub(super) struct InertiaPrior {
 
 impl InertiaPrior {
     pub fn of(
-        config: &TrainConfig,
+        config: &InertiaConfig,
         grid: &GridSpec,
         device: &burn::tensor::Device,
     ) -> Option<Self> {
-        (config.lambda_increment > 0.0).then(|| {
+        (config.weight > 0.0).then(|| {
             let cell = grid.cell_size();
-            let across = config.increment_horizontal_weight.sqrt();
+            let across = config.horizontal_weight.sqrt();
             Self {
-                weight: config.lambda_increment,
+                weight: config.weight,
                 scale: Tensor::<1>::from_data(
                     TensorData::new(vec![across / cell.x, 1.0 / cell.y, across / cell.z], [3]),
                     device,
@@ -129,19 +129,19 @@ impl Trainer {
         let config = self.config.clone();
         let splat = SplatOptions::default();
         let mut look_ahead = LookAhead::for_frame(self, frame);
-        let inertia = InertiaPrior::of(&config, &self.grid, &self.device);
+        let inertia = InertiaPrior::of(&config.joint.inertia, &self.grid, &self.device);
         let previous_means = &frame.previous_means;
         let mut velocity = frame.previous_velocity.clone();
         let mut unprojected = frame.previous_velocity.clone();
         let mut advected = None;
         let mut clamped = 0;
-        let mut log = StepLog::new(config.log_every);
-        let mut lists = ListCapacities::new(config.tile_list_headroom);
+        let mut log = StepLog::new(config.output.log_every);
+        let mut lists = ListCapacities::new(config.device.tile_list_headroom);
         let start = Traffic::now();
         for iteration in 0..frame.joint_iterations {
             let previous = self.state.gaussians.tensors_at(previous_means.clone());
             // The density and (for L_adv) its gradient, in one pass over the Gaussians.
-            let (sigma_previous, gradient_previous) = if config.physics_losses {
+            let (sigma_previous, gradient_previous) = if config.joint.has_physics_losses() {
                 let (sigma, gradient) = self.splat_density_and_gradient(&previous, splat.cutoff);
                 (sigma, Some(gradient))
             } else {
@@ -191,7 +191,9 @@ impl Trainer {
                     config.dt,
                 );
                 physical = Some((divergence.clone(), advection.clone()));
-                loss = loss + divergence * config.lambda_div + advection * config.lambda_adv;
+                loss = loss
+                    + divergence * config.joint.lambda_div
+                    + advection * config.joint.lambda_adv;
             }
             let (divergence, advection) = physical.unzip();
             log.push(

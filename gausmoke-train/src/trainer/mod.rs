@@ -4,7 +4,7 @@
 //!   static fit of the smoke Gaussians to the first frame's training views (L1).
 //! * Frame t-1 -> t ([`Trainer::advance_to`]), a short list of stages:
 //!   1. [`FrameStart`]: the frame's views, learning rates and where it starts from (the
-//!      previous velocity, carried along itself with `transport_velocity`).
+//!      previous velocity, carried along itself with `joint.transport_velocity`).
 //!   2. the joint step ([`joint`], lines 3-9): K iterations of `u^t = Pi(u' + Phi(u', sigma,
 //!      PE(t)))`, centres advected through `u^t`, loss a sum of named terms (`L_render`,
 //!      `L_div`, `L_adv`, and ours: the look-ahead and the inertia prior).
@@ -59,7 +59,7 @@ pub struct FrameOutcome {
     /// Every optimisation step's losses, in order.
     pub losses: Vec<LossRow>,
     /// `L_render` at the frame's last step, over every training view (when that step
-    /// rendered some of them, over its last turn of steps: see `refine_views_per_step`).
+    /// rendered some of them, over its last turn of steps: see `refine.views_per_step`).
     pub train_l1: f64,
     /// What `Pi` did at the frame's last joint step (`None` for frame 0).
     pub projection: Option<ProjectionReport>,
@@ -120,13 +120,13 @@ impl Trainer {
         let scene_file = config.scene.fill_from_data(&sequence.path)?;
         config.validate()?;
         let views = sequence.train.first().map_or(0, Vec::len);
-        if config.refine_views_per_step > views {
+        if config.refine.views_per_step > views {
             return Err(TrainError::Config {
-                origin: "refine_views_per_step".into(),
+                origin: "refine.views_per_step".into(),
                 reason: format!(
                     "{} views a refinement step, but the data set has {views} training views \
                      (0 renders all of them)",
-                    config.refine_views_per_step
+                    config.refine.views_per_step
                 ),
             });
         }
@@ -268,7 +268,7 @@ impl Trainer {
             train_l1: refine::last_turn_l1(
                 &losses,
                 frame.cameras.len(),
-                self.config.refine_views_per_step,
+                self.config.refine.views_per_step,
             ),
             losses,
             projection: Some(projection),

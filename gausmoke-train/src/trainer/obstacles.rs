@@ -63,24 +63,24 @@ pub(super) fn outside_obstacles(means: Tensor<2>, obstacles: &[Obstacle]) -> Ten
 }
 
 /// The data set's obstacles as solid cells of `grid` (cell centre inside), when there are any
-/// and `config.obstacles` makes them solid; refused with the penalty form of `Pi`, which has no
+/// and `config.projection.obstacles` makes them solid; refused with the penalty form of `Pi`, which has no
 /// notion of them, and when they cover no cell (a sphere smaller than the grid can see).
 pub(crate) fn solid_cells(
     obstacles: &[Obstacle],
     config: &TrainConfig,
     grid: &GridSpec,
 ) -> Result<Option<SolidCells>, TrainError> {
-    if obstacles.is_empty() || config.obstacles == Obstacles::Ignore {
+    if obstacles.is_empty() || config.projection.obstacles == Obstacles::Ignore {
         return Ok(None);
     }
     let refuse = |reason: String| TrainError::Config {
-        origin: "obstacles".into(),
+        origin: "projection.obstacles".into(),
         reason,
     };
-    if config.projection != ProjectionKind::Exact {
+    if config.projection.kind != ProjectionKind::Exact {
         return Err(refuse(format!(
-            "the data set describes {} obstacle(s), which only projection = \"exact\" keeps \
-             the flow out of: use it, or set obstacles = \"ignore\"",
+            "the data set describes {} obstacle(s), which only projection.kind = \"exact\" \
+             keeps the flow out of: use it, or set projection.obstacles = \"ignore\"",
             obstacles.len()
         )));
     }
@@ -89,7 +89,7 @@ pub(crate) fn solid_cells(
     if solids.count() == 0 {
         return Err(refuse(format!(
             "the data set's obstacles cover no cell centre of the {:?} grid: refine \
-             grid_resolution, or set obstacles = \"ignore\"",
+             grid_resolution, or set projection.obstacles = \"ignore\"",
             grid.resolution()
         )));
     }

@@ -33,26 +33,26 @@ impl Trainer {
 
     pub(super) fn projection(&self) -> ProjectionOptions {
         ProjectionOptions {
-            rel_tolerance: self.config.projection_tolerance,
-            max_iterations: self.config.projection_max_iterations,
+            rel_tolerance: self.config.projection.tolerance,
+            max_iterations: self.config.projection.max_iterations,
             // Validated with the configuration.
             open_faces: self.config.open_faces().unwrap_or_default(),
             solids: self.solids.clone(),
             // Deferred solves are judged when the steps' losses are read (`read_log`).
-            convergence_tests: self.config.solver_tests.into(),
+            convergence_tests: self.config.device.solver_tests.into(),
         }
     }
 
     fn penalty(&self) -> PenaltyOptions {
         PenaltyOptions {
-            steps: self.config.penalty_steps,
+            steps: self.config.projection.penalty_steps,
             ..PenaltyOptions::default()
         }
     }
 
     /// `Pi(velocity)` in the configured form (differentiable either way).
     pub(super) fn project(&self, velocity: Tensor<4>) -> Tensor<4> {
-        match self.config.projection {
+        match self.config.projection.kind {
             ProjectionKind::Exact => project_velocity(&self.grid, velocity, self.projection()),
             ProjectionKind::Penalty => penalty_projection(&self.grid, velocity, &self.penalty()),
         }
@@ -60,7 +60,7 @@ impl Trainer {
 
     /// What the configured `Pi` does to `velocity` (for the frame's metrics).
     pub(super) fn projection_report(&self, velocity: Tensor<4>) -> ProjectionReport {
-        match self.config.projection {
+        match self.config.projection.kind {
             ProjectionKind::Exact => {
                 project_direct(&self.grid, &mut read_floats(velocity), &self.projection())
             }

@@ -1,7 +1,7 @@
 //! Stage 3 of a frame (ours; the paper's set is fixed, only advected): after the joint step,
 //! Gaussians the training views leave unused are recycled to where the views show missing
 //! smoke (`respawn_*`, [`crate::respawn`]), in the inflow box when the scene has one, and the
-//! largest opaque Gaussians are split in two (`split_fraction`, [`crate::split`]), so that
+//! largest opaque Gaussians are split in two (`population.split.fraction`, [`crate::split`]), so that
 //! the refinement fits the new rows.
 
 use gausmoke_core::phase;
@@ -45,7 +45,9 @@ impl Trainer {
     /// Recycles, then splits, on the host: one read from the device and a write back when
     /// rows changed. No row is taken twice.
     pub(super) fn renew_population(&mut self, t: usize) -> Result<Renewal, TrainError> {
-        if self.config.respawn_fraction <= 0.0 && self.config.split_fraction <= 0.0 {
+        if self.config.population.recycle.fraction <= 0.0
+            && self.config.population.split.fraction <= 0.0
+        {
             return Ok(Renewal::default());
         }
         let mut host = self.state.gaussians.to_host();
@@ -63,9 +65,9 @@ impl Trainer {
 
     /// Recycles rows of `host` (see [`crate::respawn`]) against frame `t`'s training views,
     /// after the Gaussians were carried to frame `t`; nothing happens with
-    /// `respawn_fraction = 0`.
+    /// `population.recycle.fraction = 0`.
     fn recycle(&self, t: usize, host: &mut HostGaussians) -> Result<RespawnReport, TrainError> {
-        if self.config.respawn_fraction <= 0.0 {
+        if self.config.population.recycle.fraction <= 0.0 {
             return Ok(RespawnReport::default());
         }
         let _phase = phase!("respawn");
@@ -82,8 +84,8 @@ impl Trainer {
             .collect();
         let lattice = self.spawn_lattice();
         let options = RespawnOptions {
-            fraction: self.config.respawn_fraction,
-            threshold: self.config.respawn_threshold,
+            fraction: self.config.population.recycle.fraction,
+            threshold: self.config.population.recycle.threshold,
             std: self.initial_std(),
             background: self.sequence.background,
             // A per-frame stream, so a resumed run draws what an uninterrupted one did.
@@ -108,15 +110,15 @@ impl Trainer {
 
     /// Splits the largest rows of `host` (see [`crate::split`]) into rows recycling would
     /// take, other than the `taken` ones (recycled this frame); nothing happens with
-    /// `split_fraction = 0`.
+    /// `population.split.fraction = 0`.
     fn split(&self, host: &mut HostGaussians, taken: &[usize]) -> SplitReport {
-        if self.config.split_fraction <= 0.0 {
+        if self.config.population.split.fraction <= 0.0 {
             return SplitReport::default();
         }
         let _phase = phase!("split");
         let lattice = self.spawn_lattice();
         let min_std = SPLIT_SIZE_FACTOR * self.initial_std();
-        let budget = (self.config.split_fraction * host.len() as f32).floor() as usize;
+        let budget = (self.config.population.split.fraction * host.len() as f32).floor() as usize;
         let (slots, _) = recycling_candidates(host, &lattice, taken);
         let report = split_largest(host, &slots, budget, min_std, &lattice);
         tracing::debug!(split = report.parents.len(), slots = slots.len(), "split");

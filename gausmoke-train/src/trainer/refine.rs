@@ -1,7 +1,7 @@
 //! Stage 4 of a frame: the refinement step (Algorithm 1, lines 11-13), K' iterations in
-//! which the centres are free parameters, with `L_render` and ties: `lambda_refine L_refine`
+//! which the centres are free parameters, with `L_render` and ties: `refine.lambda L_refine`
 //! (the paper's) and ours, [`GridTie`]. Ours too: each step may render some of the training
-//! views in turn (`refine_views_per_step`).
+//! views in turn (`refine.views_per_step`).
 
 use burn::tensor::Tensor;
 use gausmoke_core::Camera;
@@ -23,7 +23,7 @@ pub(super) struct RefineResult {
     pub traffic: LoopTraffic,
 }
 
-/// Ours (`lambda_refine_grid`): a tie on the refinement's move at the velocity grid's
+/// Ours (`refine.lambda_grid`): a tie on the refinement's move at the velocity grid's
 /// scale, the mass-weighted mean move around each cell (a move the velocity could have
 /// made), as a mass-weighted mean of squared lengths in world units (see
 /// [`gausmoke_model::GridScale`]). What is left to the refinement is the sub-grid rest.
@@ -60,18 +60,18 @@ impl Trainer {
     ) -> Result<RefineResult, TrainError> {
         let iterations = frame.refine_iterations;
         let views = frame.cameras.len();
-        let per_step = self.config.refine_views_per_step;
-        let lambda_refine = self.config.lambda_refine;
+        let per_step = self.config.refine.views_per_step;
+        let lambda_refine = self.config.refine.lambda;
         let anchor = self.state.gaussians.means.val().detach();
         // The split of the moves is fixed by where they start.
         let scale =
             (iterations > 0).then(|| GridScale::of(&self.grid, &self.state.gaussians.tensors()));
-        let grid_tie = GridTie::of(self.config.lambda_refine_grid);
+        let grid_tie = GridTie::of(self.config.refine.lambda_grid);
         // One set of list capacities per group of views a step renders (keyed by its first).
         let mut group_lists: Vec<ListCapacities> = (0..views)
-            .map(|_| ListCapacities::new(self.config.tile_list_headroom))
+            .map(|_| ListCapacities::new(self.config.device.tile_list_headroom))
             .collect();
-        let mut log = StepLog::new(self.config.log_every);
+        let mut log = StepLog::new(self.config.output.log_every);
         let start = Traffic::now();
         for iteration in 0..iterations {
             let gaussians = self.state.gaussians.tensors();

@@ -100,7 +100,7 @@ impl Trainer {
         self.fit_to_images(StillFit::Statics, &observations, &targets)
     }
 
-    /// `init_iterations` steps of `L_render` against
+    /// `init.iterations` steps of `L_render` against
     /// the still images `targets` of `observations`' cameras, every attribute learning at
     /// frame 0's rates.
     pub(super) fn fit_to_images(
@@ -114,7 +114,7 @@ impl Trainer {
             // Placed where the data set says the solids are: they stay there.
             learning_rates.means = 0.0;
         }
-        let iterations = self.config.init_iterations;
+        let iterations = self.config.init.iterations;
         let bar = self.progress(0, iterations);
         let phase = match fit {
             StillFit::Statics => {
@@ -124,8 +124,8 @@ impl Trainer {
             StillFit::FirstFrame => Phase::Init,
         };
         let mut losses = Vec::with_capacity(iterations);
-        let mut log = StepLog::new(self.config.log_every);
-        let mut lists = ListCapacities::new(self.config.tile_list_headroom);
+        let mut log = StepLog::new(self.config.output.log_every);
+        let mut lists = ListCapacities::new(self.config.device.tile_list_headroom);
         let cameras: Vec<Camera> = observations.iter().map(|o| o.camera).collect();
         for iteration in 0..iterations {
             let gaussians = match (fit, &self.state.statics) {
@@ -172,7 +172,7 @@ impl Trainer {
 
     /// Frame 0's learning rates per attribute (the centres' scaled by the box's extent).
     fn init_learning_rates(&self) -> Gaussians<f64> {
-        let rates = &self.config.init_learning_rates;
+        let rates = &self.config.init.learning_rates;
         let extent = (self.sequence.hi - self.sequence.lo).max_element() as f64;
         Gaussians {
             means: rates.means * extent,

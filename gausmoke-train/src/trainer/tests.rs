@@ -25,7 +25,7 @@ fn tiny_scene() -> (tempfile::TempDir, std::path::PathBuf) {
     (dir, data)
 }
 
-/// `increment_horizontal_weight` scales what a sideways increment pays in the inertia
+/// `joint.inertia.horizontal_weight` scales what a sideways increment pays in the inertia
 /// prior and leaves what an upward one pays.
 #[test]
 fn the_inertia_prior_weighs_horizontal_increments_apart() {
@@ -33,17 +33,21 @@ fn the_inertia_prior_weighs_horizontal_increments_apart() {
     let (_dir, data) = tiny_scene();
     let device = device_by_name("flex").unwrap();
     let prior = |weight: f32, component: usize| {
-        let config = TrainConfig {
-            gaussians: 100,
-            grid_resolution: 8,
-            frames: Some(2),
-            lambda_increment: 0.5,
-            increment_horizontal_weight: weight,
-            ..TrainConfig::default()
+        let config = {
+            let mut config = TrainConfig {
+                gaussians: 100,
+                grid_resolution: 8,
+                frames: Some(2),
+                ..TrainConfig::default()
+            };
+            config.joint.inertia.weight = 0.5;
+            config.joint.inertia.horizontal_weight = weight;
+            config
         };
         let sequence = Sequence::open(&data, &config).unwrap();
         let trainer = Trainer::new(sequence, config, device.clone()).unwrap();
-        let prior = InertiaPrior::of(&trainer.config, &trainer.grid, &device).unwrap();
+        let prior =
+            InertiaPrior::of(&trainer.config.joint.inertia, &trainer.grid, &device).unwrap();
         let cell = trainer.grid.cell_size().to_array()[component];
         let mut values = vec![0.0f32; 8 * 8 * 8 * 3];
         // One cell moves one cell's length along `component`.

@@ -40,7 +40,7 @@ pub struct TrainArgs {
     /// The ScalarReal data set (default `../shared/datasets/scalar_real`).
     #[arg(long)]
     data: Option<PathBuf>,
-    /// Extra `--set KEY=VALUE` for both builds (e.g. `projection=penalty`).
+    /// Extra `--set KEY=VALUE` for both builds (e.g. `projection.kind=penalty`).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     overrides: Vec<String>,
     /// Where to write the measurements as JSON.
@@ -107,10 +107,10 @@ fn measure(binary: &Path, args: &TrainArgs, scratch: &Path, label: &str) -> Resu
     let iterations = args.advect_iterations + args.refine_iterations;
     let mut sets = vec![
         // Frame 0 only has to leave Gaussians for frame 1 to move.
-        "init_iterations=10".to_string(),
-        format!("advect_iterations={}", args.advect_iterations),
-        format!("refine_iterations={}", args.refine_iterations),
-        "output_every=1000".to_string(),
+        "init.iterations=10".to_string(),
+        format!("joint.iterations={}", args.advect_iterations),
+        format!("refine.iterations={}", args.refine_iterations),
+        "output.every=1000".to_string(),
     ];
     sets.extend(args.overrides.iter().cloned());
     for set in &sets {

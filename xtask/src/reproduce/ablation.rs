@@ -53,22 +53,26 @@ impl Ablation {
 
     pub fn apply(self, config: TrainConfig) -> TrainConfig {
         match self {
-            Ablation::Physics => TrainConfig {
-                physics_losses: false,
-                ..config
-            },
-            Ablation::Refinement => TrainConfig {
-                refinement: false,
-                ..config
-            },
+            Ablation::Physics => {
+                let mut config = config;
+                config.joint.lambda_div = 0.0;
+                config.joint.lambda_adv = 0.0;
+                config
+            }
+            Ablation::Refinement => {
+                let mut config = config;
+                config.refine.iterations = 0;
+                config
+            }
             Ablation::Volumetric => TrainConfig {
                 volumetric: false,
                 ..config
             },
-            Ablation::Solid => TrainConfig {
-                obstacles: gausmoke_train::config::Obstacles::Ignore,
-                ..config
-            },
+            Ablation::Solid => {
+                let mut config = config;
+                config.projection.obstacles = gausmoke_train::config::Obstacles::Ignore;
+                config
+            }
             Ablation::Statics => TrainConfig {
                 static_gaussians: 0,
                 ..config

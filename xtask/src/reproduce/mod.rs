@@ -2,9 +2,10 @@
 //! CLI uses, evaluates on the held-out views, and records what was measured.
 //!
 //! Every run writes `docs/results/<key>.json` (metrics, timings, memory, storage, machine,
-//! date and the command), and `docs/RESULTS.md`'s generated block (between the
-//! `results:begin` / `results:end` markers) is rebuilt from all such files, so the tables hold
-//! only measured numbers. The prose around the block is written by people.
+//! date and the command), and the generated blocks are rebuilt from all such files: every
+//! record's rows in `docs/RUNS.md` (between `results:begin` / `results:end`) and the summary
+//! at the top of `docs/RESULTS.md` (between `summary:begin` / `summary:end`), so the tables
+//! hold only measured numbers. The prose around the blocks is written by people.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -95,7 +96,7 @@ pub struct ReproduceArgs {
     #[arg(long)]
     seed: Option<u64>,
     /// Recycle up to this fraction of the Gaussians per frame to where the training views
-    /// show missing smoke (`respawn_fraction`; our addition, not the paper's method). Runs
+    /// show missing smoke (`population.recycle.fraction`; our addition, not the paper's method). Runs
     /// get `-r<fraction>` keys.
     #[arg(long)]
     respawn: Option<f32>,
@@ -213,7 +214,7 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
         base.seed = seed;
     }
     if let Some(fraction) = args.respawn {
-        base.respawn_fraction = fraction;
+        base.population.recycle.fraction = fraction;
     }
     base = base.with_overrides(&args.overrides)?;
     let overrides = args.overrides.join(", ");
@@ -222,8 +223,8 @@ fn variants(args: &ReproduceArgs) -> Result<Vec<Variant>> {
         group: format!("{target}{group_suffix}{ablation}"),
         label: {
             let mut label = label.to_string();
-            if config.respawn_fraction > 0.0 {
-                label += &format!(", respawn {}", config.respawn_fraction);
+            if config.population.recycle.fraction > 0.0 {
+                label += &format!(", respawn {}", config.population.recycle.fraction);
             }
             if !overrides.is_empty() {
                 label += &format!(", {overrides}");
@@ -319,7 +320,9 @@ fn recorded_variant(
         &std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?,
     )
     .with_context(|| format!("parsing {}", path.display()))?;
-    let config: TrainConfig = serde_json::from_value(record["config"].clone())
+    let mut config = record["config"].clone();
+    gausmoke_train::config::legacy::upgrade(&mut config);
+    let config: TrainConfig = serde_json::from_value(config)
         .with_context(|| format!("{}: the field `config`", path.display()))?;
     config
         .validate()

@@ -1,5 +1,5 @@
 //! `cargo xtask reevaluate`: adds what `eval` measures now to records written before it could
-//! (today: LPIPS, once `cargo xtask lpips-weights` has cached the weights, and the velocity's
+//! (today: LPIPS, once `gausmoke-train lpips-weights` has cached the weights, and the velocity's
 //! cosine with the truth on synthetic scenes), from the run
 //! folders the records name. A record is only updated when re-rendering its run gives the
 //! held-out PSNR it recorded, frame by frame: a folder trained again or changed since is
@@ -34,7 +34,7 @@ pub struct ReevaluateArgs {
 
 pub fn run(args: ReevaluateArgs) -> Result<()> {
     let weights = gausmoke_train::lpips::weights_to_use(None)
-        .context("no cached LPIPS weights: run `cargo xtask lpips-weights` first")?;
+        .context("no cached LPIPS weights: run `gausmoke-train lpips-weights` first")?;
     let device = device_by_name(&args.device).map_err(anyhow::Error::msg)?;
     let results = args.docs.join("results");
     let mut paths: Vec<PathBuf> = std::fs::read_dir(&results)

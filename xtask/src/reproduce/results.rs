@@ -7,6 +7,7 @@ use std::path::Path;
 use anyhow::{Result, bail};
 
 use super::ablation::Ablation;
+use gausmoke_train::config::legacy;
 use serde_json::Value;
 
 /// The paper's reference figures (Table 1/2, ScalarFlow real capture).
@@ -40,12 +41,21 @@ fn mean_std(values: &[f64]) -> (f64, f64) {
     (mean, var.sqrt())
 }
 
+/// Whether a label names the key `setting` (as `--set` spells it now, or before the keys had
+/// tables).
+fn names(label: &str, setting: &str) -> bool {
+    label.contains(setting)
+        || legacy::RENAMED_KEYS
+            .iter()
+            .any(|(old, now)| *now == setting && label.contains(old))
+}
+
 /// A record's variant label, naming the settings of [`preset_settings`] where the label does
 /// not: a preset's settings are not in its label.
 fn variant(record: &Value) -> String {
     let mut label = record["variant"].as_str().unwrap_or("?").to_string();
     for (setting, named) in preset_settings(record) {
-        if !label.contains(setting) {
+        if !names(&label, setting) {
             label += &format!(", {named}");
         }
     }
@@ -57,12 +67,17 @@ fn variant(record: &Value) -> String {
 fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
     let config = &record["config"];
     // Records keep the configuration's f32 values; printed as f32 they read as written.
-    let weight = |key: &str| config[key].as_f64().filter(|&w| w > 0.0).map(|w| w as f32);
+    let weight = |key: &str| {
+        at(config, key)
+            .as_f64()
+            .filter(|&w| w > 0.0)
+            .map(|w| w as f32)
+    };
     let mut settings = Vec::new();
     if transported(record) {
         settings.push(("transport_velocity", "velocity transported".to_string()));
     }
-    if let Some(w) = weight("lambda_lookahead") {
+    if let Some(w) = weight("joint.look_ahead.weight") {
         // Since the scene has its table, the look-ahead always follows Phi's prediction.
         let predicted = config["lookahead_velocity"].as_str() == Some("predicted")
             || config["scene"].is_object();
@@ -71,13 +86,14 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
         } else {
             ""
         };
-        settings.push(("lambda_lookahead", format!("look-ahead {w}{along}")));
+        settings.push(("joint.look_ahead.weight", format!("look-ahead {w}{along}")));
     }
-    if let Some(w) = weight("lambda_increment") {
-        settings.push(("lambda_increment", format!("inertia prior {w}")));
+    if let Some(w) = weight("joint.inertia.weight") {
+        settings.push(("joint.inertia.weight", format!("inertia prior {w}")));
     }
     // Records made before the scene had its table held the box only when they recycled.
-    let recycling = weight("respawn_fraction").is_some() || config["respawn_region"].is_array();
+    let recycling =
+        weight("population.recycle.fraction").is_some() || config["respawn_region"].is_array();
     if let Some(region) = scene_value(config, "inflow", "respawn_region")
         .as_array()
         .filter(|_| recycling)
@@ -94,22 +110,25 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
     }
     for (key, attribute) in [
         ("lr_means", "refined centres"),
-        ("lr_log_scales", "sizes"),
+        ("learning_rates.log_scales", "sizes"),
         ("lr_colors", "colours"),
         ("lr_raw_densities", "densities"),
     ] {
-        if let Some(lr) = config[key].as_f64() {
+        if let Some(lr) = at(config, key).as_f64() {
             settings.push((key, format!("{attribute} at lr {}", lr as f32)));
         }
     }
-    if let Some(fraction) = weight("split_fraction") {
+    if let Some(fraction) = weight("population.split.fraction") {
         let factor = config["split_size_factor"].as_f64().unwrap_or(1.0) as f32;
         let above = if factor == 1.0 {
             String::new()
         } else {
             format!(" above {factor}x the initial size")
         };
-        settings.push(("split_fraction", format!("split {fraction} a frame{above}")));
+        settings.push((
+            "population.split.fraction",
+            format!("split {fraction} a frame{above}"),
+        ));
     }
     if let Some(share) = weight("shape_transport") {
         let of = if share == 1.0 {
@@ -132,11 +151,14 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
             format!("carried densities smoothed {blend} over {cells} cells"),
         ));
     }
-    if let Some(views) = config["refine_views_per_step"].as_u64().filter(|&n| n > 0) {
-        let steps = config["refine_iterations"].as_u64().unwrap_or(0);
+    if let Some(views) = at(config, "refine.views_per_step")
+        .as_u64()
+        .filter(|&n| n > 0)
+    {
+        let steps = at(config, "refine.iterations").as_u64().unwrap_or(0);
         let per = if views == 1 { "view" } else { "views" };
         settings.push((
-            "refine_views_per_step",
+            "refine.views_per_step",
             format!("K' = {steps} of {views} {per} a step"),
         ));
     }
@@ -177,19 +199,19 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
             },
         ));
     }
-    if let Some(w) = weight("lambda_refine_grid") {
-        settings.push(("lambda_refine_grid", format!("grid-scale tie {w}")));
+    if let Some(w) = weight("refine.lambda_grid") {
+        settings.push(("refine.lambda_grid", format!("grid-scale tie {w}")));
     }
     if let Some(w) = weight("lambda_refine_density") {
         settings.push(("lambda_refine_density", format!("density tie {w}")));
     }
-    if let Some(w) = config["increment_horizontal_weight"]
+    if let Some(w) = at(config, "joint.inertia.horizontal_weight")
         .as_f64()
         .map(|w| w as f32)
         .filter(|&w| w != 1.0)
     {
         settings.push((
-            "increment_horizontal_weight",
+            "joint.inertia.horizontal_weight",
             format!("horizontal increments x{w}"),
         ));
     }
@@ -216,11 +238,32 @@ fn preset_settings(record: &Value) -> Vec<(&'static str, String)> {
     settings
 }
 
-/// Whether the run carried its velocity along itself (`transport_velocity`).
+/// Whether the run carried its velocity along itself (`joint.transport_velocity`).
 fn transported(record: &Value) -> bool {
-    record["config"]["transport_velocity"]
+    at(&record["config"], "joint.transport_velocity")
         .as_bool()
         .unwrap_or(false)
+}
+
+/// The value at a dotted key of a record's configuration (`Null` when absent).
+pub(super) fn at<'a>(config: &'a Value, dotted: &str) -> &'a Value {
+    dotted.split('.').fold(config, |node, key| &node[key])
+}
+
+/// The records of `docs/results`, by key, their configurations read at their current keys
+/// (records made before the keys had tables are moved to them).
+pub(super) fn read_records(docs: &Path) -> Result<Vec<Value>> {
+    let mut records: Vec<Value> = std::fs::read_dir(docs.join("results"))?
+        .flatten()
+        .filter(|e| e.path().extension().is_some_and(|x| x == "json"))
+        .map(|e| -> Result<Value> {
+            let mut record: Value = serde_json::from_str(&std::fs::read_to_string(e.path())?)?;
+            legacy::upgrade(&mut record["config"]);
+            Ok(record)
+        })
+        .collect::<Result<_>>()?;
+    records.sort_by(|a, b| a["key"].as_str().cmp(&b["key"].as_str()));
+    Ok(records)
 }
 
 /// A scene key of a configuration: under `[scene]`, or (in records made before the scene
@@ -556,14 +599,7 @@ fn write_obstacle_table(block: &mut String, records: &[Value]) -> Result<()> {
 }
 
 pub fn write_results_md(docs: &Path) -> Result<()> {
-    let mut records: Vec<Value> = std::fs::read_dir(docs.join("results"))?
-        .flatten()
-        .filter(|e| e.path().extension().is_some_and(|x| x == "json"))
-        .map(|e| -> Result<Value> {
-            Ok(serde_json::from_str(&std::fs::read_to_string(e.path())?)?)
-        })
-        .collect::<Result<_>>()?;
-    records.sort_by(|a, b| a["key"].as_str().cmp(&b["key"].as_str()));
+    let records = read_records(docs)?;
 
     let mut block = String::new();
     writeln!(
@@ -649,22 +685,41 @@ pub fn write_results_md(docs: &Path) -> Result<()> {
         writeln!(block, "- `{command}`")?;
     }
 
+    // Every record's row goes to RUNS.md; RESULTS.md holds the summary of the current presets.
+    let runs = docs.join("RUNS.md");
+    let text = std::fs::read_to_string(&runs).unwrap_or_else(|_| {
+        "# Every recorded run\n\n<!-- results:begin -->\n<!-- results:end -->\n".to_string()
+    });
+    let updated = between_markers(&runs, &text, "results", &block)?;
+    write_atomically(&runs, &updated)?;
+    eprintln!("wrote {}", runs.display());
     let path = docs.join("RESULTS.md");
     let text = std::fs::read_to_string(&path).unwrap_or_else(|_| {
-        "# Results\n\n<!-- results:begin -->\n<!-- results:end -->\n".to_string()
+        "# Results\n\n<!-- summary:begin -->\n<!-- summary:end -->\n".to_string()
     });
-    let (begin, end) = ("<!-- results:begin -->", "<!-- results:end -->");
-    let (Some(start), Some(stop)) = (text.find(begin), text.find(end)) else {
+    write_atomically(&path, &super::summary::fill(&text, &records)?)?;
+    eprintln!("wrote {}", path.display());
+    Ok(())
+}
+
+/// `text` (the file at `path`) with what lies between its `<!-- NAME:begin -->` and
+/// `<!-- NAME:end -->` markers replaced by `block`.
+fn between_markers(path: &Path, text: &str, name: &str, block: &str) -> Result<String> {
+    let (begin, end) = (
+        format!("<!-- {name}:begin -->"),
+        format!("<!-- {name}:end -->"),
+    );
+    let (Some(start), Some(stop)) = (text.find(&begin), text.find(&end)) else {
         bail!(
             "{}: the {begin} / {end} markers are missing",
             path.display()
         );
     };
-    let updated = format!("{}{begin}\n{block}{}", &text[..start], &text[stop..]);
-    let updated = super::summary::fill(&updated, &records)?;
-    write_atomically(&path, &updated)?;
-    eprintln!("wrote {}", path.display());
-    Ok(())
+    Ok(format!(
+        "{}{begin}\n{block}{}",
+        &text[..start],
+        &text[stop..]
+    ))
 }
 
 /// Writes `contents` to `path` through a temporary file in the same folder and a rename, so

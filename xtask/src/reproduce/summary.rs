@@ -76,7 +76,7 @@ pub(super) fn fill(text: &str, records: &[Value]) -> Result<String> {
 /// Whether a run trained with our update: the look-ahead is the part of `Preset::Ours` every
 /// one of its runs has and no run of the paper's update has.
 fn ran_our_update(record: &Value) -> bool {
-    record["config"]["lambda_lookahead"]
+    super::results::at(&record["config"], "joint.look_ahead.weight")
         .as_f64()
         .is_some_and(|w| w > 0.0)
 }
@@ -307,7 +307,7 @@ mod tests {
         json!({"key": format!("{group}-s{seed}"), "group": group, "seed": seed, "frames": 72,
                "test_psnr": psnr, "training_seconds": 600.0,
                "machine": "Intel(R) Xeon(R) Processor @ 2.50GHz, 2 threads",
-               "config": {"lambda_lookahead": if ours { 1.0 } else { 0.0 }}})
+               "config": {"joint": {"look_ahead": {"weight": if ours { 1.0 } else { 0.0 }}}}})
     }
 
     fn row<'a>(table: &'a str, label: &str) -> &'a str {

@@ -149,7 +149,7 @@ fn the_quick_plume_presets_train_with_our_update_unless_told_otherwise() {
             _ => Preset::Ours.apply(paper.clone()),
         };
         assert_eq!(config, &expected, "{target:?}");
-        assert_eq!(config.advect_iterations, 10);
+        assert_eq!(config.joint.iterations, 10);
         let scene = match target {
             Target::ScalarReal => scalar_real_scene(),
             _ => SceneConfig::default(),
@@ -175,16 +175,24 @@ fn the_quick_plume_presets_train_with_our_update_unless_told_otherwise() {
         );
         // The ablations train with the same update.
         for variant in &with_paper[1..] {
-            assert_eq!(variant.config.lambda_lookahead, 0.0, "{}", variant.key);
+            assert_eq!(
+                variant.config.joint.look_ahead.weight, 0.0,
+                "{}",
+                variant.key
+            );
         }
         for variant in &variants(&quick_args(target)).unwrap()[1..] {
-            assert_eq!(variant.config.lambda_lookahead, 1.0, "{}", variant.key);
+            assert_eq!(
+                variant.config.joint.look_ahead.weight, 1.0,
+                "{}",
+                variant.key
+            );
         }
         assert!(command_line(&args).ends_with("--quick --seed 2 --paper-update"));
     }
     // The Blender set's preset keeps the paper's update and the outflow.
     let blender = &variants(&quick_args(Target::Blender)).unwrap()[0];
-    assert_eq!(blender.config.lambda_lookahead, 0.0);
+    assert_eq!(blender.config.joint.look_ahead.weight, 0.0);
     assert_eq!(blender.config.scene.open_face_flow, Some(1.0));
     // Both textured-wall scenes have as many statics as smoke Gaussians.
     let blocks = &variants(&quick_args(Target::Blocks)).unwrap()[0];
@@ -238,7 +246,7 @@ fn a_record_is_re_run_with_its_recorded_configuration() {
     };
     let mut config = serde_json::to_value(&recorded).unwrap();
     // A record older than the inertia prior.
-    config.as_object_mut().unwrap().remove("lambda_increment");
+    config["joint"].as_object_mut().unwrap().remove("inertia");
     let record = json!({"config": config, "variant": "full method, closed walls"});
     let key = "synthetic-long-quick-s3";
     std::fs::write(dir.path().join(format!("{key}.json")), record.to_string()).unwrap();
@@ -260,7 +268,11 @@ fn a_record_is_re_run_with_its_recorded_configuration() {
     let other = args("synthetic-long-quick-s4", Target::SyntheticLong, Vec::new());
     let err = named(&other).unwrap_err().to_string();
     assert!(err.contains("synthetic-long-quick-s3"), "{err}");
-    let with_set = args(key, Target::SyntheticLong, vec!["lambda_div=1".into()]);
+    let with_set = args(
+        key,
+        Target::SyntheticLong,
+        vec!["joint.lambda_div=1".into()],
+    );
     let err = named(&with_set).unwrap_err().to_string();
     assert!(err.contains("--set"), "{err}");
     let several = args(key, Target::Obstacle, Vec::new());
@@ -278,6 +290,7 @@ fn a_two_frame_scalar_real_slice_is_recorded() {
     let docs = dir.path().join("docs");
     std::fs::create_dir_all(&docs).unwrap();
     std::fs::copy(root.join("docs/RESULTS.md"), docs.join("RESULTS.md")).unwrap();
+    std::fs::copy(root.join("docs/RUNS.md"), docs.join("RUNS.md")).unwrap();
     let args = ReproduceArgs {
         out: dir.path().join("runs"),
         data: Some(root.join("../shared/datasets/scalar_real")),
@@ -318,7 +331,7 @@ fn a_two_frame_scalar_real_slice_is_recorded() {
         alone[1]["sequential_minus_independent_psnr"].as_f64(),
         Some(sequential1 - frame1)
     );
-    let results = std::fs::read_to_string(docs.join("RESULTS.md")).unwrap();
+    let results = std::fs::read_to_string(docs.join("RUNS.md")).unwrap();
     assert!(
         results.contains("| `scalar-real-quick-f2` | 1 | "),
         "{results}"
@@ -334,7 +347,12 @@ fn a_two_frame_scalar_real_slice_is_recorded() {
         "{results}"
     );
     assert!(
-        results.contains("## Speed next to the paper's"),
-        "the hand-written part of RESULTS.md is kept"
+        results.contains("## The runs"),
+        "the hand-written part of RUNS.md is kept"
+    );
+    let summary = std::fs::read_to_string(docs.join("RESULTS.md")).unwrap();
+    assert!(
+        summary.contains("## Speed next to the paper's") && summary.contains("| ScalarReal | "),
+        "the hand-written part of RESULTS.md is kept, the summary filled: {summary}"
     );
 }

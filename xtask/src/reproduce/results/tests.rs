@@ -43,36 +43,37 @@ fn long_runs_get_block_means_and_the_independent_baseline_its_rows() {
 
 #[test]
 fn variants_name_the_preset_settings_that_their_label_does_not() {
-    let record =
-        |label: &str, faces: Value| json!({"variant": label, "config": {"open_faces": faces}});
+    let record = |label: &str, faces: Value| {
+        upgraded(json!({"variant": label, "config": {"open_faces": faces}}))
+    };
     assert_eq!(
         variant(&record("full method", json!(["y-", "y+"]))),
         "full method, open faces y- y+"
     );
     assert_eq!(variant(&record("full method", json!([]))), "full method");
     assert_eq!(
-        variant(&json!({"variant": "full method", "config": {}})),
+        variant(&upgraded(json!({"variant": "full method", "config": {}}))),
         "full method"
     );
     let tagged = r#"full method, open_faces=["y-","y+"]"#;
     assert_eq!(variant(&record(tagged, json!(["y-", "y+"]))), tagged);
-    let carried = json!({"variant": "full method",
-                         "config": {"open_faces": ["y+"], "transport_velocity": true}});
+    let carried = upgraded(json!({"variant": "full method",
+                         "config": {"open_faces": ["y+"], "transport_velocity": true}}));
     assert_eq!(
         variant(&carried),
         "full method, velocity transported, open faces y+"
     );
-    let tagged = json!({"variant": "full method, transport_velocity=true",
-                        "config": {"transport_velocity": true}});
+    let tagged = upgraded(json!({"variant": "full method, transport_velocity=true",
+                        "config": {"transport_velocity": true}}));
     assert_eq!(variant(&tagged), "full method, transport_velocity=true");
     // The quick presets' update, as its records store it (f32 values widened to f64).
-    let ours = json!({"variant": "full method, respawn 0.02",
+    let ours = upgraded(json!({"variant": "full method, respawn 0.02",
                       "config": {"open_faces": ["y+"], "transport_velocity": true,
                                  "lambda_lookahead": 1.0, "lookahead_velocity": "predicted",
                                  "lambda_increment": 0.009999999776482582,
                                  "respawn_region": [0.3499999940395355, 0.0, 0.3499999940395355,
                                                     0.6499999761581421, 0.15000000596046448,
-                                                    0.6499999761581421]}});
+                                                    0.6499999761581421]}}));
     assert_eq!(
         variant(&ours),
         "full method, respawn 0.02, velocity transported, look-ahead 1 along Phi's \
@@ -81,8 +82,8 @@ fn variants_name_the_preset_settings_that_their_label_does_not() {
     );
     // A half-open top: named when a preset sets it, not twice when --set did, not at 1.
     let top = |label: &str, flow: f64| {
-        variant(&json!({"variant": label,
-                        "config": {"open_faces": ["y+"], "open_face_flow": flow}}))
+        variant(&upgraded(json!({"variant": label,
+                        "config": {"open_faces": ["y+"], "open_face_flow": flow}})))
     };
     assert_eq!(
         top("full method", 0.5),
@@ -94,38 +95,38 @@ fn variants_name_the_preset_settings_that_their_label_does_not() {
     );
     assert_eq!(top("full method", 1.0), "full method, open faces y+");
     // The sizes' own learning rate: named when a preset sets it, not twice when --set did.
-    let sizes = json!({"variant": "full method", "config": {"lr_log_scales": 0.0005}});
+    let sizes = upgraded(json!({"variant": "full method", "config": {"lr_log_scales": 0.0005}}));
     assert_eq!(variant(&sizes), "full method, sizes at lr 0.0005");
-    let tagged = json!({"variant": "full method, lr_log_scales=5e-4",
-                        "config": {"lr_log_scales": 0.0005}});
+    let tagged = upgraded(json!({"variant": "full method, lr_log_scales=5e-4",
+                        "config": {"lr_log_scales": 0.0005}}));
     assert_eq!(variant(&tagged), "full method, lr_log_scales=5e-4");
-    let split = json!({"variant": "full method",
+    let split = upgraded(json!({"variant": "full method",
                        "config": {"split_fraction": 0.009999999776482582,
-                                  "split_size_factor": 1.5}});
+                                  "split_size_factor": 1.5}}));
     assert_eq!(
         variant(&split),
         "full method, split 0.01 a frame above 1.5x the initial size"
     );
-    let none = json!({"variant": "full method", "config": {"split_fraction": 0.0}});
+    let none = upgraded(json!({"variant": "full method", "config": {"split_fraction": 0.0}}));
     assert_eq!(variant(&none), "full method");
     // The one-view refinement, its tie and the horizontal weight, as a preset sets them.
-    let refined = json!({"variant": "full method",
+    let refined = upgraded(json!({"variant": "full method",
                          "config": {"refine_iterations": 40, "refine_views_per_step": 1,
                                     "lambda_refine_grid": 3.0,
-                                    "increment_horizontal_weight": 3.0}});
+                                    "increment_horizontal_weight": 3.0}}));
     assert_eq!(
         variant(&refined),
         "full method, K' = 40 of 1 view a step, grid-scale tie 3, horizontal increments x3"
     );
-    let paper = json!({"variant": "full method",
+    let paper = upgraded(json!({"variant": "full method",
                        "config": {"refine_iterations": 5, "refine_views_per_step": 0,
                                   "lambda_refine_grid": 0.0,
-                                  "increment_horizontal_weight": 1.0}});
+                                  "increment_horizontal_weight": 1.0}}));
     assert_eq!(variant(&paper), "full method");
     // The statics' fit and layer (the Blender preset's fit; a recorded f32 depth).
-    let statics = json!({"variant": "full method",
+    let statics = upgraded(json!({"variant": "full method",
                          "config": {"static_iterations": 1000,
-                                    "static_shell": 0.01600000075995922}});
+                                    "static_shell": 0.01600000075995922}}));
     assert_eq!(
         variant(&statics),
         "full method, statics fitted 1000 steps, statics within 0.016 of the surfaces"
@@ -146,8 +147,10 @@ fn an_atomic_write_replaces_the_file_and_leaves_nothing_beside_it() {
 #[test]
 fn runs_whose_presets_differ_are_not_summarised_together() {
     let record = |seed: u64, faces: Value| {
-        json!({"key": format!("g-s{seed}"), "group": "g", "seed": seed, "variant": "full method",
-               "test_psnr": 30.0 + seed as f64, "config": {"open_faces": faces}})
+        upgraded(
+            json!({"key": format!("g-s{seed}"), "group": "g", "seed": seed, "variant": "full method",
+               "test_psnr": 30.0 + seed as f64, "config": {"open_faces": faces}}),
+        )
     };
     let mut records = vec![
         record(1, json!([])),
@@ -158,14 +161,14 @@ fn runs_whose_presets_differ_are_not_summarised_together() {
     // Two more seeds of the open-faced preset with the velocity transported: their own group.
     for seed in [5, 6] {
         let mut carried = record(seed, json!(["y-", "y+"]));
-        carried["config"]["transport_velocity"] = json!(true);
+        carried["config"]["joint"]["transport_velocity"] = json!(true);
         records.push(carried);
     }
     // And two with the look-ahead on top: a preset changed under the same keys.
     for seed in [7, 8] {
         let mut ahead = record(seed, json!(["y-", "y+"]));
-        ahead["config"]["transport_velocity"] = json!(true);
-        ahead["config"]["lambda_lookahead"] = json!(1.0);
+        ahead["config"]["joint"]["transport_velocity"] = json!(true);
+        ahead["config"]["joint"]["look_ahead"]["weight"] = json!(1.0);
         records.push(ahead);
     }
     let mut block = String::new();
@@ -226,4 +229,10 @@ fn ablations_are_paired_with_the_full_method_of_the_same_seed() {
         ),
         "{block}"
     );
+}
+
+/// A record as [`read_records`] gives it: its configuration at the current keys.
+fn upgraded(mut record: Value) -> Value {
+    legacy::upgrade(&mut record["config"]);
+    record
 }
