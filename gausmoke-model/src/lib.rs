@@ -31,7 +31,7 @@ pub use losses::{advection_loss, divergence_loss, divergence_loss_of, refine_los
 pub use moves::GridScale;
 pub use penalty::{PenaltyOptions, penalty_projection};
 pub use projection::{
-    ConvergenceTests, DeferredSolves, OpenFaces, ProjectionBackend, ProjectionOptions,
+    ConvergenceTests, DeferredSolves, DeviceSolve, OpenFaces, ProjectionBackend, ProjectionOptions,
     ProjectionReport, ProjectionSpec, SolidCells, project_direct, project_velocity,
     project_with_report, settle_deferred_solves,
 };

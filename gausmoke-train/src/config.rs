@@ -19,7 +19,10 @@ pub mod legacy;
 pub mod tables;
 mod validate;
 
-pub use kinds::{GradientSums, Obstacles, PlyAxes, ProjectionKind, SolverTests, VelocityEstimate};
+pub use kinds::{
+    GradientSums, Obstacles, PlyAxes, ProjectionKind, ProjectionSolve, SolverTests,
+    VelocityEstimate,
+};
 use tables::table_only;
 pub use tables::{
     DeviceConfig, InertiaConfig, InitConfig, InitLearningRates, JointConfig, LearningRates,

@@ -6,7 +6,9 @@
 //!
 //! Like the other GPU tests this FAILS without a GPU adapter rather than skip.
 
-use gausmoke_model::{ConvergenceTests, DeferredSolves, ProjectionOptions, settle_deferred_solves};
+use gausmoke_model::{
+    ConvergenceTests, DeferredSolves, DeviceSolve, ProjectionOptions, settle_deferred_solves,
+};
 use gausmoke_render::device_traffic::Traffic;
 use gausmoke_tests::projection::{device_projection, gpu_device, grid, velocity};
 
@@ -14,8 +16,10 @@ use gausmoke_tests::projection::{device_projection, gpu_device, grid, velocity};
 fn deferred_solves_read_nothing_and_are_judged_later() {
     let grid = grid();
     let (backend, device) = gpu_device();
+    // PCG's budgets (the direct solve, the default without obstacles, has none).
     let immediate = ProjectionOptions {
         max_iterations: 397,
+        device_solve: DeviceSolve::Iterative,
         ..Default::default()
     };
     let deferred = ProjectionOptions {

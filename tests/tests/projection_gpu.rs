@@ -1,6 +1,7 @@
-//! The device projection (cubecl PCG in f32, `projection_kernel.rs`; wgpu, in CI on Mesa's
-//! lavapipe) against the host solver (the same PCG in f64): converged solutions, the same
-//! truncated iterations, the backward pass, and a grid with no divergence to remove.
+//! The device projection (wgpu, in CI on Mesa's lavapipe) against the host solvers: its
+//! direct solve (matrix products in f32) and its PCG (f32) against the host's f64 solves,
+//! for every combination of open faces; the same truncated PCG iterations; the backward
+//! pass; and a grid with no divergence to remove.
 //!
 //! Like the other GPU tests these FAIL without a GPU adapter rather than skip.
 //!
@@ -10,7 +11,9 @@
 
 use gausmoke_core::SplitMix64;
 use gausmoke_model::projection::Divergence;
-use gausmoke_model::{GridSpec, ProjectionOptions, project_velocity, project_with_report};
+use gausmoke_model::{
+    DeviceSolve, GridSpec, ProjectionOptions, project_direct, project_velocity, project_with_report,
+};
 use gausmoke_tests::projection::{device_projection, gpu_device, grid, velocity, velocity_tensor};
 use gausmoke_tests::{assert_close, to_vec};
 
@@ -66,6 +69,7 @@ fn truncated_device_solve_follows_the_host_iterations() {
     let options = ProjectionOptions {
         rel_tolerance: 0.0,
         max_iterations: 5,
+        device_solve: DeviceSolve::Iterative,
         ..Default::default()
     };
     let input = velocity(&grid, 5);
@@ -159,8 +163,8 @@ fn device_projection_leaves_a_divergence_free_field() {
     );
 }
 
-/// Open faces on the device, fully and half open: converged and truncated solves match the
-/// host twin step for step.
+/// Open faces on the device's PCG, fully and half open: converged and truncated solves match
+/// the host twin step for step.
 #[test]
 fn device_projection_with_open_faces_matches_the_host() {
     use gausmoke_model::projection::OpenFaces;
@@ -177,6 +181,7 @@ fn device_projection_with_open_faces_matches_the_host() {
                 rel_tolerance,
                 max_iterations,
                 open_faces,
+                device_solve: DeviceSolve::Iterative,
                 ..Default::default()
             };
             let expected = host_projection(&input, &grid, &options);
@@ -191,6 +196,77 @@ fn device_projection_with_open_faces_matches_the_host() {
                 0.0,
             );
         }
+    }
+}
+
+/// The device's direct solve for every combination of open faces (64), fully and half open,
+/// against the host's direct solve in f64 and against the device's PCG: one projection, to f32
+/// round-off, and no divergence left beyond it.
+#[test]
+fn the_direct_device_solve_matches_the_host_for_every_face_combination() {
+    use gausmoke_model::projection::OpenFaces;
+    let grid = grid();
+    let (backend, device) = gpu_device();
+    let input = velocity(&grid, 17);
+    let scale = max_abs(&input);
+    let names = ["x-", "x+", "y-", "y+", "z-", "z+"];
+    let mut worst = 0.0f32;
+    for mask in 0..64u32 {
+        let open: Vec<&str> = (0..6)
+            .filter(|b| mask & (1 << b) != 0)
+            .map(|b| names[b])
+            .collect();
+        for flow in [1.0, 0.5] {
+            if open.is_empty() && flow != 1.0 {
+                continue;
+            }
+            let open_faces = OpenFaces::from_names(&open).unwrap().with_flow(flow);
+            let options = ProjectionOptions {
+                open_faces,
+                ..Default::default()
+            };
+            let mut expected = input.clone();
+            project_direct(&grid, &mut expected, &options);
+            let actual = device_projection(&input, &grid, &device, options.clone());
+            let label = format!("direct solve, open {open:?} at flow {flow}, on {backend}");
+            assert_close(&label, &actual, &expected, 2e-5 * scale, 0.0);
+            worst = expected
+                .iter()
+                .zip(&actual)
+                .fold(worst, |m, (e, a)| m.max((e - a).abs() / scale));
+            // The divergence with these faces' boundary flow.
+            let op = Divergence::on_grid(&grid).with_open_faces(open_faces);
+            let rms = |u: &[f32]| {
+                let d = op.of_velocity(u);
+                (d.iter().map(|d| d * d).sum::<f64>() / d.len() as f64).sqrt()
+            };
+            let (before, after) = (rms(&input), rms(&actual));
+            assert!(
+                after < 1e-4 * before,
+                "{label}: divergence {after} of {before}"
+            );
+            if mask % 9 == 0 {
+                let iterative = device_projection(
+                    &input,
+                    &grid,
+                    &device,
+                    ProjectionOptions {
+                        device_solve: DeviceSolve::Iterative,
+                        ..options
+                    },
+                );
+                assert_close(
+                    &format!("{label} against PCG"),
+                    &actual,
+                    &iterative,
+                    4e-5 * scale,
+                    0.0,
+                );
+            }
+        }
+    }
+    if std::env::var_os("GAUSMOKE_PRINT_ERRORS").is_some() {
+        eprintln!("direct device solve: worst |error| {worst:e} of the largest input");
     }
 }
 

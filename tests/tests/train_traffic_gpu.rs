@@ -14,6 +14,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use gausmoke_data::synth::{SynthConfig, generate};
 use gausmoke_render::backends::gpu_devices;
 use gausmoke_render::device_traffic::Traffic;
+use gausmoke_train::config::ProjectionSolve;
 use gausmoke_train::sequence::Sequence;
 use gausmoke_train::state::{LoopTraffic, Phase};
 use gausmoke_train::{TrainConfig, Trainer};
@@ -76,6 +77,8 @@ fn a_training_iteration_reads_nothing_back() {
         config.joint.iterations = advect;
         config.refine.iterations = refine;
         config.output.log_every = 100;
+        // PCG with deferred tests first: what its solves read, and when.
+        config.device.projection_solve = ProjectionSolve::Iterative;
         config
     };
     let sequence = Sequence::open(&data, &config).unwrap();
@@ -144,6 +147,37 @@ fn a_training_iteration_reads_nothing_back() {
         refinement.reads - refinement.tile_list_reads,
         1,
         "{refinement:?}"
+    );
+
+    // The direct solve (the default): no solver read at all, and fewer launches a step.
+    let direct = {
+        let mut config = config.clone();
+        config.frames = Some(2);
+        config.device.projection_solve = ProjectionSolve::Direct;
+        config
+    };
+    let sequence = Sequence::open(&data, &direct).unwrap();
+    let mut trainer = Trainer::new(sequence, direct, device.clone().autodiff())
+        .unwrap()
+        .quiet(true);
+    trainer.train_frame(0).unwrap();
+    let outcome = trainer.train_frame(1).unwrap();
+    let direct_joint = loop_of(&outcome.traffic, Phase::Advect);
+    assert_eq!(direct_joint.solver_reads, 0, "{direct_joint:?}");
+    assert_eq!(
+        direct_joint.reads - direct_joint.tile_list_reads,
+        1,
+        "{direct_joint:?}"
+    );
+    let per_step = |l: &LoopTraffic| l.launches as f64 / l.iterations as f64;
+    eprintln!(
+        "launches per joint iteration: PCG (deferred) {:.0}, direct {:.0}",
+        per_step(&joint),
+        per_step(&direct_joint)
+    );
+    assert!(
+        per_step(&direct_joint) < per_step(&joint),
+        "{direct_joint:?} against {joint:?}"
     );
 
     // The list lengths are measured again after each read of the log, so the buffers follow

@@ -247,6 +247,19 @@ pub enum ConvergenceTests {
     Deferred,
 }
 
+/// How the device solver of the cube backends solves a grid without obstacles (with
+/// obstacles it always iterates: the operator no longer separates).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum DeviceSolve {
+    /// In one step by separation of variables, as the CPU backends do: three changes of
+    /// basis as matrix products, a division, three changes back, in f32, with no read and no
+    /// iteration.
+    #[default]
+    Direct,
+    /// Jacobi-PCG to `rel_tolerance`, as with obstacles.
+    Iterative,
+}
+
 /// Solver controls and what it reached.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ProjectionOptions {
@@ -258,6 +271,7 @@ pub struct ProjectionOptions {
     /// Obstacles inside the box, if any.
     pub solids: Option<SolidCells>,
     pub convergence_tests: ConvergenceTests,
+    pub device_solve: DeviceSolve,
 }
 
 impl Default for ProjectionOptions {
@@ -268,6 +282,7 @@ impl Default for ProjectionOptions {
             open_faces: OpenFaces::NONE,
             solids: None,
             convergence_tests: ConvergenceTests::Immediate,
+            device_solve: DeviceSolve::Direct,
         }
     }
 }

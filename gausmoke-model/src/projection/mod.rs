@@ -14,8 +14,8 @@ use burn::tensor::Tensor;
 
 use crate::grid::GridSpec;
 pub use host::{
-    ConvergenceTests, Divergence, OpenFaces, ProjectionOptions, ProjectionReport, ProjectionSpec,
-    SolidCells, SolveKind,
+    ConvergenceTests, DeviceSolve, Divergence, OpenFaces, ProjectionOptions, ProjectionReport,
+    ProjectionSpec, SolidCells, SolveKind,
 };
 pub use op::ProjectionBackend;
 

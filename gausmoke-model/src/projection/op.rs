@@ -55,8 +55,9 @@ impl ProjectionBackend for burn::backend::Flex {
     }
 }
 
-/// On the GPU backends the solve stays on the device (`kernels`): the same PCG in
-/// f32, with no read-back of the velocity grid.
+/// On the GPU backends the solve stays on the device (`kernels`): direct by matrix products
+/// without obstacles, the host's PCG with them, in f32, with no read-back of the velocity
+/// grid.
 #[cfg(feature = "cube")]
 impl ProjectionBackend for burn_cubecl::CubeBackend {
     fn project_velocity(velocity: FloatTensor<Self>, spec: ProjectionSpec) -> FloatTensor<Self> {

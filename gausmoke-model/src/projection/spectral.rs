@@ -305,6 +305,49 @@ impl SpectralSolver {
     }
 }
 
+/// The direct solve in the form the device runs it, in f32: per axis the change of basis
+/// into the eigenbasis, `Q^T` (row-major `[n, n]`), and back, `Q`; and per cell (`[nx, ny,
+/// nz]`, z fastest) the inverse of its eigenvalue, 0 for the null mode, as
+/// [`SpectralSolver::solve`] divides.
+#[derive(Debug, Clone)]
+pub struct DeviceFactors {
+    pub into: [Vec<f32>; 3],
+    pub back: [Vec<f32>; 3],
+    pub inverse: Vec<f32>,
+}
+
+impl SpectralSolver {
+    /// [`DeviceFactors`] of this grid.
+    pub fn device_factors(&self) -> DeviceFactors {
+        let [nx, ny, nz] = self.resolution;
+        let transpose = |q: &[f64], n: usize| -> Vec<f32> {
+            (0..n * n).map(|e| q[(e % n) * n + e / n] as f32).collect()
+        };
+        let into = [0, 1, 2].map(|a| transpose(&self.axes[a].vectors, self.axes[a].n));
+        let back = [0, 1, 2].map(|a| self.axes[a].vectors.iter().map(|&v| v as f32).collect());
+        let [lx, ly, lz] = [0, 1, 2].map(|a| &self.axes[a].values);
+        let largest = lx.iter().cloned().fold(0.0, f64::max)
+            + ly.iter().cloned().fold(0.0, f64::max)
+            + lz.iter().cloned().fold(0.0, f64::max);
+        let inverse = (0..nx * ny * nz)
+            .map(|cell| {
+                let (i, j, k) = (cell / (ny * nz), (cell / nz) % ny, cell % nz);
+                let eigenvalue = lx[i] + ly[j] + lz[k];
+                if eigenvalue > 1e-12 * largest {
+                    (1.0 / eigenvalue) as f32
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        DeviceFactors {
+            into,
+            back,
+            inverse,
+        }
+    }
+}
+
 /// Projects `u` (`[cells * 3]`, f32) in place with the direct solve; the report's
 /// `iterations` is 1 and its residual what f64 arithmetic left.
 ///

@@ -94,3 +94,24 @@ impl From<GradientSums> for gausmoke_render::GradientSums {
         }
     }
 }
+
+/// How the GPU backends solve the projection's Poisson equation on a grid without obstacles
+/// ([`gausmoke_model::DeviceSolve`], spelled for TOML); with obstacles, and on the CPU
+/// backends, this changes nothing.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ProjectionSolve {
+    /// In one step by separation of variables, as matrix products: no iteration, no read.
+    Direct,
+    /// Jacobi-PCG to `projection.tolerance`, as with obstacles.
+    Iterative,
+}
+
+impl From<ProjectionSolve> for gausmoke_model::DeviceSolve {
+    fn from(solve: ProjectionSolve) -> Self {
+        match solve {
+            ProjectionSolve::Direct => Self::Direct,
+            ProjectionSolve::Iterative => Self::Iterative,
+        }
+    }
+}

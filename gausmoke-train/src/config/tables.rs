@@ -5,7 +5,9 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::kinds::{GradientSums, Obstacles, PlyAxes, ProjectionKind, SolverTests};
+use super::kinds::{
+    GradientSums, Obstacles, PlyAxes, ProjectionKind, ProjectionSolve, SolverTests,
+};
 
 /// A table's keys, refused when given as anything else: serde reads a struct from an array
 /// too, so `init.learning_rates = []` would quietly be the defaults.
@@ -335,6 +337,11 @@ pub struct DeviceConfig {
     /// reads per solve, no wasted launches). Which is faster depends on the GPU's read latency
     /// against its launch cost; the results agree to the solver's tolerance.
     pub solver_tests: SolverTests,
+    /// How the projection is solved on a grid without obstacles: `"direct"` (default; by
+    /// separation of variables as matrix products, a dozen launches and no read) or
+    /// `"iterative"` (Jacobi-PCG, as with obstacles; `solver_tests` applies). They agree to
+    /// the PCG's tolerance.
+    pub projection_solve: ProjectionSolve,
     /// Wait for the device at both ends of every timed phase, so the per-phase times in
     /// `metrics.json` charge GPU work to the phase that queued it. Slows GPU runs.
     pub sync_phase_timings: bool,
@@ -346,6 +353,7 @@ impl Default for DeviceConfig {
             gradient_sums: GradientSums::Planes,
             tile_list_headroom: 1.5,
             solver_tests: SolverTests::Deferred,
+            projection_solve: ProjectionSolve::Direct,
             sync_phase_timings: false,
         }
     }

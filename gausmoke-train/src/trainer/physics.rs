@@ -40,6 +40,7 @@ impl Trainer {
             solids: self.solids.clone(),
             // Deferred solves are judged when the steps' losses are read (`read_log`).
             convergence_tests: self.config.device.solver_tests.into(),
+            device_solve: self.config.device.projection_solve.into(),
         }
     }
 

@@ -1,6 +1,7 @@
 //! The exact projection `Pi` ([`super`]) on the device, for the cube backends.
 //!
-//! The same Jacobi-preconditioned conjugate gradients on `D D^T p = D u` as the host solver,
+//! Without obstacles (and with [`DeviceSolve::Direct`], the default) the Poisson solve is
+//! direct, as matrix products ([`direct`]). Otherwise it is the same Jacobi-preconditioned conjugate gradients on `D D^T p = D u` as the host solver,
 //! with the same discrete operators, but in f32 and without leaving the GPU: the velocity grid
 //! is never read back. Every CG scalar (`r.z`, `d.A d`, `|r|^2`) lives in a device buffer, one
 //! slot per iteration, so the step sizes are computed by the kernels themselves, and once the
@@ -27,7 +28,9 @@ use burn_cubecl::tensor::CubeTensor;
 use cubecl::prelude::*;
 use gausmoke_render::kernels::buffers::{buffer, contiguous_f32};
 
-use super::host::{ConvergenceTests, ProjectionOptions, ProjectionReport, ProjectionSpec};
+use super::host::{
+    ConvergenceTests, DeviceSolve, ProjectionOptions, ProjectionReport, ProjectionSpec,
+};
 use cg::{
     CELL_BLOCK, direction_kernel, dot_partials_kernel, finish_sums_kernel,
     operator_direction_kernel, step_kernel, subtract_kernel,
@@ -36,6 +39,7 @@ use operators::{divergence_kernel, divergence_transpose_kernel, precondition_ker
 
 mod cg;
 mod deferred;
+mod direct;
 mod operators;
 
 pub use deferred::{CHECK_EVERY, settle_deferred_solves};
@@ -154,6 +158,39 @@ impl Solver {
         );
     }
 
+    /// `u - D^T p`, shaped `shape` (the velocity's).
+    fn subtract_gradient(
+        &self,
+        velocity: &CubeTensor,
+        pressure: &CubeTensor,
+        shape: burn::tensor::Shape,
+    ) -> CubeTensor {
+        let [nx, ny, nz] = self.dims;
+        let gradient = self.new_buffer(3 * self.cells, false);
+        self.divergence_transpose(pressure, &gradient);
+        let output = self.new_buffer(3 * self.cells, false);
+        subtract_kernel::launch(
+            &self.like.client,
+            self.cubes(3 * self.cells),
+            Self::block(),
+            buffer(velocity),
+            buffer(&gradient),
+            buffer(&output),
+            buffer(&self.fluid),
+            self.has_solids,
+            nx,
+            ny,
+            nz,
+        );
+        CubeTensor::new_contiguous(
+            output.client,
+            output.device,
+            shape,
+            output.handle,
+            DType::F32,
+        )
+    }
+
     /// `scalars[slot] = a . b` over the cells (`a`, `b` one value per cell).
     fn dot(
         &self,
@@ -248,6 +285,7 @@ pub fn project_velocity(
         open_faces,
         ref solids,
         convergence_tests,
+        device_solve,
     } = spec.options;
     let upload = |values: Vec<f32>| {
         use burn::backend::ops::FloatTensorOps;
@@ -293,6 +331,10 @@ pub fn project_velocity(
 
     let residual = solver.new_buffer(cells, false);
     solver.divergence(&velocity, &residual);
+    if solids.is_none() && device_solve == DeviceSolve::Direct {
+        let pressure = contiguous_f32(direct::pressure(residual, spec), "pressure");
+        return (solver.subtract_gradient(&velocity, &pressure, shape), None);
+    }
     // Per-cube partial sums: of the velocity's norm (3 values per cell), or of two dot
     // products over the cells at once (the step's `|r|^2` and `r.z`).
     let cell_cubes = cells.div_ceil(CELL_BLOCK);
@@ -316,7 +358,6 @@ pub fn project_velocity(
     let pressure = solver.new_buffer(cells, true);
     let preconditioned = solver.new_buffer(cells, false);
     let direction = solver.new_buffer(cells, false);
-    let gradient = solver.new_buffer(3 * cells, false);
     let operator_direction = solver.new_buffer(cells, false);
     precondition_kernel::launch(
         &client,
@@ -466,29 +507,10 @@ pub fn project_velocity(
         report = Some(report_after(&read_scalars(&scalars), 0, cells));
     }
 
-    solver.divergence_transpose(&pressure, &gradient);
-    let output = solver.new_buffer(3 * cells, false);
-    subtract_kernel::launch(
-        &client,
-        solver.cubes(3 * cells),
-        Solver::block(),
-        buffer(&velocity),
-        buffer(&gradient),
-        buffer(&output),
-        buffer(&solver.fluid),
-        solver.has_solids,
-        nx,
-        ny,
-        nz,
-    );
-    let output = CubeTensor::new_contiguous(
-        output.client,
-        output.device,
-        shape,
-        output.handle,
-        DType::F32,
-    );
-    (output, report)
+    (
+        solver.subtract_gradient(&velocity, &pressure, shape),
+        report,
+    )
 }
 
 /// Multiple of f32's epsilon under which `|r| / (|D| |u|)` is round-off.
